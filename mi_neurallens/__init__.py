@@ -1,0 +1,39 @@
+"""mi-neurallens: real camera lenses for Mitsuba 3.
+
+* :class:`Lens` — validated prescriptions (``Lens.load``), paraxial numbers, exact tracing.
+* Mitsuba plugins (``realistic_lens``, ``neural_lens`` sensors, ``lens_flare`` integrator) are
+  registered for the current Mitsuba variant by :func:`register`, which ``import mi_neurallens``
+  calls automatically when a variant is already set.  Registration is per variant: call
+  :func:`register` again after every ``mi.set_variant``.
+
+Importing this package never imports torch and never sets a Mitsuba variant.
+"""
+from __future__ import annotations
+
+from .errors import GlassError, LensError, ModelError, NeuralLensError
+from .optics.glass import Medium
+from .optics.prescription import Coating, Lens, Surface
+
+__version__ = "0.1.0"
+
+__all__ = ["Lens", "Surface", "Medium", "Coating", "LensError", "GlassError", "ModelError",
+           "NeuralLensError", "register", "__version__"]
+
+
+def register() -> list[str]:
+    """Register this package's Mitsuba plugins for the *current* variant; returns their names."""
+    from .plugins import register_all
+    return register_all()
+
+
+def _auto_register():
+    try:
+        import sys
+        mi = sys.modules.get("mitsuba")
+        if mi is not None and mi.variant() is not None:
+            register()
+    except Exception:  # pragma: no cover - registration problems surface on load instead
+        pass
+
+
+_auto_register()

@@ -1,0 +1,1 @@
+"""Sub-commands of the mi-neurallens CLI, one module each."""

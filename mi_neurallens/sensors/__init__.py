@@ -1,0 +1,1 @@
+"""Mitsuba sensors: realistic_lens (exact) and neural_lens."""

@@ -1,0 +1,106 @@
+"""Numpy-facing exact tracing: ``Lens.trace`` (numpy in, numpy out).
+
+Runs the Dr.Jit tracer on the LLVM backend (CUDA if LLVM is unavailable), independent of any
+Mitsuba variant that may be set.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from ..errors import NeuralLensError
+
+
+@dataclass
+class RayBundle:
+    """Result of :func:`trace`, numpy arrays in lens space (mm).
+
+    ``position`` (N,3): where the ray crosses the output plane (forward: the image plane;
+    backward: the first-vertex plane z = 0); ``direction`` (N,3) unit; ``throughput`` (N,):
+    product of Fresnel factors; ``valid`` (N,) bool.  Invalid rays have NaN position/direction
+    and zero throughput.  ``points`` (N, M, 3), with ``record=True``: the input point, each
+    surface/stop hit in path order, and the output point (NaN where the ray is invalid).
+    """
+
+    position: np.ndarray
+    direction: np.ndarray
+    throughput: np.ndarray
+    valid: np.ndarray
+    points: np.ndarray | None = None
+
+
+def float_type(precision: str = "float32"):
+    """The Dr.Jit float array type used by the numpy API (``float32`` or ``float64``)."""
+    import drjit as dr
+    if precision not in ("float32", "float64"):
+        raise NeuralLensError(f"precision must be 'float32' or 'float64', got {precision!r}")
+    if dr.has_backend(dr.JitBackend.LLVM):
+        import drjit.llvm as be
+    elif dr.has_backend(dr.JitBackend.CUDA):  # pragma: no cover - no GPU here
+        import drjit.cuda as be
+    else:  # pragma: no cover
+        raise NeuralLensError("Dr.Jit has neither an LLVM nor a CUDA backend; install libLLVM >= 16")
+    return be.Float if precision == "float32" else be.Float64
+
+
+@lru_cache(maxsize=32)
+def tracer_for(lens, fresnel: bool = True):
+    """A cached :class:`~mi_neurallens.trace.tracer.LensTracer` for ``lens``."""
+    from .tracer import LensTracer
+    return LensTracer(lens, fresnel=fresnel)
+
+
+def trace(lens, origins, directions, wavelength_nm, direction: str = "forward", path="transmit", *,
+          fresnel: bool = True, precision: str = "float32", z_out: float | None = None,
+          record: bool = False) -> RayBundle:
+    """Trace rays exactly through ``lens`` along one path type.
+
+    Parameters
+    ----------
+    origins, directions: (N, 3) arrays in lens space (mm); directions are normalised here.
+        Forward rays start in object space (z < first surface) heading +z; backward rays start on
+        the sensor side heading −z.  A ray is a line in its first medium, so the origin may lie
+        anywhere on it in front of the first surface it meets.
+    wavelength_nm: scalar or (N,) wavelengths in nm.
+    direction: ``"forward"`` (object → sensor) or ``"backward"`` (sensor → object).
+    path: ``"transmit"``, an integer path id or a ghost ``(a, b)``; see :mod:`.paths`.
+    fresnel: include Fresnel factors in the throughput.
+    precision: ``"float32"`` (rendering) or ``"float64"`` (reference data).
+    z_out: output plane z in lens space (default: image plane forward, z = 0 backward).
+    record: also return every hit point (``RayBundle.points``).
+    """
+    import drjit as dr
+    o = np.asarray(origins, dtype=np.float64)
+    d = np.asarray(directions, dtype=np.float64)
+    if o.ndim != 2 or o.shape[1] != 3 or d.shape != o.shape:
+        raise NeuralLensError(f"origins and directions must both be (N, 3) arrays, got {o.shape} and {d.shape}")
+    n = o.shape[0]
+    lam = np.broadcast_to(np.asarray(wavelength_nm, dtype=np.float64), (n,))
+    if not np.all(np.isfinite(lam)) or np.any(lam <= 0):
+        raise NeuralLensError("wavelength_nm must be positive and finite (nanometres)")
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    F = float_type(precision)
+    dt = np.float32 if precision == "float32" else np.float64
+    cols = lambda a: tuple(F(np.ascontiguousarray(a[:, i], dtype=dt)) for i in range(3))
+    tr = tracer_for(lens, bool(fresnel))
+    res = tr.trace(cols(o), cols(d), F(np.ascontiguousarray(lam, dtype=dt)), path, direction,
+                   z_out=z_out, record=record)
+    arrays = [*res.position, *res.direction, res.throughput]
+    if record:
+        for p in res.points:
+            arrays += list(p)
+    dr.eval(arrays, res.valid)
+    valid = res.valid.numpy().astype(bool)
+    pos = np.stack([a.numpy() for a in res.position], 1).astype(np.float64)
+    dirn = np.stack([a.numpy() for a in res.direction], 1).astype(np.float64)
+    thr = res.throughput.numpy().astype(np.float64)
+    pos[~valid] = np.nan
+    dirn[~valid] = np.nan
+    thr = np.where(valid, thr, 0.0)
+    pts = None
+    if record:
+        pts = np.stack([np.stack([c.numpy() for c in p], 1) for p in res.points], 1).astype(np.float64)
+        pts[~valid] = np.nan
+    return RayBundle(pos, dirn, thr, valid, pts)

@@ -1,0 +1,182 @@
+"""The exact sequential lens tracer (Dr.Jit, vectorised over rays, any float type/backend).
+
+:class:`LensTracer` turns a :class:`~mi_neurallens.optics.prescription.Lens` and a path type into
+straight-line Dr.Jit code: the path's steps are unrolled at trace time and every surface constant
+is a Python float, so one kernel per (lens, path) is generated and cached by Dr.Jit.
+
+Inputs and outputs are in lens space (mm, +z toward the sensor) as component tuples.  A ray is
+*valid* when it passes every clear aperture, housing and the stop, never undergoes total internal
+reflection on a transmit step, always meets each surface from the side the path says, and reaches
+the output plane.  Throughput is the product of the Fresnel factors (T = 1 − R for transmissions,
+R for reflections) at the ray's own wavelength; radiance scaling by n² is not applied (object and
+image spaces are both air for camera lenses).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+
+import drjit as dr
+
+from .interactions import coated_reflectance, fresnel_reflectance, reflect, refract
+from .paths import BACKWARD, FORWARD, PathSpec, resolve_path
+from .surfaces import SurfaceGeometry
+
+
+@dataclass
+class TraceResult:
+    """Dr.Jit result of :meth:`LensTracer.trace` (component tuples, lens space, mm)."""
+
+    position: tuple
+    direction: tuple
+    throughput: object
+    valid: object
+    points: list | None = None
+
+
+class LensTracer:
+    """Exact tracer of one lens.  Cheap to construct; kernels are cached by Dr.Jit per path.
+
+    Parameters
+    ----------
+    lens: the prescription.
+    fresnel: multiply throughput by the Fresnel factors (and coatings).  ``False``: purely
+        geometric throughput (1 for every valid ray).
+    """
+
+    def __init__(self, lens, fresnel: bool = True):
+        self.lens = lens
+        self.fresnel = fresnel
+        z = lens.vertex_z
+        self.geom = [SurfaceGeometry(s, z[i]) for i, s in enumerate(lens.surfaces)]
+        self._paths: dict = {}
+
+    def path(self, path="transmit", direction: str = FORWARD) -> PathSpec:
+        key = (path if not isinstance(path, PathSpec) else path.id, direction)
+        if key not in self._paths:
+            self._paths[key] = resolve_path(self.lens, path, direction)
+        return self._paths[key]
+
+    def default_output_z(self, direction: str) -> float:
+        """Forward: the image plane.  Backward: the plane of the first vertex (z = 0)."""
+        return self.lens.image_z if direction == FORWARD else 0.0
+
+    # ------------------------------------------------------------------------------ helpers
+    def _aperture_radius(self, step) -> float:
+        """Clear semi-diameter, tightened by the housing of every gap this step borders."""
+        s = self.lens.surfaces
+        r = s[step.surface].semi_diameter
+        i = step.surface
+        h = step.heading
+        gap_in = i - 1 if h > 0 else i
+        gaps = (gap_in,) if step.kind == "R" else (gap_in, i if h > 0 else i - 1)
+        for g in gaps:
+            if 0 <= g < len(s) and s[g].housing_radius is not None:
+                r = min(r, s[g].housing_radius)
+        return r
+
+    def _stop_ok(self, x, y):
+        stop = self.lens.stop
+        r = stop.semi_diameter
+        if not stop.blades:
+            return dr.fma(x, x, y * y) <= r * r
+        ok = None
+        for k in range(stop.blades):
+            a = math.radians(stop.blade_rotation_deg) + 2.0 * math.pi * k / stop.blades
+            inside = dr.fma(x, math.cos(a), y * math.sin(a)) <= r
+            ok = inside if ok is None else ok & inside
+        return ok
+
+    # ------------------------------------------------------------------------------ trace
+    def trace(self, o, d, lam_nm, path="transmit", direction: str = FORWARD, *,
+              z_out: float | None = None, record: bool = False, active=True) -> TraceResult:
+        """Trace rays along one path type.
+
+        ``o``, ``d``: (x, y, z) tuples of Dr.Jit float arrays, lens space, mm; ``d`` unit length.
+        ``lam_nm``: wavelength per ray (nm), same float type (or a Python float).
+        ``z_out``: output plane (default :meth:`default_output_z`).  Returns the ray where it
+        crosses the output plane.
+        """
+        spec = self.path(path, direction)
+        lens = self.lens
+        media_n: dict = {}
+
+        def n_of(m):
+            """(n, 1/n) of medium ``m`` at each ray's wavelength, computed once per trace."""
+            if m not in media_n:
+                n = m.coefficients[0] if m.is_constant else m.dr_index(lam_nm)
+                media_n[m] = (n, 1.0 / n)
+            return media_n[m]
+
+        x, y, z = o
+        dx, dy, dz = d
+        valid = dr.full(dr.mask_t(x), True, dr.width(x)) & active
+        T = None
+        pts = [(x, y, z)] if record else None
+
+        for si, step in enumerate(spec.steps):
+            g = self.geom[step.surface]
+            t, ok = g.intersect((x, y, z), (dx, dy, dz))
+            valid &= ok
+            if si > 0:
+                valid &= t > 0.0
+            x, y, z = dr.fma(t, dx, x), dr.fma(t, dy, y), dr.fma(t, dz, z)
+            if record:
+                pts.append((x, y, z))
+            if step.kind == "stop":
+                valid &= self._stop_ok(x, y)
+                continue
+            rad = self._aperture_radius(step)
+            valid &= dr.fma(x, x, y * y) <= rad * rad
+
+            h = step.heading
+            nx, ny, nz = g.normal((x, y, z))
+            if h < 0:
+                nx, ny, nz = -nx, -ny, -nz
+            cos_i = -(dx * nx + dy * ny + dz * nz)
+            valid &= cos_i > 0.0
+
+            surf = lens.surfaces[step.surface]
+            m_before, m_after = lens.medium_before(step.surface), surf.medium
+            m1, m2 = (m_before, m_after) if h > 0 else (m_after, m_before)
+            same = m1 == m2
+            (n1, _), (n2, inv_n2) = n_of(m1), n_of(m2)
+
+            if step.kind == "T":
+                if same:
+                    continue  # a dummy surface between identical media: no bending, no loss
+                eta = n1 * inv_n2
+                (dx, dy, dz), cos_t, tir = refract((dx, dy, dz), (nx, ny, nz), cos_i, eta)
+                valid &= ~tir
+                if self.fresnel:
+                    R = self._reflectance(surf, n1, n2, cos_i, cos_t, lam_nm)
+                    T = (1.0 - R) if T is None else T * (1.0 - R)
+            else:
+                (dx, dy, dz) = reflect((dx, dy, dz), (nx, ny, nz), cos_i)
+                if same:
+                    T = x * 0.0
+                elif self.fresnel:
+                    eta = n1 * inv_n2
+                    k = 1.0 - eta * eta * (1.0 - cos_i * cos_i)
+                    cos_t = dr.sqrt(dr.maximum(k, 0.0))
+                    R = dr.select(k < 0.0, 1.0, self._reflectance(surf, n1, n2, cos_i, cos_t, lam_nm))
+                    T = R if T is None else T * R
+
+        # continue to the output plane
+        zo = self.default_output_z(direction) if z_out is None else float(z_out)
+        valid &= (dz > 0.0) if direction == FORWARD else (dz < 0.0)
+        t = (zo - z) / dz
+        x, y = dr.fma(t, dx, x), dr.fma(t, dy, y)
+        z = x * 0.0 + zo
+        if record:
+            pts.append((x, y, z))
+        if T is None:
+            T = x * 0.0 + 1.0
+        return TraceResult((x, y, z), (dx, dy, dz), T, valid, pts)
+
+    @staticmethod
+    def _reflectance(surf, n1, n2, cos_i, cos_t, lam_nm):
+        if surf.coating is None:
+            return fresnel_reflectance(n1, n2, cos_i, cos_t)
+        c = surf.coating
+        return coated_reflectance(n1, n2, cos_i, cos_t, lam_nm, c.index, c.thickness_nm)
