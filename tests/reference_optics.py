@@ -27,11 +27,15 @@ def optiland_optic(lens, wavelength_nm: float):
             kw.update(surface_type="even_asphere", conic=s.conic,
                       coefficients=[0.0] + [float(a) for a in s.aspheric])
         L.surfaces.add(**kw)
-    L.surfaces.add(index=len(lens.surfaces) + 1)
+    L.surfaces.add(index=len(lens.surfaces) + 1, material=mat(lens.surfaces[-1].medium))
     L.set_aperture(aperture_type="EPD", value=1.0)
     L.fields.set_type(field_type="angle")
     L.fields.add(y=0.0)
     L.wavelengths.add(value=lam * 1e-3, is_primary=True)
+    for s in L.surfaces.surfaces if hasattr(L.surfaces, "surfaces") else L.surface_group.surfaces:
+        g = s.geometry
+        if hasattr(g, "tol"):  # optiland's default Newton tolerance (1e-10 on F) leaves ~1e-7 mm errors
+            g.tol, g.max_iter = 1e-14, 200
     return L
 
 
@@ -46,7 +50,7 @@ def optiland_trace(lens, origins, directions, wavelength_nm: float):
     n = len(o)
     rays = RealRays(o[:, 0].copy(), o[:, 1].copy(), o[:, 2].copy(), d[:, 0].copy(), d[:, 1].copy(),
                     d[:, 2].copy(), np.ones(n), np.full(n, wavelength_nm * 1e-3))
-    L.surface_group.trace(rays, skip=1)
+    (L.surfaces if hasattr(L.surfaces, 'trace') else L.surface_group).trace(rays, skip=1)
     pos = np.stack([np.asarray(rays.x), np.asarray(rays.y), np.asarray(rays.z)], 1)
     dirn = np.stack([np.asarray(rays.L), np.asarray(rays.M), np.asarray(rays.N)], 1)
     return pos, dirn

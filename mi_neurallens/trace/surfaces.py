@@ -52,12 +52,15 @@ class SurfaceGeometry:
         return sag, dsag
 
     # -------------------------------------------------------------------------------- intersect
-    def intersect(self, o, d):
-        """Distance ``t`` along ``d`` from ``o`` to this surface near its vertex, and a validity mask.
+    def intersect(self, o, d, heading: int = 1):
+        """Distance ``t`` along ``d`` from ``o`` to this surface, and a validity mask.
 
-        ``o``/``d`` are (x, y, z) tuples; ``d`` need not be normalised for the conic solve.
-        The conic root is the numerically stable one continuous with the plane solution
-        (c → 0), i.e. the sheet through the vertex.
+        ``o``/``d`` are (x, y, z) tuples.  ``heading`` (+1: the ray travels toward +z, −1: toward
+        −z) picks the root: of the two intersections with the quadric, the one where the ray
+        meets the surface from the side it is travelling from, i.e. ``F'(t) = 2 ∇F·d`` has the sign
+        that makes the ray *enter* through the vertex sheet (this is independent of where the
+        origin lies, e.g. inside the sphere).  Each root is written in the form that is stable for
+        the usual sign of the half-linear coefficient for that heading.
         """
         ox, oy, oz = o
         dx, dy, dz = d
@@ -72,8 +75,9 @@ class SurfaceGeometry:
             cc = dr.fma(c, ox * ox + oy * oy, dr.fma(ck * pz, pz, -2.0 * pz))
             disc = dr.fma(hb, hb, -a * cc)
             ok = disc >= 0.0
-            q = -(hb + dr.copysign(dr.sqrt(dr.maximum(disc, 0.0)), hb))
-            t = cc / q
+            sq = dr.sqrt(dr.maximum(disc, 0.0))
+            # heading +1: t = (−hb − sq)/a = cc/(sq − hb); heading −1: t = (sq − hb)/a = −cc/(hb + sq)
+            t = cc / (sq - hb) if heading > 0 else -cc / (hb + sq)
             # the vertex sheet: 1 - c(1+K) z' >= 0
             ok &= dr.fma(-ck, dr.fma(t, dz, pz), 1.0) >= 0.0
         if self.asph:

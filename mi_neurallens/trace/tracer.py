@@ -52,7 +52,9 @@ class LensTracer:
         self._paths: dict = {}
 
     def path(self, path="transmit", direction: str = FORWARD) -> PathSpec:
-        key = (path if not isinstance(path, PathSpec) else path.id, direction)
+        if isinstance(path, PathSpec):
+            return resolve_path(self.lens, path, direction)
+        key = (path, direction)
         if key not in self._paths:
             self._paths[key] = resolve_path(self.lens, path, direction)
         return self._paths[key]
@@ -116,7 +118,7 @@ class LensTracer:
 
         for si, step in enumerate(spec.steps):
             g = self.geom[step.surface]
-            t, ok = g.intersect((x, y, z), (dx, dy, dz))
+            t, ok = g.intersect((x, y, z), (dx, dy, dz), step.heading)
             valid &= ok
             if si > 0:
                 valid &= t > 0.0
