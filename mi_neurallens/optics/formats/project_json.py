@@ -1,0 +1,305 @@
+"""The project's own lens format: strict JSON, read and written here.
+
+Layout (see ``docs/lens-format.md`` and the JSON Schema ``mi_neurallens/data/lens.schema.json``)::
+
+    {"format": "mi-neurallens-lens", "version": 1, "name": "...", "description": "...",
+     "units": "mm", "object_medium": <medium spec>,
+     "surfaces": [{"label", "radius", "thickness", "medium", "semi_diameter", "conic", "aspheric",
+                   "housing_radius", "stop", "blades", "blade_rotation_deg", "coating"}, ...],
+     "source": {provenance}, "metadata": {free-form}}
+
+Unknown keys anywhere (except inside the free-form ``metadata`` and a medium's ``source``) are
+errors, so a typo never passes silently.  Wrong types, NaN/Infinity, missing required fields raise
+:class:`~mi_neurallens.errors.LensError` naming the file, the surface index and the field.
+
+In memory, the file's ``description`` and ``source`` live in ``Lens.metadata["description"]`` and
+``Lens.metadata["source"]``; the other keys of ``Lens.metadata`` are the file's ``metadata`` object.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+import tempfile
+from typing import Any
+
+from ..glass import AIR, Medium
+from ..prescription import MAX_ASPHERIC, Coating, Lens, Surface
+from ._common import Ctx, check_keys, is_number, loads_json, number, resolve, type_name
+
+FORMAT_ID = "mi-neurallens-lens"
+VERSION = 1
+
+TOP_KEYS = ("format", "version", "name", "description", "units", "object_medium", "surfaces",
+            "source", "metadata")
+TOP_REQUIRED = ("format", "version", "name", "surfaces")
+SURFACE_KEYS = ("label", "radius", "thickness", "medium", "semi_diameter", "conic", "aspheric",
+                "housing_radius", "stop", "blades", "blade_rotation_deg", "coating")
+SURFACE_REQUIRED = ("radius", "thickness", "medium", "semi_diameter")
+COATING_KEYS = ("index", "design_wavelength_nm")
+#: provenance keys (all optional, all strings except ``conversion``: a list of strings)
+SOURCE_KEYS = ("file", "format", "repository", "path", "commit", "url", "reference", "sha256",
+               "conversion")
+#: keys of ``Lens.metadata`` that map to top-level fields of the file
+RESERVED_METADATA = ("description", "source")
+
+
+# ---------------------------------------------------------------------------------------- reading
+def is_project_json(doc: Any) -> bool:
+    return isinstance(doc, dict) and doc.get("format") == FORMAT_ID
+
+
+def load_project_json(path: str | os.PathLike, **kw) -> Lens:
+    """Read a project JSON file."""
+    ctx = Ctx(str(path))
+    try:
+        text = Path(path).read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise ctx.error(f"not UTF-8 text ({e.reason} at byte {e.start})") from None
+    return lens_from_dict(loads_json(ctx, text), path=str(path), **kw)
+
+
+def lens_from_dict(doc: Any, *, path: str | None = None) -> Lens:
+    """Build a validated :class:`Lens` from a parsed project-JSON document."""
+    ctx = Ctx(path or "<lens dict>")
+    if not isinstance(doc, dict):
+        raise ctx.error(f"a lens file must be a JSON object, got {type_name(doc)}")
+    check_keys(ctx, doc, TOP_KEYS, required=TOP_REQUIRED)
+    if doc["format"] != FORMAT_ID:
+        raise ctx.error(f"must be \"{FORMAT_ID}\", got {doc['format']!r}", field="format")
+    v = doc["version"]
+    if not (is_number(v) and float(v) == int(v)):
+        raise ctx.error(f"must be the integer {VERSION}, got {type_name(v)} {v!r}", field="version")
+    if int(v) != VERSION:
+        raise ctx.error(f"version {int(v)} is not supported by this mi-neurallens (it reads version "
+                        f"{VERSION}){'; upgrade mi-neurallens' if int(v) > VERSION else ''}",
+                        field="version")
+    name = doc["name"]
+    if not isinstance(name, str) or not name.strip():
+        raise ctx.error(f"must be a non-empty string, got {type_name(name)} {name!r}", field="name")
+    desc = doc.get("description", "")
+    if not isinstance(desc, str):
+        raise ctx.error(f"must be a string, got {type_name(desc)}", field="description")
+    units = doc.get("units", "mm")
+    if units != "mm":
+        raise ctx.error(f"only \"mm\" is supported (every length is in millimetres), got {units!r}",
+                        field="units")
+    source = _read_source(ctx, doc.get("source", {}))
+    meta = doc.get("metadata", {})
+    if not isinstance(meta, dict):
+        raise ctx.error(f"must be an object, got {type_name(meta)}", field="metadata")
+    for k in RESERVED_METADATA:
+        if k in meta:
+            raise ctx.error(f"'{k}' is a top-level field of the lens file, not a metadata key",
+                            field=f"metadata.{k}")
+    obj = resolve(ctx, doc["object_medium"], field="object_medium") if "object_medium" in doc else AIR
+
+    surfs = doc["surfaces"]
+    if not isinstance(surfs, list):
+        raise ctx.error(f"must be an array of surface objects, got {type_name(surfs)}", field="surfaces")
+    if len(surfs) < 2:
+        raise ctx.error(f"a lens needs at least one optical surface and a stop, got {len(surfs)} "
+                        "surface(s)", field="surfaces")
+    surfaces = [_read_surface(ctx, i, s) for i, s in enumerate(surfs)]
+    stops = [i for i, s in enumerate(surfaces) if s.is_stop]
+    if not stops:
+        raise ctx.error("no surface is marked as the aperture stop: set \"stop\": true on exactly one "
+                        "flat surface that sits in an air gap", field="stop")
+    if len(stops) > 1:
+        raise ctx.error(f"a second aperture stop (surface {stops[0]} is already the stop); exactly one "
+                        "surface may have \"stop\": true", surface=stops[1],
+                        label=surfaces[stops[1]].label, field="stop")
+    metadata = {"description": desc, "source": source, **meta}
+    return Lens(tuple(surfaces), name=name, object_medium=obj, metadata=metadata, path=path)
+
+
+def _read_source(ctx: Ctx, src: Any) -> dict:
+    if not isinstance(src, dict):
+        raise ctx.error(f"must be an object, got {type_name(src)}", field="source")
+    check_keys(ctx, src, SOURCE_KEYS, prefix="source.")
+    for k, v in src.items():
+        if k == "conversion":
+            if not (isinstance(v, list) and all(isinstance(x, str) for x in v)):
+                raise ctx.error("must be an array of strings", field="source.conversion")
+        elif not isinstance(v, str):
+            raise ctx.error(f"must be a string, got {type_name(v)}", field=f"source.{k}")
+    return dict(src)
+
+
+def _read_surface(ctx: Ctx, i: int, s: Any) -> Surface:
+    if not isinstance(s, dict):
+        raise ctx.error(f"a surface must be a JSON object, got {type_name(s)}", surface=i)
+    label = s.get("label", "")
+    if not isinstance(label, str):
+        raise ctx.error(f"must be a string, got {type_name(label)} {label!r}", surface=i, field="label")
+    where = dict(surface=i, label=label or None)
+    check_keys(ctx, s, SURFACE_KEYS, required=SURFACE_REQUIRED, **where)
+
+    r = s["radius"]
+    if r is None or r == "inf":
+        radius = math.inf
+    elif isinstance(r, str):
+        raise ctx.error(f"must be a number (mm), or \"inf\" / null for a flat surface; got {r!r}",
+                        field="radius", **where)
+    else:
+        radius = number(ctx, r, field="radius", what='a number (mm), or "inf" / null for a flat surface',
+                        **where)
+        if radius == 0.0:
+            raise ctx.error('radius 0 is not a surface; write "inf" (or null) for a flat one',
+                            field="radius", **where)
+    thickness = number(ctx, s["thickness"], field="thickness", minimum=0.0, **where)
+    sd = number(ctx, s["semi_diameter"], field="semi_diameter", exclusive_minimum=0.0, **where)
+    conic = number(ctx, s.get("conic", 0.0), field="conic", **where)
+
+    asph = s.get("aspheric", [])
+    if not isinstance(asph, list):
+        raise ctx.error(f"must be an array [A4, A6, …, A16], got {type_name(asph)}", field="aspheric",
+                        **where)
+    if len(asph) > MAX_ASPHERIC:
+        raise ctx.error(f"at most {MAX_ASPHERIC} coefficients (A4 … A16), got {len(asph)}",
+                        field="aspheric", **where)
+    aspheric = tuple(number(ctx, a, field=f"aspheric[{k}]", **where) for k, a in enumerate(asph))
+
+    h = s.get("housing_radius")
+    housing = None if h is None else number(ctx, h, field="housing_radius", exclusive_minimum=0.0,
+                                            what="a number (mm) or null", **where)
+    stop = s.get("stop", False)
+    if not isinstance(stop, bool):
+        raise ctx.error(f"must be true or false, got {type_name(stop)} {stop!r}", field="stop", **where)
+    b = s.get("blades", 0)
+    if not (is_number(b) and math.isfinite(b) and float(b) == int(b)):
+        raise ctx.error(f"must be an integer (0 = circular, or ≥ 3), got {type_name(b)} {b!r}",
+                        field="blades", **where)
+    blades = int(b)
+    rot = number(ctx, s.get("blade_rotation_deg", 0.0), field="blade_rotation_deg", **where)
+
+    c = s.get("coating")
+    coating = None
+    if c is not None:
+        if not isinstance(c, dict):
+            raise ctx.error(f"must be null or an object {{\"index\", \"design_wavelength_nm\"}}, got "
+                            f"{type_name(c)}", field="coating", **where)
+        check_keys(ctx, c, COATING_KEYS, prefix="coating.", **where)
+        coating = Coating(
+            index=number(ctx, c.get("index", Coating.index), field="coating.index",
+                         exclusive_minimum=0.0, **where),
+            design_wavelength_nm=number(ctx, c.get("design_wavelength_nm", Coating.design_wavelength_nm),
+                                        field="coating.design_wavelength_nm", exclusive_minimum=0.0,
+                                        **where))
+    medium = resolve(ctx, s["medium"], field="medium", **where)
+    return Surface(radius=radius, thickness=thickness, medium=medium, semi_diameter=sd, conic=conic,
+                   aspheric=aspheric, housing_radius=housing, is_stop=stop, blades=blades,
+                   blade_rotation_deg=rot, coating=coating, label=label)
+
+
+# ---------------------------------------------------------------------------------------- writing
+def _f(x: float):
+    x = float(x)
+    return int(x) if x.is_integer() and abs(x) < 1e15 else x
+
+
+def lens_to_dict(lens: Lens) -> dict:
+    """The project-JSON document of ``lens``.  Media are written in full (formula, coefficients and
+    source), so reading the file back needs no glass catalogue.  Optional surface fields are written
+    only when they differ from their defaults."""
+    md = dict(lens.metadata or {})
+    desc = md.pop("description", "") or ""
+    source = md.pop("source", {}) or {}
+    surfaces = []
+    for s in lens.surfaces:
+        d: dict[str, Any] = {}
+        if s.label:
+            d["label"] = s.label
+        d["radius"] = "inf" if math.isinf(s.radius) else _f(s.radius)
+        d["thickness"] = _f(s.thickness)
+        d["semi_diameter"] = _f(s.semi_diameter)
+        if s.conic:
+            d["conic"] = _f(s.conic)
+        if s.aspheric:
+            d["aspheric"] = [_f(a) for a in s.aspheric]
+        if s.housing_radius is not None:
+            d["housing_radius"] = _f(s.housing_radius)
+        if s.is_stop:
+            d["stop"] = True
+        if s.blades:
+            d["blades"] = int(s.blades)
+        if s.blade_rotation_deg:
+            d["blade_rotation_deg"] = _f(s.blade_rotation_deg)
+        if s.coating is not None:
+            d["coating"] = {"index": _f(s.coating.index),
+                            "design_wavelength_nm": _f(s.coating.design_wavelength_nm)}
+        d["medium"] = _medium_dict(s.medium)
+        surfaces.append(d)
+    out = {"format": FORMAT_ID, "version": VERSION, "name": lens.name, "description": str(desc),
+           "units": "mm", "object_medium": _medium_dict(lens.object_medium), "surfaces": surfaces,
+           "source": dict(source), "metadata": md}
+    return out
+
+
+def _medium_dict(m: Medium) -> dict:
+    d = m.to_dict()
+    d["coefficients"] = [_f(c) for c in d["coefficients"]]
+    return d
+
+
+def dumps_lens(doc: dict) -> str:
+    """Format a project-JSON document: one line per surface, everything else indented."""
+    parts = []
+    for k, v in doc.items():
+        if k == "surfaces":
+            rows = ",\n".join("    " + json.dumps(s, ensure_ascii=False, allow_nan=False) for s in v)
+            parts.append(f'  "surfaces": [\n{rows}\n  ]')
+        elif k == "object_medium":
+            parts.append(f"  {json.dumps(k)}: " + json.dumps(v, ensure_ascii=False, allow_nan=False))
+        else:
+            body = json.dumps(v, indent=2, ensure_ascii=False, allow_nan=False)
+            parts.append(f"  {json.dumps(k)}: " + body.replace("\n", "\n  "))
+    return "{\n" + ",\n".join(parts) + "\n}\n"
+
+
+def _file_mode(path: Path) -> int:
+    """Mode for the written file: the existing file's, else 0o666 minus the umask (like open())."""
+    try:
+        return path.stat().st_mode & 0o777
+    except OSError:
+        mask = os.umask(0)
+        os.umask(mask)
+        return 0o666 & ~mask
+
+
+def save_lens(lens: Lens, path: str | os.PathLike) -> None:
+    """Write ``lens`` as project JSON, atomically (temporary file in the same folder + rename).
+
+    The text is read back and compared with ``lens`` before anything is written, so a file this
+    function writes always loads to an equal lens.
+    """
+    path = Path(path)
+    ctx = Ctx(str(path))
+    doc = lens_to_dict(lens)
+    try:
+        text = dumps_lens(doc)
+    except (TypeError, ValueError) as e:
+        raise ctx.error(f"lens metadata/source is not JSON-serialisable: {e}", field="metadata") from None
+    back = lens_from_dict(json.loads(text), path=str(path))
+    if back != lens or back.fingerprint() != lens.fingerprint():
+        raise ctx.error("internal error: the written lens would not read back equal; nothing written")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.chmod(tmp, _file_mode(path))
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
+__all__ = ["FORMAT_ID", "VERSION", "lens_from_dict", "lens_to_dict", "save_lens", "load_project_json",
+           "dumps_lens", "is_project_json"]
