@@ -91,6 +91,7 @@ def trace(lens, origins, directions, wavelength_nm, direction: str = "forward", 
     if record:
         for p in res.points:
             arrays += list(p)
+        arrays += list(res.alive)
     dr.eval(arrays, res.valid)
     valid = res.valid.numpy().astype(bool)
     pos = np.stack([a.numpy() for a in res.position], 1).astype(np.float64)
@@ -102,5 +103,8 @@ def trace(lens, origins, directions, wavelength_nm, direction: str = "forward", 
     pts = None
     if record:
         pts = np.stack([np.stack([c.numpy() for c in p], 1) for p in res.points], 1).astype(np.float64)
-        pts[~valid] = np.nan
+        alive = np.stack([np.broadcast_to(a.numpy().astype(bool), (n,)) for a in res.alive], 1)
+        # keep the hit where a ray is blocked: a point is shown if the ray was alive *before* it
+        shown = np.concatenate([alive[:, :1], alive[:, :-1]], 1)
+        pts[~shown] = np.nan
     return RayBundle(pos, dirn, thr, valid, pts)

@@ -32,6 +32,8 @@ class TraceResult:
     throughput: object
     valid: object
     points: list | None = None
+    #: with ``record``: per point, whether the ray was still alive when it reached that point
+    alive: list | None = None
 
 
 class LensTracer:
@@ -115,28 +117,30 @@ class LensTracer:
         valid = dr.full(dr.mask_t(x), True, dr.width(x)) & active
         T = None
         pts = [(x, y, z)] if record else None
+        alive = [valid] if record else None
 
         for si, step in enumerate(spec.steps):
             g = self.geom[step.surface]
             t, ok = g.intersect((x, y, z), (dx, dy, dz), step.heading)
-            valid &= ok
+            valid = valid & ok
             if si > 0:
-                valid &= t > 0.0
+                valid = valid & (t > 0.0)
             x, y, z = dr.fma(t, dx, x), dr.fma(t, dy, y), dr.fma(t, dz, z)
             if record:
                 pts.append((x, y, z))
+                alive.append(valid)
             if step.kind == "stop":
-                valid &= self._stop_ok(x, y)
+                valid = valid & (self._stop_ok(x, y))
                 continue
             rad = self._aperture_radius(step)
-            valid &= dr.fma(x, x, y * y) <= rad * rad
+            valid = valid & (dr.fma(x, x, y * y) <= rad * rad)
 
             h = step.heading
             nx, ny, nz = g.normal((x, y, z))
             if h < 0:
                 nx, ny, nz = -nx, -ny, -nz
             cos_i = -(dx * nx + dy * ny + dz * nz)
-            valid &= cos_i > 0.0
+            valid = valid & (cos_i > 0.0)
 
             surf = lens.surfaces[step.surface]
             m_before, m_after = lens.medium_before(step.surface), surf.medium
@@ -149,7 +153,7 @@ class LensTracer:
                     continue  # a dummy surface between identical media: no bending, no loss
                 eta = n1 * inv_n2
                 (dx, dy, dz), cos_t, tir = refract((dx, dy, dz), (nx, ny, nz), cos_i, eta)
-                valid &= ~tir
+                valid = valid & ~tir
                 if self.fresnel:
                     R = self._reflectance(surf, n1, n2, cos_i, cos_t, lam_nm)
                     T = (1.0 - R) if T is None else T * (1.0 - R)
@@ -166,15 +170,16 @@ class LensTracer:
 
         # continue to the output plane
         zo = self.default_output_z(direction) if z_out is None else float(z_out)
-        valid &= (dz > 0.0) if direction == FORWARD else (dz < 0.0)
+        valid = valid & ((dz > 0.0) if direction == FORWARD else (dz < 0.0))
         t = (zo - z) / dz
         x, y = dr.fma(t, dx, x), dr.fma(t, dy, y)
         z = x * 0.0 + zo
         if record:
             pts.append((x, y, z))
+            alive.append(valid)
         if T is None:
             T = x * 0.0 + 1.0
-        return TraceResult((x, y, z), (dx, dy, dz), T, valid, pts)
+        return TraceResult((x, y, z), (dx, dy, dz), T, valid, pts, alive)
 
     @staticmethod
     def _reflectance(surf, n1, n2, cos_i, cos_t, lam_nm):

@@ -1,0 +1,255 @@
+"""``mi-neurallens lens``: inspect, list and draw lens prescriptions.
+
+  lens info PATH [--json] [--wavelength NM]   the prescription and every paraxial number
+  lens plot PATH [-o layout.png] [--fields DEG ...] [--wavelengths NM ...] [--rays N]
+  lens list [--json]                          the bundled lenses with EFL and f-number
+
+PATH is a lens file (project JSON, pbrt .dat, Open Optical Designer JSON, LensVisualizer JSON) or
+the name of a bundled lens (``lens list``).  Lengths are in mm; ``*_z`` are lens-space positions
+(first vertex at z = 0, +z toward the sensor).
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+
+#: sensor used for the FOV line of ``lens info`` (36 × 24 mm, "full frame")
+FULL_FRAME = (36.0, 24.0)
+
+
+def add_parser(subparsers):
+    p = subparsers.add_parser("lens", help="inspect, list and draw lens prescriptions",
+                              description=__doc__.split("\n\n", 1)[1] if __doc__ else None,
+                              formatter_class=_raw_formatter())
+    sub = p.add_subparsers(dest="lens_command", metavar="SUBCOMMAND")
+
+    pi = sub.add_parser("info", help="print the prescription and its paraxial numbers")
+    pi.add_argument("path", metavar="PATH", help="lens file or bundled lens name")
+    pi.add_argument("--json", action="store_true", help="print JSON instead of text")
+    pi.add_argument("--wavelength", type=float, default=587.5618, metavar="NM",
+                    help="wavelength of the paraxial numbers in nm (default 587.5618, the d line)")
+    pi.set_defaults(func=run_info)
+
+    pp = sub.add_parser("plot", help="draw the lens layout with traced ray fans (PNG/SVG/PDF)")
+    pp.add_argument("path", metavar="PATH", help="lens file or bundled lens name")
+    pp.add_argument("-o", "--output", help="output image (default: <lens name>-layout.png); the "
+                                           "extension picks the format: .png, .svg, .pdf, ...")
+    pp.add_argument("--fields", type=float, nargs="+", metavar="DEG",
+                    help="field angles in degrees (default: 0, 0.7 and 1 x the half field of view)")
+    pp.add_argument("--wavelengths", type=float, nargs="+", metavar="NM",
+                    default=[486.13, 587.56, 656.27], help="wavelengths in nm (default F, d, C lines)")
+    pp.add_argument("--rays", type=int, default=11, metavar="N", help="rays per fan (default 11)")
+    pp.add_argument("--title", help="extra first title line")
+    pp.set_defaults(func=run_plot)
+
+    pl = sub.add_parser("list", help="list the bundled lenses with EFL and f-number")
+    pl.add_argument("--json", action="store_true", help="print JSON instead of text")
+    pl.set_defaults(func=run_list)
+
+    p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
+    return p
+
+
+def _raw_formatter():
+    import argparse
+    return argparse.RawDescriptionHelpFormatter
+
+
+# ------------------------------------------------------------------------------ helpers
+def _load(path):
+    from ..optics.prescription import Lens
+    return Lens.load(path)
+
+
+def _num(x):
+    """JSON number: floats, with ±inf/NaN as None."""
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _source(lens) -> str:
+    src = (lens.metadata or {}).get("source")
+    if isinstance(src, dict):
+        parts = [src.get("reference"), src.get("repository")]
+        return "; ".join(str(v) for v in parts if v)
+    return str(src) if src else ""
+
+
+def _surface_rows(lens, wavelength_nm):
+    rows = []
+    z = lens.vertex_z
+    for i, s in enumerate(lens.surfaces):
+        m = s.medium
+        rows.append({
+            "index": i,
+            "label": s.label,
+            "radius": _num(s.radius),                 # None = flat
+            "thickness": s.thickness,
+            "vertex_z": float(z[i]),
+            "medium": m.name,
+            "nd": m.nd,
+            "vd": _num(m.vd),                         # None = no dispersion
+            "n": float(m.index(wavelength_nm)),
+            "semi_diameter": s.semi_diameter,
+            "conic": s.conic,
+            "aspheric": list(s.aspheric),
+            "housing_radius": s.housing_radius,
+            "is_stop": s.is_stop,
+            "blades": s.blades,
+        })
+    return rows
+
+
+def info_dict(lens, wavelength_nm=587.5618) -> dict:
+    """Everything ``lens info --json`` prints: name, provenance, fingerprint, the paraxial numbers
+    (:meth:`ParaxialSystem.to_dict`, at the top level), the 36×24 mm paraxial FOV and the surfaces."""
+    p = lens.paraxial(wavelength_nm)
+    d = {
+        "name": lens.name,
+        "path": lens.path,
+        "description": (lens.metadata or {}).get("description", ""),
+        "source": _source(lens),
+        "fingerprint": lens.fingerprint(),
+        "units": "mm",
+    }
+    d.update(p.to_dict())
+    try:
+        fov = p.fov_deg(*FULL_FRAME)
+        d["fov_36x24_deg"] = {"horizontal": fov.horizontal, "vertical": fov.vertical,
+                              "diagonal": fov.diagonal, "model": "paraxial, tan-based"}
+    except Exception:  # an object-space-telecentric lens has no chief-ray angle
+        d["fov_36x24_deg"] = None
+    d["surfaces"] = _surface_rows(lens, wavelength_nm)
+    return d
+
+
+def _fmt(x, nd=4, unit=" mm"):
+    if x is None or (isinstance(x, float) and math.isinf(x)):
+        return "infinity"
+    if isinstance(x, float) and math.isnan(x):
+        return "n/a"
+    return f"{x:.{nd}f}{unit}"
+
+
+def _text_info(lens, wavelength_nm) -> str:
+    p = lens.paraxial(wavelength_nm)
+    out = []
+    md = lens.metadata or {}
+    out.append(f"{lens.name}  (fingerprint {lens.fingerprint()})")
+    if md.get("description"):
+        out.append(f"  {md['description']}")
+    if lens.path:
+        out.append(f"  file:   {lens.path}")
+    if _source(lens):
+        out.append(f"  source: {_source(lens)}")
+    out.append(f"  {len(lens.surfaces)} surfaces, stop at surface {lens.stop_index}, "
+               f"track {lens.total_track:.4f} mm (first to last vertex), image plane at z = {lens.image_z:.4f} mm")
+    out.append("")
+    show_n = abs(wavelength_nm - 587.5618) > 1e-6
+    head = (f"  {'#':>3} {'label':<6} {'radius':>12} {'thickness':>10} {'medium after':<18} {'nd':>8} {'Vd':>7}"
+            + (f" {'n(λ)':>9}" if show_n else "") + f" {'semi-diam':>9}  notes")
+    out.append("Surfaces (mm; radius > 0: centre toward the sensor; medium listed AFTER the surface)")
+    out.append(head)
+    out.append("  " + "-" * (len(head) - 2))
+    for i, s in enumerate(lens.surfaces):
+        m = s.medium
+        vd = m.vd
+        notes = []
+        if s.is_stop:
+            notes.append("STOP" + (f" ({s.blades} blades)" if s.blades else ""))
+        if s.conic:
+            notes.append(f"conic K={s.conic:g}")
+        if s.is_aspheric:
+            notes.append("asphere " + ", ".join(f"A{4 + 2 * k}={a:.4g}" for k, a in enumerate(s.aspheric) if a))
+        if s.housing_radius is not None:
+            notes.append(f"housing r={s.housing_radius:g}")
+        if s.coating is not None:
+            notes.append(f"coated n={s.coating.index:g}")
+        rad = "flat" if math.isinf(s.radius) else f"{s.radius:.5f}"
+        line = (f"  {i:>3} {s.label[:6]:<6} {rad:>12} {s.thickness:>10.5f} {m.name[:18]:<18} {m.nd:>8.5f} "
+                f"{('-' if math.isinf(vd) else f'{vd:.2f}'):>7}"
+                + (f" {float(m.index(wavelength_nm)):>9.6f}" if show_n else "")
+                + f" {s.semi_diameter:>9.4f}  {'; '.join(notes)}")
+        out.append(line.rstrip())
+    out.append("")
+    out.append(f"Paraxial optics at {wavelength_nm:g} nm (object space n = {p.object_index:.6f}, "
+               f"image space n = {p.image_index:.6f}); z = lens-space position, first vertex at 0")
+    try:
+        focus = p.focus_distance_for(p.sensor_distance)
+        focus_s = _fmt(focus, 2)
+    except Exception:
+        focus_s = "beyond infinity (sensor closer than the rear focal point)"
+    rows = [
+        ("EFL (rear focal length n'/Φ, H' to F')", _fmt(p.efl)),
+        ("front focal length (n/Φ, F to H)", _fmt(p.front_focal_length)),
+        ("power Φ", f"{p.power:.6g} 1/mm"),
+        ("BFL (last vertex to F')", _fmt(p.bfl)),
+        ("FFL (F to first vertex, > 0: F in front)", _fmt(p.ffl)),
+        ("front focal point F, z", _fmt(p.front_focal_z)),
+        ("rear focal point F', z", _fmt(p.rear_focal_z)),
+        ("front principal plane H, z", _fmt(p.front_principal_z)),
+        ("rear principal plane H', z", _fmt(p.rear_principal_z)),
+        ("aperture stop, z / radius", f"{_fmt(p.stop_z)} / {_fmt(p.stop_radius)}"),
+        ("entrance pupil, z / radius", f"{_fmt(p.entrance_pupil_z)} / {_fmt(p.entrance_pupil_radius)}"),
+        ("exit pupil, z / radius", f"{_fmt(p.exit_pupil_z)} / {_fmt(p.exit_pupil_radius)}"),
+        ("pupil magnification (XP/EP radius)", _fmt(p.pupil_magnification, 4, "")),
+        ("f-number (EFL / entrance pupil diameter)", f"f/{p.fnumber:.3f}"),
+        ("sensor distance (last vertex to image plane)", _fmt(p.sensor_distance)),
+        ("in focus on the image plane (from first vertex)", focus_s),
+    ]
+    try:
+        fov = p.fov_deg(*FULL_FRAME)
+        rows.append(("FOV on 36x24 mm, paraxial tan (h / v / diag)",
+                     f"{fov.horizontal:.2f}° / {fov.vertical:.2f}° / {fov.diagonal:.2f}°"))
+    except Exception:
+        pass
+    w = max(len(k) for k, _ in rows)
+    out += [f"  {k:<{w}}  {v}" for k, v in rows]
+    (A, B), (C, D) = p.abcd()
+    out.append(f"  {'ABCD, (y, n·u) first vertex → last vertex':<{w}}  [[{A:.6g}, {B:.6g} mm], [{C:.6g} 1/mm, {D:.6g}]]")
+    return "\n".join(out)
+
+
+# ------------------------------------------------------------------------------ commands
+def run_info(args) -> int:
+    lens = _load(args.path)
+    if args.json:
+        print(json.dumps(info_dict(lens, args.wavelength), indent=2, allow_nan=False))
+    else:
+        print(_text_info(lens, args.wavelength))
+    return 0
+
+
+def run_plot(args) -> int:
+    from ..plot import plot_lens
+    lens = _load(args.path)
+    out = args.output or f"{lens.name}-layout.png"
+    path = plot_lens(lens, out, fields_deg=args.fields, wavelengths_nm=tuple(args.wavelengths),
+                     rays_per_fan=args.rays, title=args.title)
+    print(f"wrote {path} ({os.path.getsize(path)} bytes)")
+    return 0
+
+
+def run_list(args) -> int:
+    from ..optics.formats import bundled_lenses
+    rows = []
+    for name in bundled_lenses():
+        lens = _load(name)
+        p = lens.paraxial()
+        rows.append({"name": name, "efl": p.efl, "bfl": p.bfl, "fnumber": p.fnumber,
+                     "surfaces": len(lens.surfaces),
+                     "description": (lens.metadata or {}).get("description", "")})
+    if args.json:
+        print(json.dumps(rows, indent=2, allow_nan=False))
+        return 0
+    w = max([len(r["name"]) for r in rows] + [4])
+    print(f"{'name':<{w}}  {'EFL mm':>9}  {'f/#':>6}  {'surf':>4}  description")
+    for r in rows:
+        desc = r["description"]
+        desc = desc if len(desc) <= 70 else desc[:69] + "…"
+        print(f"{r['name']:<{w}}  {r['efl']:>9.3f}  {r['fnumber']:>6.2f}  {r['surfaces']:>4}  {desc}")
+    print("(paraxial at 587.56 nm, stop fully open; `mi-neurallens lens info NAME` for details)")
+    return 0

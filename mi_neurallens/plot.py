@@ -1,0 +1,633 @@
+"""Lens layout drawings: the meridional (y–z) section of a lens with traced ray fans.
+
+:func:`plot_lens` draws, in lens space (mm, z horizontal, object on the left):
+
+* each element in its true shape: front and rear sag profiles out to their clear semi-diameters,
+  a flat annulus out to the element's largest semi-diameter, and the edge joining them there;
+  glass shaded by its index (darker = higher n_d); cemented interfaces are the shared boundary;
+* the aperture stop as two blade marks, housing (baffle) radii as dark bars, the optical axis and
+  the image plane (z = Σ thickness);
+* for three fields (0, 0.7 and 1.0 of the half field of view, colour by field), meridional fans of
+  rays from an object at infinity, one line style per wavelength, traced EXACTLY by
+  :meth:`Lens.trace` (``record=True``).  The fan of each field and wavelength is real-ray aimed: it
+  spans the rays that cross the stop plane between −0.999 and +0.999 of the stop radius, i.e. it
+  fills the real entrance pupil at that field.  Rays that are blocked (vignetted by a rim,
+  housing or the stop) end with a × where they die.
+
+The half field of view (when ``fields_deg`` is not given) is the smaller of
+(a) the largest field angle whose real chief ray still reaches the image plane, and
+(b) the field angle whose real chief ray lands ``image_radius_mm`` from the axis
+(default 21.63 mm, the half diagonal of a 36 × 24 mm frame; a lens's ``metadata`` may set
+``image_radius_mm``/``image_circle_radius_mm``, or give ``half_fov_deg``).
+
+Matplotlib is used through the object API with the Agg canvas: no pyplot, no global state.
+Files (PNG, SVG, PDF, … by extension) are written atomically (temporary file + ``os.replace``).
+"""
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+
+import numpy as np
+
+from .errors import LensError
+
+#: 36 × 24 mm half diagonal (mm), the default image radius used to pick the full field
+FULL_FRAME_HALF_DIAGONAL = 0.5 * math.hypot(36.0, 24.0)
+FIELD_FRACTIONS = (0.0, 0.7, 1.0)
+FIELD_COLORS = ("#1f6fb4", "#1a9850", "#d7301f")
+PRIMARY_WAVELENGTH = 587.5618
+#: fans aim at ±this fraction of the stop radius (so edge rays are not lost to rounding at the stop)
+STOP_FILL = 0.999
+
+
+# ------------------------------------------------------------------------------ geometry helpers
+def _n_d(medium) -> float:
+    return float(medium.index(PRIMARY_WAVELENGTH))
+
+
+def _is_glass(medium) -> bool:
+    return _n_d(medium) > 1.01
+
+
+def _rim_z(lens, i) -> float:
+    s = lens.surfaces[i]
+    return float(lens.vertex_z[i] + s.sag(s.semi_diameter))
+
+
+def _profile(lens, i, r_edge=None, n=121):
+    """(z, y) of surface i from +sd to −sd; with ``r_edge`` extended flat (at the rim z) to ±r_edge."""
+    s = lens.surfaces[i]
+    sd = s.semi_diameter
+    y = np.linspace(sd, -sd, n)
+    z = lens.vertex_z[i] + s.sag(np.abs(y))
+    if r_edge is not None and r_edge > sd * (1 + 1e-9):
+        zr = _rim_z(lens, i)
+        y = np.concatenate([[r_edge], y, [-r_edge]])
+        z = np.concatenate([[zr], z, [zr]])
+    return z, y
+
+
+def _elements(lens):
+    """Groups of surface indices [a, …, b] bounding consecutive glass slabs (cemented groups)."""
+    groups, cur = [], None
+    for i, s in enumerate(lens.surfaces):
+        if s.is_stop:
+            cur = None
+            continue
+        if _is_glass(s.medium):
+            if cur is None:
+                cur = [i]
+                groups.append(cur)
+            if i + 1 < len(lens.surfaces):
+                cur.append(i + 1)
+        else:
+            cur = None
+    return groups
+
+
+def _aperture_radius(lens, i) -> float:
+    """Clear radius of optical surface i for a forward ray: its semi-diameter, tightened by the
+    housing of the gaps on either side (the tracer's rule)."""
+    s = lens.surfaces
+    r = s[i].semi_diameter
+    for g in (i - 1, i):
+        if 0 <= g < len(s) and s[g].housing_radius is not None:
+            r = min(r, s[g].housing_radius)
+    return r
+
+
+def _stop_ok(lens, x, y):
+    st = lens.stop
+    if not st.blades:
+        return np.hypot(x, y) <= st.semi_diameter * (1 + 1e-9)
+    ok = np.ones_like(x, dtype=bool)
+    for k in range(st.blades):
+        a = math.radians(st.blade_rotation_deg) + 2 * math.pi * k / st.blades
+        ok &= x * math.cos(a) + y * math.sin(a) <= st.semi_diameter * (1 + 1e-9)
+    return ok
+
+
+# ------------------------------------------------------------------------------ tracing
+# Every trace below is batched over (field, wavelength) pairs and never uses a single ray: Dr.Jit
+# bakes width-1 arrays into the kernel as literals, which would compile a new kernel per call.
+def _rays(theta_deg, heights, z0):
+    """Parallel rays at field angles θ (object above the axis: the rays head down, −y), passing
+    height ``h`` at the first vertex plane z = 0, started on the plane z = z0 < 0.
+    ``theta_deg`` and ``heights`` broadcast together; returns flat (N, 3) origins and directions."""
+    t, h = np.broadcast_arrays(np.radians(np.asarray(theta_deg, dtype=np.float64)),
+                               np.asarray(heights, dtype=np.float64))
+    t, h = t.ravel(), h.ravel()
+    d = np.stack([np.zeros_like(t), -np.sin(t), np.cos(t)], 1)
+    o = np.stack([np.zeros_like(h), h + z0 / d[:, 2] * d[:, 1], np.full_like(h, z0)], 1)
+    return o, d
+
+
+def _pad(*arrays):
+    """Pad (N, …) arrays to at least 2 rows (see the note above); returns (arrays, N)."""
+    n = len(arrays[0])
+    if n >= 2:
+        return arrays, n
+    return tuple(np.concatenate([a, a[:1].repeat(2 - n, 0)]) for a in arrays), n
+
+
+def _raw_points(lens, o, d, wl):
+    """Every recorded hit of the transmit path, computed WITHOUT masking blocked rays.
+
+    ``Lens.trace(record=True)`` hides the whole polyline of a blocked ray (all NaN), so the point
+    where it dies and the stop heights of vignetted rays (needed for ray aiming) come from the
+    tracer's unmasked geometry; which rays survive is always taken from ``Lens.trace``.
+    """
+    from .trace.api import float_type, tracer_for
+    wl = np.broadcast_to(np.asarray(wl, dtype=np.float64), (len(o),))
+    (o, d, wl), n = _pad(o, d, wl)
+    F = float_type("float64")
+    col = lambda a, k: F(np.ascontiguousarray(a[:, k]))
+    res = tracer_for(lens, False).trace(tuple(col(o, k) for k in range(3)),
+                                        tuple(col(d, k) for k in range(3)),
+                                        F(np.ascontiguousarray(wl)), "transmit", "forward", record=True)
+    pts = np.stack([np.stack([c.numpy() for c in p], 1) for p in res.points], 1).astype(np.float64)
+    return pts[:n]
+
+
+def _on_surface(lens, i, p):
+    """Rays whose recorded hit ``p`` (N, 3) really lies on surface i (not a missed-root artefact)."""
+    s = lens.surfaces[i]
+    with np.errstate(invalid="ignore"):
+        r = np.hypot(p[:, 0], p[:, 1])
+        rmax = s.max_semi_diameter()
+        sag = np.nan_to_num(s.sag(np.minimum(r, rmax)))
+        return (r <= rmax) & (np.abs(p[:, 2] - lens.vertex_z[i] - sag) <= 1e-6 * (1 + abs(lens.vertex_z[i])))
+
+
+def _geometric_death(lens, pts):
+    """Index into ``pts[:, k]`` of the first hit where each ray is blocked (−1: never), from the
+    unmasked hits: a miss or a point off the surface, a step backwards, a rim/housing or the stop."""
+    N = pts.shape[0]
+    death = np.full(N, -1)
+    alive = np.ones(N, dtype=bool)
+    for i, s in enumerate(lens.surfaces):
+        k = i + 1
+        p = pts[:, k]
+        with np.errstate(invalid="ignore"):
+            bad = ~np.all(np.isfinite(p), axis=1) | ~_on_surface(lens, i, p)
+            bad |= p[:, 2] < pts[:, k - 1, 2] - 1e-9
+            if s.is_stop:
+                bad |= ~_stop_ok(lens, p[:, 0], p[:, 1])
+            else:
+                bad |= np.hypot(p[:, 0], p[:, 1]) > _aperture_radius(lens, i) * (1 + 1e-9)
+        death[alive & bad] = k
+        alive &= ~bad
+    return death
+
+
+def _trace_fans(lens, thetas, heights, wls, z0):
+    """Trace rays (one per entry of the broadcast ``thetas``/``heights``/``wls``).
+
+    Returns (points (N, M, 3) with blocked rays cut after the point where they die, valid (N,)).
+    """
+    o, d = _rays(thetas, heights, z0)
+    wl = np.broadcast_to(np.asarray(wls, dtype=np.float64), np.broadcast_shapes(
+        np.shape(thetas), np.shape(heights), np.shape(wls))).ravel()
+    (o2, d2, wl2), n = _pad(o, d, wl)
+    pub = lens.trace(o2, d2, wl2, record=True, fresnel=False, precision="float64")
+    valid = np.asarray(pub.valid, dtype=bool)[:n]
+    pts = np.array(pub.points, dtype=np.float64)[:n]
+    bad = np.nonzero(~valid)[0]
+    if bad.size:
+        raw = _raw_points(lens, o[bad], d[bad], wl[bad])
+        geo = _geometric_death(lens, raw)
+        for jj, j in enumerate(bad):
+            fin = np.nonzero(np.all(np.isfinite(pts[j]), axis=1))[0]
+            if fin.size > 1:                 # the tracer kept the hits up to the death point
+                k = int(fin[-1])
+            else:                            # cut the unmasked polyline at the geometric death
+                k = int(geo[jj]) if geo[jj] >= 0 else raw.shape[1] - 1
+                pts[j] = raw[jj]
+            pts[j, k + 1:] = np.nan
+    return pts, valid
+
+
+def _stop_heights(lens, thetas, wls, z0, h):
+    """Stop-plane crossing heights (K, n) of the rays at launch heights ``h`` (K, n) for each
+    (θ_k, λ_k), ignoring apertures; NaN where a ray cannot reach the stop (misses a surface)."""
+    K, n = h.shape
+    th = np.repeat(np.asarray(thetas, dtype=np.float64), n)
+    wl = np.repeat(np.asarray(wls, dtype=np.float64), n)
+    o, d = _rays(th, h.ravel(), z0)
+    raw = _raw_points(lens, o, d, wl)
+    ks = lens.stop_index + 1
+    ok = np.all(np.isfinite(raw[:, : ks + 1]), axis=(1, 2))
+    with np.errstate(invalid="ignore"):
+        for i in range(lens.stop_index):
+            ok &= _on_surface(lens, i, raw[:, i + 1])
+            ok &= raw[:, i + 2, 2] >= raw[:, i + 1, 2] - 1e-9
+    return np.where(ok, raw[:, ks, 1], np.nan).reshape(K, n)
+
+
+def _solve_heights(h, ys, targets):
+    """Launch heights whose stop heights equal ``targets`` on the monotone branch through the chief
+    ray (ys = 0), clipped to the branch; and the branch's (h_lo, h_hi).  None if no ray reaches the
+    stop centre."""
+    good = np.isfinite(ys)
+    sign = np.sign(ys)
+    cross = np.nonzero(good[:-1] & good[1:] & (sign[:-1] * sign[1:] <= 0) & (ys[:-1] != ys[1:]))[0]
+    if cross.size == 0:
+        return None
+    c = cross[np.argmin(np.abs(h[cross]))]
+    slope = np.sign(ys[c + 1] - ys[c])
+    a = c
+    while a > 0 and good[a - 1] and np.sign(ys[a] - ys[a - 1]) == slope:
+        a -= 1
+    b = c + 1
+    while b < len(h) - 1 and good[b + 1] and np.sign(ys[b + 1] - ys[b]) == slope:
+        b += 1
+    hb, yb = h[a:b + 1], ys[a:b + 1]
+    if slope < 0:
+        hb, yb = hb[::-1], yb[::-1]
+    t = np.clip(np.asarray(targets, dtype=np.float64), yb[0], yb[-1])
+    return np.interp(t, yb, hb), (min(hb[0], hb[-1]), max(hb[0], hb[-1]))
+
+
+def _aim(lens, thetas, wls, z0, targets, n_scan=1001):
+    """Real-ray aiming.  For each pair (θ_k, λ_k): the launch heights (at z = 0) of the rays that
+    cross the stop plane at ``targets`` (mm).  Returns (K, len(targets)), NaN rows where no ray
+    reaches the stop centre.  Two batched passes: a coarse scan, then a fine one on the branch."""
+    thetas = np.atleast_1d(np.asarray(thetas, dtype=np.float64))
+    wls = np.broadcast_to(np.asarray(wls, dtype=np.float64), thetas.shape)
+    K = len(thetas)
+    tan = np.tan(np.radians(np.minimum(thetas, 89.0)))
+    sd_max = max(s.semi_diameter for s in lens.surfaces)
+    H = 2.0 * sd_max * (1.0 + tan) + abs(lens.vertex_z[lens.stop_index]) * tan
+    u = np.linspace(-1.0, 1.0, n_scan)
+    h = H[:, None] * u[None, :]
+    out = np.full((K, len(np.atleast_1d(targets))), np.nan)
+    ys = _stop_heights(lens, thetas, wls, z0, h)
+    lo, hi = np.zeros(K), np.zeros(K)
+    found = np.zeros(K, dtype=bool)
+    for k in range(K):
+        sol = _solve_heights(h[k], ys[k], targets)
+        if sol is not None:
+            step = h[k, 1] - h[k, 0]
+            lo[k], hi[k] = sol[1][0] - 2 * step, sol[1][1] + 2 * step
+            found[k] = True
+    if not found.any():
+        return out
+    u = np.linspace(0.0, 1.0, n_scan)
+    h = lo[:, None] + (hi - lo)[:, None] * u[None, :]
+    ys = _stop_heights(lens, thetas, wls, z0, h)
+    for k in np.nonzero(found)[0]:
+        sol = _solve_heights(h[k], ys[k], targets)
+        if sol is not None:
+            out[k] = sol[0]
+    return out
+
+
+def _start_z(lens) -> float:
+    z = lens.vertex_z
+    zmin = min(min(_rim_z(lens, i), z[i]) for i in range(len(lens.surfaces)))
+    return float(zmin - 0.05 * (lens.image_z - zmin) - 1.0)
+
+
+def _metadata_float(lens, *keys):
+    md = lens.metadata or {}
+    for k in keys:
+        v = md.get(k)
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0:
+            return float(v)
+    return None
+
+
+def half_field_deg(lens, wavelength_nm: float = PRIMARY_WAVELENGTH, image_radius_mm: float | None = None):
+    """The half field of view (degrees) used by :func:`plot_lens` when no fields are given: the
+    smaller of the largest angle whose real chief ray reaches the image plane and the angle whose
+    real chief ray lands ``image_radius_mm`` off axis (see the module docstring)."""
+    v = _metadata_float(lens, "half_fov_deg", "half_field_deg")
+    if v is not None:
+        return min(v, 89.0)
+    rimg = image_radius_mm or _metadata_float(lens, "image_radius_mm", "image_circle_radius_mm") \
+        or FULL_FRAME_HALF_DIAGONAL
+    z0 = _start_z(lens)
+    thetas = np.concatenate([np.arange(0.5, 10.0, 0.5), np.arange(10.0, 89.01, 1.0)])
+    hs = _aim(lens, thetas, wavelength_nm, z0, [0.0], n_scan=401)[:, 0]
+    ok = np.isfinite(hs)
+    pts, valid = _trace_fans(lens, thetas[ok], hs[ok], wavelength_nm, z0)
+    alive = np.zeros(len(thetas), dtype=bool)
+    alive[ok] = valid
+    y = np.full(len(thetas), np.nan)
+    y[ok] = np.abs(pts[:, -1, 1])
+    n_alive = len(thetas) if alive.all() else int(np.argmin(alive))   # contiguous run from 0°
+    if n_alive == 0:                # no real chief ray at all: paraxial estimate
+        p = lens.paraxial(wavelength_nm)
+        return float(math.degrees(math.atan(rimg / abs(p.efl))))
+    t_run, y_run = np.concatenate([[0.0], thetas[:n_alive]]), np.concatenate([[0.0], y[:n_alive]])
+    over = np.nonzero(y_run >= rimg)[0]
+    if over.size:                   # the angle where the chief ray reaches the image radius
+        j = int(over[0])
+        return float(t_run[j - 1] + (t_run[j] - t_run[j - 1]) * (rimg - y_run[j - 1])
+                     / (y_run[j] - y_run[j - 1]))
+    return float(t_run[-1])
+
+
+# ------------------------------------------------------------------------------ drawing
+def _glass_color(n):
+    t = float(np.clip((n - 1.45) / 0.5, 0.0, 1.0))
+    light, dark = np.array([0.80, 0.89, 0.97]), np.array([0.42, 0.60, 0.80])
+    return tuple(light + (dark - light) * t)
+
+
+def _line_styles(wavelengths):
+    styles = ["-", "--", ":", "-."]
+    prim = int(np.argmin([abs(w - PRIMARY_WAVELENGTH) for w in wavelengths]))
+    out, k = {}, 1
+    for i, w in enumerate(wavelengths):
+        if i == prim:
+            out[w] = "-"
+        else:
+            out[w] = styles[k % len(styles)]
+            k += 1
+    return out
+
+
+def _stop_extent(stop, sgn) -> float:
+    """Opening of the stop along +y (sgn = 1) or −y: its radius, or for a bladed polygon (blade k
+    at normal angle rot + 2πk/B, inscribed radius r) the distance to the nearest blade line."""
+    r = stop.semi_diameter
+    if not stop.blades:
+        return r
+    phi = sgn * math.pi / 2
+    c = [math.cos(phi - math.radians(stop.blade_rotation_deg) - 2 * math.pi * k / stop.blades)
+         for k in range(stop.blades)]
+    return min(r / v for v in c if v > 1e-12)
+
+
+def _free_blade_length(lens, groups, r0, length) -> float:
+    """Shorten the stop's blade marks so they stop where a neighbouring element's drawn outline
+    (surface profile, then the flat annulus out to the element edge) reaches the stop plane."""
+    k = lens.stop_index
+    zs = float(lens.vertex_z[k])
+    r = np.linspace(r0, r0 + length, 200)
+    free = np.ones_like(r, dtype=bool)
+    for g in groups:
+        edge = max(lens.surfaces[i].semi_diameter for i in g)
+        for i, sgn in ((k - 1, 1.0), (k + 1, -1.0)):
+            if i in g:
+                s = lens.surfaces[i]
+                z = lens.vertex_z[i] + s.sag(np.minimum(r, s.semi_diameter))
+                # the glass lies behind the previous surface (sgn 1) / in front of the next (−1)
+                free &= ~((r <= edge) & (sgn * (z - zs) >= 0))
+    if free.all():
+        return length
+    stop_at = int(np.argmin(free))
+    return max(float(r[stop_at] - r0), 0.45 * length)   # keep the mark visible
+
+
+def _draw_lens(ax, lens):
+    from matplotlib.patches import Polygon
+    surfs = lens.surfaces
+    groups = _elements(lens)
+    edge = "#16324f"
+    for g in groups:
+        R = max(surfs[i].semi_diameter for i in g)
+        for a, b in zip(g[:-1], g[1:]):
+            zf, yf = _profile(lens, a, R)
+            zb, yb = _profile(lens, b, R)
+            poly = np.concatenate([np.stack([zf, yf], 1), np.stack([zb[::-1], yb[::-1]], 1)])
+            ax.add_patch(Polygon(poly, closed=True, facecolor=_glass_color(_n_d(surfs[a].medium)),
+                                 edgecolor=edge, linewidth=1.0, joinstyle="round", zorder=2))
+    # a surface between two gaps (a dummy or flare-cut surface, not the stop) still clips at its
+    # semi-diameter: thin grey profile, plus grey aperture ticks beyond it
+    in_glass = {i for g in groups for i in g}
+    r_max = max(s.semi_diameter for s in surfs)
+    for i, s in enumerate(surfs):
+        if not s.is_stop and i not in in_glass:
+            z, y = _profile(lens, i)
+            ax.plot(z, y, color="#888888", lw=0.7, ls=(0, (4, 2)), zorder=2)
+            zr = _rim_z(lens, i)
+            for sgn in (1, -1):
+                ax.plot([zr, zr], [sgn * s.semi_diameter, sgn * (s.semi_diameter + 0.05 * r_max)],
+                        color="#666666", lw=1.8, solid_capstyle="butt", zorder=4)
+    # housings: dark bars from the housing radius outward at the rim plane
+    outer = 1.12 * max(max(s.semi_diameter for s in surfs),
+                       max((s.housing_radius or 0.0) for s in surfs))
+    for i, s in enumerate(surfs):
+        if s.housing_radius is not None and s.housing_radius < outer:
+            z = _rim_z(lens, i)
+            for sgn in (1, -1):
+                ax.plot([z, z], [sgn * s.housing_radius, sgn * max(outer, s.housing_radius * 1.05)],
+                        color="#444444", lw=2.2, solid_capstyle="butt", zorder=4)
+    # stop: two blade marks
+    st, zs = lens.stop, float(lens.vertex_z[lens.stop_index])
+    blade = max(0.18 * st.semi_diameter, 0.06 * max(s.semi_diameter for s in surfs), 1.0)
+    blade = _free_blade_length(lens, groups, _stop_extent(st, 1), blade)
+    for sgn in (1, -1):
+        r0 = _stop_extent(st, sgn)
+        ax.plot([zs, zs], [sgn * r0, sgn * (r0 + blade)], color="black",
+                lw=2.6, solid_capstyle="butt", zorder=5)
+    ax.annotate("stop", (zs, _stop_extent(st, 1) + blade), xytext=(0, 3), textcoords="offset points",
+                ha="center", va="bottom", fontsize=8, color="black", zorder=6)
+    return outer
+
+
+def plot_lens(lens, path_or_ax, fields_deg=None, wavelengths_nm=(486.13, 587.56, 656.27),
+              rays_per_fan=11, title=None, *, image_radius_mm=None, dpi=150):
+    """Draw ``lens`` (y–z section, traced fans) to a file or into a matplotlib ``Axes``.
+
+    ``path_or_ax``: a path (PNG/SVG/PDF/… by extension; written atomically) or an ``Axes``.
+    ``fields_deg``: field angles (degrees) of the fans; default 0, 0.7 and 1.0 × the half field of
+    view (:func:`half_field_deg`).  ``wavelengths_nm``: one line style each (the one nearest the
+    d line solid).  ``rays_per_fan``: rays per field and wavelength across the real pupil.
+    Returns the path written, or the ``Axes``.
+    """
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+
+    rays_per_fan = int(rays_per_fan)
+    if rays_per_fan < 1:
+        raise LensError(f"rays_per_fan must be ≥ 1, got {rays_per_fan}")
+    wavelengths = [float(w) for w in (wavelengths_nm or (PRIMARY_WAVELENGTH,))]
+    if any(not (math.isfinite(w) and w > 0) for w in wavelengths):
+        raise LensError(f"wavelengths must be positive numbers of nm, got {list(wavelengths_nm)}")
+    wl_prim = wavelengths[int(np.argmin([abs(w - PRIMARY_WAVELENGTH) for w in wavelengths]))]
+    par = lens.paraxial(wl_prim)
+    if fields_deg is None:
+        hf = half_field_deg(lens, wl_prim, image_radius_mm)
+        fields = [f * hf for f in FIELD_FRACTIONS]
+        labels = ["on axis", "0.7 field", "full field"]
+    else:
+        fields = [float(f) for f in fields_deg]
+        if any(not (math.isfinite(f) and 0 <= abs(f) < 90) for f in fields):
+            raise LensError(f"field angles must be in (−90°, 90°), got {list(fields_deg)}")
+        labels = [""] * len(fields)
+        hf = max(abs(f) for f in fields) if fields else 0.0
+    colors = [FIELD_COLORS[k] if len(fields) <= 3 else None for k in range(len(fields))]
+    if len(fields) > 3:
+        import matplotlib
+        cmap = matplotlib.colormaps["viridis"]
+        colors = [cmap(k / max(1, len(fields) - 1)) for k in range(len(fields))]
+    styles = _line_styles(wavelengths)
+
+    own_fig = not hasattr(path_or_ax, "plot")
+    if own_fig:
+        _image_format(path_or_ax)          # fail before tracing on an unknown extension
+    z0 = _start_z(lens)
+    track = lens.image_z - z0
+    stub = 0.10 * track
+
+    # ---------------------------------------------------------------- rays
+    polylines, deaths, y_img = [], [], []
+    targets = np.linspace(-STOP_FILL, STOP_FILL, rays_per_fan) * lens.stop.semi_diameter \
+        if rays_per_fan > 1 else np.zeros(1)
+    pairs = [(fi, w) for fi in range(len(fields)) for w in wavelengths]
+    th_pairs = np.array([abs(fields[fi]) for fi, _ in pairs])
+    wl_pairs = np.array([w for _, w in pairs])
+    hs = _aim(lens, th_pairs, wl_pairs, z0, targets) if pairs else np.zeros((0, len(targets)))
+    keep = np.all(np.isfinite(hs), axis=1)
+    if keep.any():
+        pts, valid = _trace_fans(lens, th_pairs[keep][:, None], hs[keep],
+                                 wl_pairs[keep][:, None], z0)
+        pts = pts.reshape(int(keep.sum()), len(targets), *pts.shape[1:])
+        valid = valid.reshape(int(keep.sum()), len(targets))
+        for kk, k in enumerate(np.nonzero(keep)[0]):
+            fi, w = pairs[k]
+            sgn = 1.0 if fields[fi] >= 0 else -1.0
+            for j in range(len(targets)):
+                p = pts[kk, j]
+                p = p[np.all(np.isfinite(p), axis=1)].copy()
+                if len(p) < 2:
+                    continue
+                p[:, 1] *= sgn
+                d0 = p[1] - p[0]
+                p[0] = p[1] - d0 / (np.linalg.norm(d0) or 1.0) * stub     # a short incoming stub
+                polylines.append((p[:, 2], p[:, 1], colors[fi], styles[w]))
+                if valid[kk, j]:
+                    y_img.append(abs(p[-1, 1]))
+                else:
+                    deaths.append((p[-1, 2], p[-1, 1], colors[fi]))
+
+    # ---------------------------------------------------------------- limits and figure
+    surfs = lens.surfaces
+    r_lens = max(s.semi_diameter for s in surfs)
+    zi = lens.image_z
+    h_plane = max(max(y_img, default=0.0) * 1.12, 0.35 * r_lens)
+    zmin = min([z0 - stub] + [float(np.nanmin(z)) for z, *_ in polylines])
+    xlim = (zmin - 0.02 * track, zi + 0.04 * track)
+    y_rays = max([float(np.nanmax(np.abs(y))) for _, y, *_ in polylines], default=0.0)
+    ymax = max(r_lens * 1.25, h_plane * 1.1, min(y_rays * 1.04, 1.6 * r_lens),
+               max((s.housing_radius or 0.0) for s in surfs) * 1.15)
+    xspan = xlim[1] - xlim[0]
+    if own_fig:
+        w_in = 12.0
+        ax_w = w_in - 1.0
+        ax_h = ax_w * 2 * ymax / xspan
+        if ax_h < 3.0:            # long, slim lenses: show more y rather than a sliver
+            ax_h = 3.0
+            ymax = 0.5 * ax_h * xspan / ax_w
+        if ax_h > 7.5:            # short, fat lenses: narrow the figure instead of padding it
+            ax_h = 7.5
+            w_in = max(7.0, 1.0 + ax_h * xspan / (2 * ymax))
+        n_title = 2 + (1 if title else 0)
+        fig = Figure(figsize=(w_in, ax_h + 1.3 + 0.2 * n_title + (0.25 if w_in < 11 else 0.0)),
+                     dpi=dpi, layout="constrained")
+        ax = fig.add_subplot(1, 1, 1)
+    else:
+        ax = path_or_ax
+        fig = None
+
+    outer = _draw_lens(ax, lens)
+    for z, y, c, ls in polylines:
+        ax.plot(z, y, color=c, ls=ls, lw=0.75 if ls == "-" else 0.7, alpha=0.9 if ls == "-" else 0.75,
+                zorder=3, solid_capstyle="round")
+    if deaths:
+        dz, dy, dc = zip(*deaths)
+        ax.scatter(dz, dy, marker="x", s=16, c=list(dc), linewidths=1.1, zorder=7)
+
+    ax.plot([zi, zi], [-h_plane, h_plane], color="#333333", lw=1.6, zorder=5)
+    ax.annotate("image plane", (zi, h_plane), xytext=(-3, 3), textcoords="offset points", ha="right",
+                va="bottom", fontsize=8, zorder=6)
+    ax.axhline(0.0, color="#777777", lw=0.6, ls=(0, (8, 3, 2, 3)), zorder=1)
+    # paraxial cardinal marks on the axis
+    marks = [(par.entrance_pupil_z, "EP"), (par.exit_pupil_z, "XP"), (par.rear_focal_z, "F′")]
+    for z, lab in marks:
+        if math.isfinite(z) and zmin <= z <= zi + 0.1 * track:
+            ax.plot([z], [0.0], marker="|", ms=9, mew=1.2, color="#555555", zorder=6)
+            ax.annotate(lab, (z, 0.0), xytext=(0, -10), textcoords="offset points", ha="center",
+                        va="top", fontsize=7, color="#555555", zorder=6)
+
+    ax.set_xlim(*xlim)
+    ax.set_ylim(-ymax, ymax)
+    ax.set_aspect("equal", adjustable="box")
+    ax.set_xlabel("z (mm)  — object space on the left, sensor on the right")
+    ax.set_ylabel("y (mm)")
+    ax.grid(True, color="#e6e6e6", lw=0.5, zorder=0)
+    ax.set_axisbelow(True)
+    for side in ("top", "right"):
+        ax.spines[side].set_visible(False)
+
+    head = f"{lens.name}: EFL {par.efl:.2f} mm, f/{par.fnumber:.2f}"
+    try:
+        fd = par.focus_distance_for(par.sensor_distance)
+        focus = "focused at ∞" if math.isinf(fd) else f"focused at {fd / 1000:.3g} m"
+    except LensError:
+        focus = f"image plane {par.bfl - par.sensor_distance:.2f} mm in front of F′"
+    sub = (f"BFL {par.bfl:.2f} mm · track {lens.total_track:.2f} mm · image plane z = {zi:.2f} mm, "
+           f"{focus} · "
+           + (f"half field {hf:.1f}°" if fields_deg is None else f"max field {hf:.1f}°")
+           + f" · paraxial at {wl_prim:g} nm")
+    ax.set_title((title + "\n" if title else "") + head + "\n" + sub, fontsize=10, loc="left")
+
+    handles = []
+    for fi, th in enumerate(fields):
+        lab = f"{abs(th):.1f}°" + (f" ({labels[fi]})" if labels[fi] else "")
+        handles.append(Line2D([], [], color=colors[fi], lw=2, label=lab))
+    for w in wavelengths:
+        handles.append(Line2D([], [], color="#444444", ls=styles[w], lw=1.0, label=f"{w:g} nm"))
+    if deaths:
+        handles.append(Line2D([], [], color="#444444", marker="x", ls="", label="ray blocked"))
+    if own_fig:     # below the axes, in the space constrained layout reserves for it
+        ncol = len(handles) if fig.get_figwidth() >= 11 else (len(handles) + 1) // 2
+        fig.legend(handles=handles, loc="outside lower center", fontsize=8, ncol=ncol, frameon=False,
+                   handlelength=2.6, columnspacing=1.4)
+    else:
+        ax.legend(handles=handles, loc="best", fontsize=7, ncol=2, framealpha=0.85)
+
+    if not own_fig:
+        return ax
+    return _save(fig, path_or_ax)
+
+
+def _image_format(path) -> str:
+    """The file format from ``path``'s extension (``png`` when it has none); LensError if unknown."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    path = os.fspath(path)
+    ext = os.path.splitext(path)[1].lower().lstrip(".") or "png"
+    types = FigureCanvasAgg.get_supported_filetypes()
+    if ext not in types:
+        raise LensError(f"cannot write '{path}': unknown image format '.{ext}'; valid: "
+                        + ", ".join(sorted("." + e for e in types)))
+    return ext
+
+
+def _save(fig, path) -> str:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    FigureCanvasAgg(fig)
+    path = os.fspath(path)
+    ext = _image_format(path)
+    d = os.path.dirname(os.path.abspath(path))
+    os.makedirs(d, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-layout-", suffix="." + ext, dir=d)
+    os.close(fd)
+    try:
+        fig.savefig(tmp, format=ext)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)      # mkstemp creates 0600; give the usual permissions
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+    return path
