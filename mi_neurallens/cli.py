@@ -10,6 +10,7 @@ import sys
 COMMANDS = {
     "lens": "lens",
     "render": "render",
+    "train": "train", "evaluate": "evaluate",
 }
 
 
@@ -49,6 +50,10 @@ def main(argv=None) -> int:
     except FileNotFoundError as e:
         print(f"mi-neurallens: error: {e}", file=sys.stderr)
         return 1
+    except BrokenPipeError:  # e.g. `mi-neurallens lens info X | head`
+        import os
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
 
 
 if __name__ == "__main__":

@@ -1,1 +1,21 @@
-"""Mitsuba sensors: realistic_lens (exact) and neural_lens."""
+"""Mitsuba sensors: ``realistic_lens`` (exact tracing) and, later, ``neural_lens``.
+
+Shared pieces: :mod:`.common` (properties, lens setup, film mapping, frames), :mod:`.wavelengths`
+(one λ per ray and its weight), :mod:`.pupil` (exit-pupil / rear-element sampling bounds).
+
+**Registration is per Mitsuba variant.**  :func:`register` defines the plugin classes for the variant
+that is currently set and registers them with Mitsuba; it returns the registered names.  It is called by
+:func:`mi_neurallens.register` and automatically on ``import mi_neurallens`` when a variant is already
+set.  After every ``mi.set_variant(...)`` call ``mi_neurallens.register()`` again.
+"""
+from __future__ import annotations
+
+
+def register() -> list[str]:
+    """Register the sensors for the current variant; returns their plugin names."""
+    import mitsuba as mi
+    if mi.variant() is None:
+        raise RuntimeError("mi_neurallens.sensors.register(): set a Mitsuba variant first")
+    from .realistic_lens import PLUGIN, make_realistic_lens
+    mi.register_sensor(PLUGIN, make_realistic_lens())
+    return [PLUGIN]

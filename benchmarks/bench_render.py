@@ -1,0 +1,206 @@
+"""Render time of the still-life scene with Mitsuba's ``perspective`` and ``thinlens`` and our
+``realistic_lens`` (same scene, resolution, spp, sampler; one process; warm-up excluded;
+``dr.sync_thread()``), plus the camera-ray generation rate of each sensor alone.
+
+    python benchmarks/bench_render.py [--res 320x240] [--spp 64] [--repeats 5] [--lens wide-22mm]
+                                      [--pupil-table] [--furnace]
+
+Prints a table and writes ``benchmarks/results/bench_render.json``.  ``--pupil-table`` adds the
+exit-pupil vs rear-element pass fractions of every bundled lens; ``--furnace`` adds the furnace
+(uniform environment) values of ``wide-22mm`` (docs/realistic_lens.md quotes both).  The bar: realistic_lens within
+1.5x of thinlens on the still life.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import sys
+import time
+import xml.etree.ElementTree as ET
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def sensor_xml(kind, setup, fov, d_front, aperture, focus_rel):
+    if kind == "perspective":
+        return f'<sensor type="perspective"><float name="fov" value="{fov}"/><string name="fov_axis" value="x"/></sensor>'
+    return (f'<sensor type="thinlens"><float name="fov" value="{fov}"/><string name="fov_axis" value="x"/>'
+            f'<float name="aperture_radius" value="{aperture}"/><float name="focus_distance" value="{focus_rel}"/>'
+            '</sensor>')
+
+
+def build_scenes(mi, args):
+    from mi_neurallens.commands.render import load_scene
+    from mi_neurallens.render_utils import apply_sensor_overrides
+    path = os.path.join(ROOT, "scenes", "still_life.xml")
+    w, h = args.res
+    real = load_scene(path, variant=args.variant, lens=args.lens, resolution=(w, h), spp=args.spp)
+    rl = real.sensors()[0]
+    st = rl.setup
+    px = st.lens.paraxial()
+    # pinhole / thin lens at the front principal plane with the paraxial field of view and focus
+    fov = 2 * math.degrees(math.atan(0.5 * st.sensor_width_mm / abs(px.image_height_per_tan())))
+    d_front = (st.image_z - px.front_principal_z) / st.scene_unit_mm
+    aperture = px.entrance_pupil_radius / st.scene_unit_mm
+    focus_rel = st.focus_distance_mm / st.scene_unit_mm - d_front
+    text = open(path, encoding="utf-8").read()
+    text = apply_sensor_overrides(text, resolution=(w, h), spp=args.spp, lens=args.lens)
+    out = {"realistic_lens": real}
+    for kind in ("perspective", "thinlens"):
+        root = ET.fromstring(text)
+        old = root.find("sensor")
+        new = ET.fromstring(sensor_xml(kind, st, fov, d_front, aperture, focus_rel))
+        # same transform (moved forward to the front principal plane), film and sampler
+        tw = old.find("transform")
+        tw_new = ET.SubElement(new, "transform", {"name": "to_world"})
+        ET.SubElement(tw_new, "translate", {"z": f"{d_front}"})
+        for ch in tw:
+            tw_new.append(ch)
+        new.append(old.find("sampler"))
+        new.append(old.find("film"))
+        idx = list(root).index(old)
+        root.remove(old)
+        root.insert(idx, new)
+        xml = ET.tostring(root, encoding="unicode")
+        out[kind] = mi.load_string(xml)
+    return out
+
+
+def time_rays(mi, dr, sensor, n, repeats):
+    """Camera-ray generation alone: sample_ray on n samples (stratified grid), rays/s."""
+    import numpy as np
+    rng = np.random.default_rng(0)
+    s1, s2x, s2y, s3x, s3y = (mi.Float(rng.random(n).astype(np.float32)) for _ in range(5))
+    ts = []
+    for r in range(repeats + 1):
+        t = time.perf_counter()
+        ray, w = sensor.sample_ray(mi.Float(0.0) + 0 * s1, s1, mi.Point2f(s2x, s2y), mi.Point2f(s3x, s3y))
+        dr.eval(ray.o, ray.d, w)
+        dr.sync_thread()
+        if r:
+            ts.append(time.perf_counter() - t)
+    return n / min(ts)
+
+
+def pupil_table():
+    import time as _t
+    import mi_neurallens as nl
+    from mi_neurallens.sensors.common import configure_lens
+    from mi_neurallens.sensors.pupil import PupilBounds, measure_pass_fraction
+    rows = []
+    print("| lens | f-number | exit_pupil | rear_element | gain | bounds build (s) |")
+    print("|---|---|---|---|---|---|")
+    for name in ["wide-22mm", "dgauss-50mm", "canon-ef-24mm-f1.4l", "ood-59mm", "telephoto-250mm",
+                 "fisheye-10mm"]:
+        L = nl.Lens.load(name)
+        for k in (1, 4):
+            st = configure_lens(L, fstop=L.paraxial().fnumber * k, film_size=(3, 2))
+            t = _t.perf_counter()
+            ep = PupilBounds(st, "exit_pupil")
+            tb = _t.perf_counter() - t
+            re = PupilBounds(st, "rear_element")
+            a, b = measure_pass_fraction(ep, 1 << 20), measure_pass_fraction(re, 1 << 20)
+            print(f"| {name} | f/{st.fnumber:.3g} | {a:.3f} | {b:.4f} | {a / b:.1f}x | {tb:.2f} |")
+            rows.append({"lens": name, "fnumber": st.fnumber, "exit_pupil": a, "rear_element": b,
+                         "build_s": tb})
+    return rows
+
+
+def furnace_table(mi):
+    import numpy as np
+    rows = []
+    print("| setting | variant | centre | mid-edge | corner |")
+    print("|---|---|---|---|---|")
+    for variant in ("llvm_ad_rgb", "llvm_ad_spectral"):
+        mi.set_variant(variant)
+        import mi_neurallens
+        mi_neurallens.register()
+        for kw in (dict(fstop=8.0, fresnel=False), dict(fstop=8.0), dict(fresnel=False), dict()):
+            sensor = {"type": "realistic_lens", "lens": "wide-22mm",
+                      "film": {"type": "hdrfilm", "width": 64, "height": 48, "rfilter": {"type": "box"},
+                               "pixel_format": "rgb"},
+                      "sampler": {"type": "ldsampler", "sample_count": 1024}, **kw}
+            img = np.array(mi.render(mi.load_dict({
+                "type": "scene", "integrator": {"type": "path"}, "sensor": sensor,
+                "env": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}}})), dtype=np.float64)
+            c, e, k = img[23:25, 31:33].mean(), img[23:25, 0].mean(), img[0, 0].mean()
+            print(f"| {kw} | {variant} | {c:.3f} | {e:.3f} | {k:.3f} |")
+            rows.append({"setting": {k2: v for k2, v in kw.items()}, "variant": variant,
+                         "centre": c, "mid_edge": e, "corner": k})
+    return rows
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--res", default="320x240")
+    p.add_argument("--spp", type=int, default=64)
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--lens", default="wide-22mm")
+    p.add_argument("--variant", default="llvm_ad_rgb")
+    p.add_argument("--pupil-table", action="store_true", help="also measure pupil-sampling pass fractions")
+    p.add_argument("--furnace", action="store_true", help="also render the wide-22mm furnace table")
+    p.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "bench_render.json"))
+    args = p.parse_args(argv)
+    args.res = tuple(int(v) for v in args.res.lower().split("x"))
+    import drjit as dr
+    import mitsuba as mi
+    mi.set_variant(args.variant)
+    import mi_neurallens
+    mi_neurallens.register()
+    scenes = build_scenes(mi, args)
+    w, h = args.res
+    n_rays = w * h * args.spp
+    names = ("perspective", "thinlens", "realistic_lens")
+    for name in names:                                   # warm-up: trace + compile, not timed
+        mi.render(scenes[name], spp=args.spp, seed=0)
+        dr.sync_thread()
+    times = {n: [] for n in names}
+    for r in range(args.repeats):                        # interleaved, so load changes hit all alike
+        for name in names:
+            t = time.perf_counter()
+            img = mi.render(scenes[name], spp=args.spp, seed=r + 1)
+            dr.eval(img)
+            dr.sync_thread()
+            times[name].append(time.perf_counter() - t)
+    rows = {}
+    for name in names:
+        best = min(times[name])
+        gen = time_rays(mi, dr, scenes[name].sensors()[0], 1 << 20, args.repeats)
+        rows[name] = {"render_s": best, "render_all_s": times[name], "paths_per_s": n_rays / best,
+                      "ray_generation_per_s": gen}
+    base = rows["thinlens"]["render_s"]
+    for r in rows.values():
+        r["ratio_vs_thinlens"] = r["render_s"] / base
+    print(f"still_life {w}x{h}, {args.spp} spp ({n_rays / 1e6:.2f} M camera rays), {args.variant}, "
+          f"lens {args.lens}, best of {args.repeats} interleaved runs after warm-up, {dr.thread_count()} threads")
+    print(f"{'sensor':16s} {'render s':>9s} {'x thinlens':>10s} {'Mpaths/s':>9s} {'Mrays/s (sensor only)':>22s}")
+    for name, r in rows.items():
+        print(f"{name:16s} {r['render_s']:9.3f} {r['ratio_vs_thinlens']:10.2f} {r['paths_per_s'] / 1e6:9.2f} "
+              f"{r['ray_generation_per_s'] / 1e6:22.1f}")
+    ok = rows["realistic_lens"]["ratio_vs_thinlens"] <= 1.5
+    print(f"bar (realistic_lens <= 1.5x thinlens): {'met' if ok else 'NOT met'}")
+    res = {"benchmark": "bench_render", "scene": "scenes/still_life.xml", "resolution": [w, h], "spp": args.spp,
+           "variant": args.variant, "lens": args.lens, "repeats": args.repeats, "threads": dr.thread_count(),
+           "machine": {"platform": platform.platform(), "processor": platform.processor(),
+                       "cpus": os.cpu_count(), "python": sys.version.split()[0],
+                       "mitsuba": mi.__version__, "drjit": dr.__version__},
+           "command": "python benchmarks/bench_render.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+           "results": rows, "bar_met": ok}
+    if args.pupil_table:
+        res["pupil_pass_fractions"] = pupil_table()
+    if args.furnace:
+        res["furnace_wide22"] = furnace_table(mi)
+    os.makedirs(os.path.dirname(args.out), exist_ok=True)
+    tmp = args.out + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(res, f, indent=2)
+    os.replace(tmp, args.out)
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
