@@ -6,8 +6,6 @@ registered by :func:`mi_neurallens.sensors.register`.
 """
 from __future__ import annotations
 
-import math
-
 PLUGIN = "realistic_lens"
 
 DOC = r"""
@@ -75,12 +73,12 @@ exit-pupil bound (or the rear element), traced backward through the lens (transm
 wavelength importance-sampled from the CIE curves, and leaves the front of the lens into the scene.
 
 **Radiometry.**  The pixel value is the sensor-plane irradiance divided by π NA'², where
-NA' = 1/(2N) and N is the paraxial f-number (object at infinity) of the configured stop:
+NA' = 1/(2N) and N is the paraxial working f-number of the configured stop at the focus distance:
 ``I(x) = (1/(π NA'²)) ∫ L(ray(x, ω)) T(x, ω) cosθ dω``.  A uniform environment of radiance 1
 therefore renders to relative illumination × Fresnel transmittance: ≈ 1 at the centre for a lens
 at f/8 with ``fresnel=false``, darker toward the corners (natural cos⁴ and optical vignetting).
-The normalisation follows the f-stop (exposure is compensated like aperture priority) but not the
-focus distance (close focus is darker by the bellows factor, as on a real camera).
+NA' uses the paraxial *working* f-number at the focus distance, so exposure follows neither the
+f-stop nor the focus distance (like Mitsuba's ``thinlens``, whose brightness does not change either).
 
 **Spectral.**  Spectral variants put the ray's wavelength on all lanes with weight 1/pdf; RGB variants
 weight it by ``xyz_to_srgb(cie1931_xyz(λ))·D65(λ)/pdf(λ)`` so white stays white.  For a lens whose
@@ -118,155 +116,27 @@ Mitsuba's 4 hero wavelengths.
 
 def make_realistic_lens():
     """Define the ``realistic_lens`` class for the CURRENT Mitsuba variant (call after set_variant)."""
-    import drjit as dr
-    import mitsuba as mi
-
-    from .common import PropertyReader, SensorPropertyError, configure_lens, film_to_sensor, \
-        lens_to_camera, load_lens
-    from .pupil import EXIT_PUPIL, MODES, PupilBounds
-    from .wavelengths import prepare_shutter, sample_wavelength
+    from .base import make_lens_sensor_base
+    from .common import load_lens
     from ..trace.tracer import LensTracer
 
-    class RealisticLens(mi.Sensor):
+    class RealisticLens(make_lens_sensor_base()):
         __doc__ = DOC
+        PLUGIN = PLUGIN
 
-        def __init__(self, props):
-            rd = PropertyReader(props, PLUGIN)
-            lens_spec = rd.string("lens", "wide-22mm")
-            focus = rd.float("focus_distance", None, allow_inf=True)
-            sdist = rd.float("sensor_distance", None)
-            fstop = rd.float("fstop", None)
-            width = rd.float("sensor_width", 36.0, positive=True)
-            unit = rd.float("scene_unit_mm", 1000.0, positive=True)
-            fresnel = rd.bool("fresnel", True)
-            mode = rd.string("pupil_sampling", EXIT_PUPIL, choices=MODES)
-            if focus is not None and sdist is not None:
-                raise SensorPropertyError(PLUGIN, "focus_distance",
-                                          "give either 'focus_distance' (scene units from the sensor plane) "
-                                          "or 'sensor_distance' (mm behind the last vertex), not both")
-            if focus is not None and not focus > 0:
-                raise SensorPropertyError(PLUGIN, "focus_distance", f"must be > 0 scene units (or inf), got {focus:g}")
-            if sdist is not None and not sdist > 0:
-                raise SensorPropertyError(PLUGIN, "sensor_distance",
-                                          f"must be > 0 mm behind the last vertex, got {sdist:g}")
-            if fstop is not None and not fstop > 0:
-                raise SensorPropertyError(PLUGIN, "fstop", f"must be > 0, got {fstop:g}")
-            base = load_lens(lens_spec, PLUGIN)
-            # wavelength mode needs to know whether λ matters before the base class reads the shutter
-            probe = configure_lens(base, fstop=fstop, sensor_distance_mm=base.surfaces[-1].thickness,
-                                   fresnel=fresnel)
-            lambda_mode = prepare_shutter(mi, props, probe.lambda_dependent)
-            super().__init__(props)
-            self.lambda_mode = lambda_mode
-            size = self.film().size()
-            self.setup = configure_lens(
-                base, fstop=fstop, sensor_distance_mm=sdist,
-                focus_distance_mm=None if focus is None else focus * unit,
-                sensor_width_mm=width, film_size=(int(size[0]), int(size[1])), scene_unit_mm=unit,
-                fresnel=fresnel, plugin=PLUGIN)
-            self.lens_spec = lens_spec
-            self.pupil = PupilBounds(self.setup, mode)
-            self.tracer = LensTracer(self.setup.lens, fresnel=fresnel)
-            first = self.setup.lens.surfaces[0]
-            sag = float(first.sag(first.semi_diameter)) if not first.is_stop else 0.0
-            self.z_out = min(0.0, sag if math.isfinite(sag) else 0.0)
-            self.m_needs_sample_3 = True
+        def _load_lens(self, rd):
+            self.lens_spec = rd.string("lens", "wide-22mm")
+            return load_lens(self.lens_spec, PLUGIN)
 
-        # ------------------------------------------------------------------ rays
-        def _trace(self, time, sample1, sample2, sample3, active=True):
-            st = self.setup
-            lam, wav, wspec, time = sample_wavelength(mi, dr, self, self.lambda_mode, time, sample1,
-                                                      sample2, sample3, active)
-            fx, fy = film_to_sensor(mi, self, st, sample2)
-            X, Y, area = self.pupil.sample(mi, dr, fx, fy, sample3)
-            z_img, dzp = self.pupil.z_img, self.pupil.dz
-            ex, ey = X - fx, Y - fy
-            inv_len = dr.rsqrt(dr.fma(ex, ex, dr.fma(ey, ey, dzp * dzp)))
-            d = (ex * inv_len, ey * inv_len, -dzp * inv_len)
-            zf = dr.zeros(mi.Float, dr.width(fx)) + z_img
-            res = self.tracer.trace((fx, fy, zf), d, lam, "transmit", "backward", z_out=self.z_out,
-                                    active=active)
-            cos_t = dzp * inv_len
-            c2 = cos_t * cos_t
-            # cos^4θ · A / Δz² · T / (π NA'²)
-            w = c2 * c2 * area * (st.normalisation / (dzp * dzp)) * res.throughput
-            valid = res.valid
-            w = dr.select(valid, w, 0.0)
-            (ox, oy, oz), (dx, dy, dz) = lens_to_camera(st, res.position, res.direction)
-            o = mi.Point3f(dr.select(valid, ox, 0.0), dr.select(valid, oy, 0.0), dr.select(valid, oz, 0.0))
-            dcam = mi.Vector3f(dr.select(valid, dx, 0.0), dr.select(valid, dy, 0.0), dr.select(valid, dz, 1.0))
-            ray = mi.Ray3f(self.m_to_world @ o, dr.normalize(self.m_to_world @ dcam), time,
-                           wav if wav is not None else [])
-            # invalid rays: weight 0 and a zero-length segment so integrators stop at once
-            ray.maxt = dr.select(valid, ray.maxt, 0.0)
-            weight = wspec * w if not isinstance(wspec, float) else mi.Spectrum(w)
-            return ray, weight
+        def _setup_transport(self):
+            self.tracer = LensTracer(self.setup.lens, fresnel=self.setup.fresnel)
 
-        def sample_ray(self, time, sample1, sample2, sample3, active=True):
-            return self._trace(time, sample1, sample2, sample3, active)
+        def _transport(self, o, d, lam, active):
+            res = self.tracer.trace(o, d, lam, "transmit", "backward", z_out=self.z_out, active=active)
+            return res.position, res.direction, res.throughput, res.valid
 
-        def sample_ray_differential(self, time, sample1, sample2, sample3, active=True):
-            ray, w = self._trace(time, sample1, sample2, sample3, active)
-            rd = mi.RayDifferential3f(ray)
-            rd.has_differentials = False
-            return rd, w
-
-        # ------------------------------------------------------------------ unsupported
-        def _unsupported(self, what):
-            raise NotImplementedError(
-                f"{PLUGIN}: {what} is not supported: this sensor only generates camera rays (backward "
-                "tracing), so integrators that connect to the camera from the scene (ptracer, "
-                "prb_projective, direct_projective) cannot use it; use path, volpath, direct, aov, prb")
-
-        def sample_direction(self, it, sample, active=True):
-            self._unsupported("sample_direction")
-
-        def pdf_direction(self, it, ds, active=True):
-            self._unsupported("pdf_direction")
-
-        def eval_direction(self, it, ds, active=True):
-            self._unsupported("eval_direction")
-
-        def sample_position(self, time, sample, active=True):
-            self._unsupported("sample_position")
-
-        def pdf_position(self, ps, active=True):
-            self._unsupported("pdf_position")
-
-        def eval(self, si, active=True):
-            self._unsupported("eval")
-
-        # ------------------------------------------------------------------ misc
-        def bbox(self):
-            """World-space box around the sensor and the lens body."""
-            L = self.setup.lens
-            k = 1.0 / self.setup.scene_unit_mm
-            rmax = max(max(s.semi_diameter for s in L.surfaces), 0.5 * math.hypot(
-                self.setup.sensor_width_mm, self.setup.sensor_height_mm)) * k
-            zmax = (self.setup.image_z - self.z_out) * k
-            m = self.m_to_world.matrix.numpy()
-            M = mi.ScalarTransform4f(m[..., 0] if m.ndim == 3 else m)
-            box = mi.ScalarBoundingBox3f()
-            for x in (-rmax, rmax):
-                for y in (-rmax, rmax):
-                    for z in (0.0, zmax):
-                        box.expand(M @ mi.ScalarPoint3f(x, y, z))
-            return box
-
-        def traverse(self, cb):
-            cb.put("to_world", self.m_to_world, mi.ParamFlags.NonDifferentiable)
-
-        def parameters_changed(self, keys=[]):
-            pass
-
-        def to_string(self):
-            st = self.setup
-            fd = st.focus_distance_mm / st.scene_unit_mm
-            return (f"RealisticLens[lens='{self.lens_spec}' ({st.lens.name}), f/{st.fnumber:.3g} "
-                    f"(widest f/{st.max_fnumber:.3g}), focus_distance={fd:g} (sensor_distance="
-                    f"{st.sensor_distance_mm:.4f} mm), sensor {st.sensor_width_mm:g}x{st.sensor_height_mm:.4g} mm, "
-                    f"scene_unit_mm={st.scene_unit_mm:g}, fresnel={st.fresnel}, "
-                    f"pupil_sampling={self.pupil.mode}, film={self.film().size()}]")
+        def _describe(self):
+            return f"lens='{self.lens_spec}' ({self.setup.lens.name})"
 
     RealisticLens.__name__ = "RealisticLens"
     return RealisticLens
