@@ -101,13 +101,15 @@ def _set_child(elem, name: str, text: str, float_ok=True):
 
 
 def apply_sensor_overrides(xml_text: str, *, sets=(), lens=None, resolution=None, spp=None,
-                           source="scene") -> str:
+                           source="scene", sensor_type=None) -> str:
     """Edit a scene's XML text: set properties of its (first) ``<sensor>``.
 
     ``sets``: ``key=value`` strings; ``film.key=value`` / ``sampler.key=value`` go to the sensor's
     film / sampler (``film.width=640``).  ``lens``: shorthand for ``lens=...``.  ``resolution``:
-    (w, h) for the film.  ``spp``: the sampler's ``sample_count``.  Values are typed as
-    boolean (true/false), float (numbers; integers for film/sampler) or string.
+    (w, h) for the film.  ``spp``: the sampler's ``sample_count``.  ``sensor_type``: replace the
+    sensor plugin (e.g. ``neural_lens`` for a scene written for ``realistic_lens``; the two share
+    their properties).  Values are typed as boolean (true/false), float (numbers; integers for
+    film/sampler) or string.
     """
     try:
         root = ET.fromstring(xml_text)
@@ -123,6 +125,8 @@ def apply_sensor_overrides(xml_text: str, *, sets=(), lens=None, resolution=None
             e = ET.SubElement(sensor, kind, {"type": default_type})
         return e
 
+    if sensor_type is not None:
+        sensor.set("type", sensor_type)
     items = list(sets)
     if lens is not None:
         items.append(f"lens={lens}")
@@ -135,7 +139,7 @@ def apply_sensor_overrides(xml_text: str, *, sets=(), lens=None, resolution=None
             _set_child(child("film", "hdrfilm"), k[5:], v, float_ok=False)
         elif k.startswith("sampler."):
             _set_child(child("sampler", "independent"), k[8:], v, float_ok=False)
-        elif k == "lens" or k == "pupil_sampling":
+        elif k in ("lens", "pupil_sampling", "model"):
             for ch in list(sensor):
                 if ch.get("name") == k:
                     sensor.remove(ch)

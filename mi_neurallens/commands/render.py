@@ -50,7 +50,8 @@ def _resolution(text):
             from None
 
 
-def load_scene(path, *, variant=None, sets=(), lens=None, resolution=None, spp=None, params=()):
+def load_scene(path, *, variant=None, sets=(), lens=None, resolution=None, spp=None, params=(),
+               sensor_type=None):
     """Load ``path`` with the overrides applied (see the module docstring); returns the scene."""
     import mitsuba as mi
     from ..errors import NeuralLensError
@@ -65,7 +66,8 @@ def load_scene(path, *, variant=None, sets=(), lens=None, resolution=None, spp=N
         raise FileNotFoundError(f"scene file not found: {path}")
     with open(path, encoding="utf-8") as f:
         text = f.read()
-    text = apply_sensor_overrides(text, sets=sets, lens=lens, resolution=resolution, spp=spp, source=path)
+    text = apply_sensor_overrides(text, sets=sets, lens=lens, resolution=resolution, spp=spp, source=path,
+                                  sensor_type=sensor_type)
     kw = {}
     for kv in params:
         if "=" not in kv:
@@ -95,7 +97,7 @@ def _strip_traceback(msg: str) -> str:
     return f"{head} {tail}".strip()
 
 
-def render_passes(scene, spp: int, passes: int, show_progress=True):
+def render_passes(scene, spp: int, passes: int, show_progress=True, seed: int = 0, desc: str = "render"):
     """Render ``spp`` samples per pixel in ``passes`` passes (different seeds) and average; returns
     (numpy image, seconds)."""
     import drjit as dr
@@ -106,9 +108,9 @@ def render_passes(scene, spp: int, passes: int, show_progress=True):
     base, extra = divmod(int(spp), passes)
     acc = None
     t0 = time.perf_counter()
-    for i in progress(range(passes), total=passes, desc="render", enable=show_progress):
+    for i in progress(range(passes), total=passes, desc=desc, enable=show_progress):
         k = base + (1 if i < extra else 0)
-        img = mi.render(scene, spp=k, seed=i)
+        img = mi.render(scene, spp=k, seed=seed + i)
         a = np.array(img, dtype=np.float64) * k
         acc = a if acc is None else acc + a
     dr.sync_thread()

@@ -1,4 +1,4 @@
-"""Mitsuba sensors: ``realistic_lens`` (exact tracing) and, later, ``neural_lens``.
+"""Mitsuba sensors: ``realistic_lens`` (exact tracing) and ``neural_lens`` (learned transport map).
 
 Shared pieces: :mod:`.common` (properties, lens setup, film mapping, frames), :mod:`.wavelengths`
 (one λ per ray and its weight), :mod:`.pupil` (exit-pupil / rear-element sampling bounds).
@@ -16,6 +16,7 @@ def register() -> list[str]:
     import mitsuba as mi
     if mi.variant() is None:
         raise RuntimeError("mi_neurallens.sensors.register(): set a Mitsuba variant first")
-    from .realistic_lens import PLUGIN, make_realistic_lens
-    mi.register_sensor(PLUGIN, make_realistic_lens())
-    return [PLUGIN]
+    from . import neural_lens, realistic_lens
+    mi.register_sensor(realistic_lens.PLUGIN, realistic_lens.make_realistic_lens())
+    mi.register_sensor(neural_lens.PLUGIN, neural_lens.make_neural_lens())
+    return [realistic_lens.PLUGIN, neural_lens.PLUGIN]

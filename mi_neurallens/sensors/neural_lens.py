@@ -1,0 +1,172 @@
+"""The ``neural_lens`` sensor: the learned lens transport map (classifier → regressor) in the kernel.
+
+Same conventions, properties and sampling as ``realistic_lens`` (both derive from
+:mod:`.base`); only the transport differs: instead of tracing the prescription, the backward
+transmit map of a trained model (:mod:`mi_neurallens.neural.model`) is evaluated inside the Dr.Jit
+kernel — the symmetry reduction, the classifier (is the ray blocked?), the regressor (exit ray and
+Fresnel throughput) with literal weights and a rational tanh, and the undo of the reduction.
+"""
+from __future__ import annotations
+
+import os
+
+PLUGIN = "neural_lens"
+
+DOC = r"""
+.. _sensor-neural_lens:
+
+Neural lens camera (:monosp:`neural_lens`)
+------------------------------------------
+
+.. pluginparameters::
+
+ * - model
+   - |string|
+   - A model file (``*.model.safetensors``, written by ``mi-neurallens train``) or the name of a
+     bundled lens whose model ships in ``lenses/models/`` (``wide-22mm``, ``ood-59mm``,
+     ``canon-ef-24mm-f1.4l``).  (Default: ``wide-22mm``)
+
+ * - lens
+   - |string|
+   - The prescription the model was trained for (file or bundled name).  It gives the paraxial
+     focus, pupil bounds and normalisation; its fingerprint must match the model's.  (Default: the
+     bundled lens named in the model)
+
+ * - use_classifier
+   - |bool|
+   - Evaluate the classifier and drop rays it calls blocked.  ``false`` reproduces the paper's
+     ablation: every ray inside the trained domain is passed through the regressor, and the image
+     gets over-exposed and blurred.  (Default: |true|)
+
+ * - focus_distance, sensor_distance, fstop, sensor_width, scene_unit_mm, fresnel, pupil_sampling,
+     to_world, film, sampler, shutter_open, shutter_close
+   - 
+   - As for :ref:`realistic_lens <sensor-realistic_lens>`, so the two sensors are interchangeable in a
+     scene.  Manual focusing (``sensor_distance`` / ``focus_distance``) moves the sensor with the same
+     model, within the sensor-distance range the model was trained for (a clear error outside it).
+     ``fstop`` must be the aperture the model was trained at (the stop is part of the learned map);
+     ``fresnel=false`` replaces the learned throughput by 1.
+
+The evaluation order per camera ray: film point and pupil sample (as ``realistic_lens``), then the
+ray is moved to the model's input plane, reduced by the lens's rotational and mirror symmetry to
+(r, ωx, ωy ≥ 0, λ), the classifier decides whether it is blocked, the regressor gives the exit
+position, direction and throughput in the reduced frame, and the reduction is undone.
+
+.. tabs::
+
+    .. code-tab:: xml
+
+        <sensor type="neural_lens">
+            <string name="model" value="wide-22mm"/>
+            <float name="focus_distance" value="2.5"/>
+            <transform name="to_world">
+                <lookat origin="0, 1, 5" target="0, 1, 0" up="0, 1, 0"/>
+            </transform>
+            <sampler type="ldsampler"><integer name="sample_count" value="64"/></sampler>
+            <film type="hdrfilm"><integer name="width" value="640"/><integer name="height" value="480"/></film>
+        </sensor>
+
+    .. code-tab:: python
+
+        'type': 'neural_lens',
+        'model': 'wide-22mm',
+        'focus_distance': 2.5,
+        'to_world': mi.ScalarTransform4f().look_at(origin=[0, 1, 5], target=[0, 1, 0], up=[0, 1, 0]),
+        'sampler': {'type': 'ldsampler', 'sample_count': 64},
+        'film': {'type': 'hdrfilm', 'width': 640, 'height': 480},
+"""
+
+
+def resolve_model_path(spec: str, plugin: str = PLUGIN) -> str:
+    """A model file path from the ``model`` property (a path, or a bundled lens name)."""
+    from ..neural.model import bundled_model_path
+    from .common import SensorPropertyError
+    if not isinstance(spec, str) or not spec.strip():
+        raise SensorPropertyError(plugin, "model", f"must be a model file or a bundled lens name, got {spec!r}")
+    try:
+        import mitsuba as mi
+        r = str(mi.file_resolver().resolve(spec))
+        if os.path.exists(r):
+            return r
+    except Exception:  # pragma: no cover
+        pass
+    if os.path.exists(spec):
+        return spec
+    p = bundled_model_path(spec)
+    if os.path.exists(p):
+        return p
+    models = os.path.dirname(p)
+    have = sorted(f.split(".model.")[0] for f in os.listdir(models) if f.endswith(".model.safetensors")) \
+        if os.path.isdir(models) else []
+    raise SensorPropertyError(plugin, "model", f"no model {spec!r}: not a file, and no bundled model of that "
+                              f"name (bundled: {', '.join(have) or 'none'}); train one with "
+                              f"`mi-neurallens train LENS`")
+
+
+def make_neural_lens():
+    """Define the ``neural_lens`` class for the CURRENT Mitsuba variant (call after set_variant)."""
+    import drjit as dr
+
+    from .base import make_lens_sensor_base
+    from .common import FSTOP_TOLERANCE, SensorPropertyError, load_lens
+    from ..errors import ModelError
+    from ..neural.model import load_model
+
+    class NeuralLens(make_lens_sensor_base()):
+        __doc__ = DOC
+        PLUGIN = PLUGIN
+
+        def _read_properties(self, rd):
+            self.model_spec = rd.string("model", "wide-22mm")
+            self.lens_prop = rd.string("lens", None)
+            self.use_classifier = rd.bool("use_classifier", True)
+
+        def _load_lens(self, rd):
+            self.model_path = resolve_model_path(self.model_spec)
+            try:
+                probe = load_model(self.model_path)  # header + tensors; lens check below
+            except ModelError as e:
+                raise SensorPropertyError(PLUGIN, "model", str(e)) from e
+            lens = load_lens(self.lens_prop or probe.lens_name, PLUGIN)
+            if lens.fingerprint() != probe.fingerprint:
+                raise SensorPropertyError(
+                    PLUGIN, "lens" if self.lens_prop else "model",
+                    f"model {self.model_path} was trained for lens '{probe.lens_name}' (fingerprint "
+                    f"{probe.fingerprint}), but the lens is '{lens.name}' (fingerprint {lens.fingerprint()}); "
+                    f"use the matching lens or train a model for this one")
+            if not probe.has("transmit", "backward"):
+                raise SensorPropertyError(PLUGIN, "model", f"model {self.model_path} has no backward transmit "
+                                          f"map (it has {sorted(probe.maps)})")
+            self.model = probe
+            return lens
+
+        def _lambda_dependent(self, setup):
+            return setup.lambda_dependent
+
+        def _setup_transport(self):
+            st = self.setup
+            if st.fnumber > st.max_fnumber * (1 + FSTOP_TOLERANCE):
+                raise SensorPropertyError(
+                    PLUGIN, "fstop", f"the model was trained wide open (f/{st.max_fnumber:.3g}); the stop is "
+                    f"part of the learned map, so f/{st.fnumber:.3g} needs a model trained at that aperture")
+            try:
+                self.model.check_sensor_distance(st.sensor_distance_mm)
+            except ModelError as e:
+                which = "sensor_distance" if not (st.focus_distance_mm > 0) else "focus_distance"
+                raise SensorPropertyError(PLUGIN, which, str(e)) from e
+            self.tmap = self.model.map("transmit", "backward")
+            # the learned map starts on its input plane: the pupil sample only gives the direction
+            self.z_out = self.tmap.z_out
+
+        def _transport(self, o, d, lam, active):
+            valid, (pos, dirn, T) = self.tmap.eval_dr(o, d, lam, active, use_classifier=self.use_classifier)
+            if not self.setup.fresnel:
+                T = dr.zeros(type(T), dr.width(T)) + 1.0
+            return pos, dirn, T, valid
+
+        def _describe(self):
+            return (f"model='{self.model_spec}' ({os.path.basename(self.model_path)}), lens={self.setup.lens.name}, "
+                    f"use_classifier={self.use_classifier}")
+
+    NeuralLens.__name__ = "NeuralLens"
+    return NeuralLens
