@@ -10,7 +10,10 @@ import sys
 COMMANDS = {
     "lens": "lens",
     "render": "render",
+    "compare": "compare",
     "train": "train", "evaluate": "evaluate",
+    "accuracy": "accuracy",
+    "flare": "flare",
 }
 
 

@@ -1,1 +1,14 @@
-"""neural"""
+"""Neural lens transport maps: the model file (:mod:`.model`) and MLP evaluation (:mod:`.mlp`).
+
+What a renderer calls::
+
+    from mi_neurallens.neural import NeuralLensModel
+    model = NeuralLensModel.load(path, lens=lens)      # ModelError on any problem
+    tm = model.map("transmit", "backward")              # or model.map(ghost_id, "forward")
+    valid, (pos, dirn, thr) = tm.eval_dr(o, d, lam)     # Dr.Jit, lens space, fused literals
+
+Nothing here imports torch.
+"""
+from .model import FORMAT, FORMAT_VERSION, NeuralLensModel, TransportMap, bundled_model_path, load_model
+
+__all__ = ["NeuralLensModel", "TransportMap", "load_model", "bundled_model_path", "FORMAT", "FORMAT_VERSION"]

@@ -1,0 +1,54 @@
+"""MLP evaluation with Dr.Jit's cooperative vectors (``drjit.nn``), the alternative to literal weights.
+
+:func:`mlp_dr <mi_neurallens.neural.mlp.mlp_dr>` bakes every weight into the kernel as a literal:
+fastest on the LLVM backend and exact in fp32, but every new weight set compiles a new kernel
+(~1 s).  Cooperative vectors keep the weights in a packed buffer that the kernel reads, so changing
+weights costs no compilation, and on CUDA the matrix–vector products run on tensor cores.
+
+* LLVM (this project's CPU default): fp32, same results as the literal path to ~1e-6.
+* CUDA: ``drjit.nn`` requires half precision for ``matvec`` (driver ≥ R570); weights and activations
+  are then fp16 (about 1e-3 relative error).  Not tested here (no GPU in CI).
+
+The activation is Dr.Jit's ``tanh`` on the cooperative vector (no division is available on
+``CoopVec``, so the rational tanh of the literal path cannot be used).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+class CoopVecMLP:
+    """A packed ``drjit.nn`` network equal to ``layers`` (list of (W (out, in), b)), for the float
+    type of the current Mitsuba variant.  Call it with a list of Dr.Jit floats; returns a list."""
+
+    def __init__(self, layers, activation: str = "tanh"):
+        import drjit as dr
+        import drjit.nn as nn
+        import mitsuba as mi
+        if activation not in ("tanh", "relu"):
+            raise ValueError(f"unknown activation {activation!r}")
+        cuda = dr.backend_v(mi.Float) == dr.JitBackend.CUDA
+        tensor = mi.TensorXf16 if cuda else mi.TensorXf
+        mods = []
+        for i, (W, b) in enumerate(layers):
+            W = np.asarray(W)
+            mods.append(nn.Linear(W.shape[1], W.shape[0]))
+            if i < len(layers) - 1:
+                mods.append(nn.Tanh() if activation == "tanh" else nn.ReLU())
+        net = nn.Sequential(*mods).alloc(tensor, int(np.asarray(layers[0][0]).shape[1]))
+        dt = np.float16 if cuda else np.float32
+        for i, (W, b) in enumerate(layers):
+            net[f"layers.{2 * i}.weights"] = tensor(np.asarray(W, dtype=dt))
+            net[f"layers.{2 * i}.bias"] = tensor(np.asarray(b, dtype=dt))
+        self.cuda = cuda
+        self.net = nn.pack(net, layout="inference")
+        self.n_out = int(np.asarray(layers[-1][1]).shape[0])
+
+    def __call__(self, xs):
+        import drjit as dr
+        import drjit.nn as nn
+        import mitsuba as mi
+        if self.cuda:
+            xs = [mi.Float16(x) for x in xs]
+        out = list(self.net(nn.CoopVec(*xs)))
+        return [mi.Float(o) for o in out] if self.cuda else out

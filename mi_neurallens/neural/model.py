@@ -1,0 +1,399 @@
+"""The neural lens model file: per-path lens transport maps (classifier + regressor) of one lens.
+
+File format (``*.model.safetensors``, format version 1)
+-------------------------------------------------------
+A `safetensors <https://huggingface.co/docs/safetensors>`_ file (never pickle).  Its
+``__metadata__`` string map holds ``format`` = ``"mi-neurallens-transport-maps"``,
+``format_version`` = ``"1"`` and ``model`` = a JSON document::
+
+    {"format_version": 1,
+     "lens": {"name": ..., "fingerprint": ...},          # Lens.fingerprint() of the trained lens
+     "planes": {"z_front_mm": ..., "z_rear_mm": ..., "z_last_vertex_mm": ...},
+     "sensor_distance_mm": [min, max],                    # behind the last vertex; any value works
+     "maps": [{"key": "backward.0", "path_id": 0, "direction": "backward",
+               "z_in_mm": ..., "z_out_mm": ...,           # lens-space planes of this map
+               "domain": {"r_max_mm", "s_max", "lambda_min_nm", "lambda_max_nm"},
+               "input_norm": {"center": [4], "scale": [4]},       # xn = (x − center) / scale
+               "classifier": {"layers": [4, 32, 32, 1], "activation": "tanh"},
+               "regressor": {"layers": [4, 32, 32, 32, 32, 32, 5], "activation": "tanh",
+                             "outputs": ["x", "y", "dx", "dy", "throughput"]},
+               "training": {...}, "metrics": {...}}, ...],
+     "ghost_ranking": [...], "created": ..., "software": ...}
+
+Tensors of map ``K`` (float32): ``K.classifier.{i}.weight`` (out, in), ``K.classifier.{i}.bias``,
+``K.regressor.{i}.weight``, ``K.regressor.{i}.bias``, ``K.regressor.skip.weight`` (5, 4) and
+``K.regressor.out_scale`` / ``K.regressor.out_shift`` (5,).
+
+Evaluation of one map on reduced inputs x = (r, ωx, ωy, λ) (see :mod:`mi_neurallens.trace.symmetry`):
+``xn = (x − center)/scale``; valid iff ``classifier(xn) > 0`` (a logit) and x lies in the domain;
+``y = out_shift + out_scale · regressor(xn) + skip · xn`` = (x, y) exit position on ``z_out``,
+(dx, dy) exit direction (dz = ±√(1 − dx² − dy²), + forward, − backward), Fresnel throughput — all in
+the reduced frame, undone to lens space by :func:`~mi_neurallens.trace.symmetry.undo`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import json
+import math
+import os
+import struct
+import tempfile
+
+import numpy as np
+
+from ..errors import ModelError
+from ..trace import symmetry
+from .mlp import ACTIVATIONS, mlp_dr, mlp_np
+
+FORMAT = "mi-neurallens-transport-maps"
+FORMAT_VERSION = 1
+OUTPUTS = ("x", "y", "dx", "dy", "throughput")
+
+
+@dataclass
+class TransportMap:
+    """One learned (path, direction) map.  ``classifier``/``regressor``: lists of (W, b) numpy layers."""
+
+    path_id: int
+    direction: str
+    z_in: float
+    z_out: float
+    domain: dict
+    input_center: np.ndarray
+    input_scale: np.ndarray
+    classifier: list
+    regressor: list
+    skip: np.ndarray
+    out_scale: np.ndarray
+    out_shift: np.ndarray
+    classifier_activation: str = "tanh"
+    regressor_activation: str = "tanh"
+    training: dict = field(default_factory=dict)
+    metrics: dict = field(default_factory=dict)
+
+    # ------------------------------------------------------------------ identity
+    @property
+    def key(self) -> str:
+        return f"{self.direction}.{self.path_id}"
+
+    @property
+    def heading(self) -> int:
+        return 1 if self.direction == "forward" else -1
+
+    def _folded(self):
+        """Regressor layers with out_scale/out_shift folded into the last layer (float64)."""
+        if getattr(self, "_fold", None) is None:
+            layers = [(np.asarray(W, np.float64), np.asarray(b, np.float64)) for W, b in self.regressor]
+            W, b = layers[-1]
+            s, m = np.asarray(self.out_scale, np.float64), np.asarray(self.out_shift, np.float64)
+            layers[-1] = (W * s[:, None], b * s + m)
+            self._fold = layers
+        return self._fold
+
+    # ------------------------------------------------------------------ reduced-frame evaluation
+    def normalise_np(self, x):
+        return (np.asarray(x, np.float64) - self.input_center) / self.input_scale
+
+    def in_domain_np(self, x):
+        d = self.domain
+        x = np.asarray(x, np.float64)
+        return ((x[:, 0] <= d["r_max_mm"]) & (x[:, 1] ** 2 + x[:, 2] ** 2 <= d["s_max"] ** 2)
+                & (x[:, 3] >= d["lambda_min_nm"]) & (x[:, 3] <= d["lambda_max_nm"]))
+
+    def eval_reduced_np(self, x):
+        """Reduced inputs (N, 4) → (logit (N,), outputs (N, 5)) in float64."""
+        xn = self.normalise_np(x)
+        logit = mlp_np(xn, self.classifier, self.classifier_activation)[:, 0]
+        y = mlp_np(xn, self._folded(), self.regressor_activation) + xn @ np.asarray(self.skip, np.float64).T
+        return logit, y
+
+    def eval_reduced_dr(self, x):
+        """Reduced inputs (4 Dr.Jit floats) → (logit, [5 outputs]) fused into one kernel."""
+        import drjit as dr
+        xn = [dr.fma(v, 1.0 / float(s), -float(c) / float(s))
+              for v, c, s in zip(x, self.input_center, self.input_scale)]
+        logit = mlp_dr(xn, self.classifier, self.classifier_activation)[0]
+        y = mlp_dr(xn, self._folded(), self.regressor_activation)
+        A = np.asarray(self.skip, np.float64)
+        for j in range(len(y)):
+            for i in range(len(xn)):
+                if A[j, i] != 0.0:
+                    y[j] = dr.fma(xn[i], float(A[j, i]), y[j])
+        return logit, y
+
+    # ------------------------------------------------------------------ lens-space evaluation
+    def eval_np(self, o, d, lam_nm):
+        """Lens-space rays (numpy (N, 3) points on the ray, unit directions, λ in nm) → dict with
+        ``valid`` (N,), ``position`` (N, 3) on ``z_out``, ``direction`` (N, 3), ``throughput`` (N,);
+        float64 reference.  ``o`` may be any point of the ray in the first medium (it is moved to
+        ``z_in`` along the ray)."""
+        o = np.asarray(o, np.float64)
+        d = np.asarray(d, np.float64)
+        lam = np.broadcast_to(np.asarray(lam_nm, np.float64), (len(o),))
+        t = (self.z_in - o[:, 2]) / d[:, 2]
+        px, py = o[:, 0] + t * d[:, 0], o[:, 1] + t * d[:, 1]
+        (r, wx, wy), frame = symmetry.reduce(px, py, d[:, 0], d[:, 1])
+        x = np.stack([r, wx, wy, lam], 1)
+        ok = self.in_domain_np(x) & (d[:, 2] * self.heading > 0)
+        logit, y = self.eval_reduced_np(x)
+        valid = ok & (logit > 0)
+        X, Y, DX, DY = symmetry.undo(y[:, 0], y[:, 1], y[:, 2], y[:, 3], frame)
+        dz = self.heading * np.sqrt(np.maximum(1.0 - DX * DX - DY * DY, 0.0))
+        pos = np.stack([X, Y, np.full_like(X, self.z_out)], 1)
+        return {"valid": valid, "position": pos, "direction": np.stack([DX, DY, dz], 1),
+                "throughput": y[:, 4], "logit": logit}
+
+    def eval_dr(self, o, d, lam_nm, active=True, use_classifier: bool = True):
+        """Fused Dr.Jit evaluation for renderers: ``o``, ``d`` (x, y, z) tuples of Dr.Jit floats in lens
+        space (mm; ``o`` any point on the ray before the lens, ``d`` unit), ``lam_nm`` Dr.Jit float or
+        Python float.  Returns ``(valid, (position, direction, throughput))`` with position on
+        ``z_out`` and direction as (x, y, z) tuples.  Symmetry reduction and its undo happen inside;
+        rays outside the trained domain are invalid.  No ``dr.eval`` is called.
+
+        ``use_classifier=False`` (the paper's ablation) treats every in-domain ray as valid; the
+        classifier is then not evaluated at all (Dr.Jit drops the unused code)."""
+        import drjit as dr
+        ox, oy, oz = o
+        dx, dy, dz = d
+        t = (self.z_in - oz) / dz
+        px, py = dr.fma(t, dx, ox), dr.fma(t, dy, oy)
+        (r, wx, wy), frame = symmetry.reduce(px, py, dx, dy)
+        lam = lam_nm if not isinstance(lam_nm, (int, float)) else r * 0.0 + float(lam_nm)
+        dm = self.domain
+        ok = (r <= dm["r_max_mm"]) & (dr.fma(wx, wx, wy * wy) <= dm["s_max"] ** 2)
+        ok &= (lam >= dm["lambda_min_nm"]) & (lam <= dm["lambda_max_nm"])
+        ok &= (dz > 0.0) if self.heading > 0 else (dz < 0.0)
+        logit, y = self.eval_reduced_dr((r, wx, wy, lam))
+        valid = (ok & (logit > 0.0) & active) if use_classifier else (ok & active)
+        X, Y, DX, DY = symmetry.undo(y[0], y[1], y[2], y[3], frame)
+        DZ = self.heading * dr.sqrt(dr.maximum(1.0 - dr.fma(DX, DX, DY * DY), 0.0))
+        return valid, ((X, Y, X * 0.0 + self.z_out), (DX, DY, DZ), y[4])
+
+    # ------------------------------------------------------------------ (de)serialisation
+    def _meta(self) -> dict:
+        return {"key": self.key, "path_id": self.path_id, "direction": self.direction,
+                "z_in_mm": self.z_in, "z_out_mm": self.z_out, "domain": self.domain,
+                "input_norm": {"center": [float(v) for v in self.input_center],
+                               "scale": [float(v) for v in self.input_scale]},
+                "classifier": {"layers": _widths(self.classifier), "activation": self.classifier_activation},
+                "regressor": {"layers": _widths(self.regressor), "activation": self.regressor_activation,
+                              "outputs": list(OUTPUTS)},
+                "training": self.training, "metrics": self.metrics}
+
+    def _tensors(self) -> dict:
+        t = {}
+        for name, layers in (("classifier", self.classifier), ("regressor", self.regressor)):
+            for i, (W, b) in enumerate(layers):
+                t[f"{self.key}.{name}.{i}.weight"] = np.ascontiguousarray(W, np.float32)
+                t[f"{self.key}.{name}.{i}.bias"] = np.ascontiguousarray(b, np.float32)
+        t[f"{self.key}.regressor.skip.weight"] = np.ascontiguousarray(self.skip, np.float32)
+        t[f"{self.key}.regressor.out_scale"] = np.ascontiguousarray(self.out_scale, np.float32)
+        t[f"{self.key}.regressor.out_shift"] = np.ascontiguousarray(self.out_shift, np.float32)
+        return t
+
+
+def _widths(layers):
+    return [int(np.shape(layers[0][0])[1])] + [int(np.shape(W)[0]) for W, _ in layers]
+
+
+@dataclass
+class NeuralLensModel:
+    """All learned maps of one lens, plus where they live.  Load with :meth:`load`."""
+
+    lens_name: str
+    fingerprint: str
+    z_front: float
+    z_rear: float
+    z_last_vertex: float
+    sensor_distance_range: tuple
+    maps: dict = field(default_factory=dict)          # key -> TransportMap
+    extra: dict = field(default_factory=dict)         # ghost_ranking, created, software, ...
+    path: str | None = None
+
+    # ------------------------------------------------------------------ access
+    def map(self, path="transmit", direction: str = "backward") -> TransportMap:
+        pid = 0 if path == "transmit" else int(path)
+        key = f"{direction}.{pid}"
+        if key not in self.maps:
+            raise ModelError(f"{self.path or 'model'}: no {direction} map for path {pid}; this model has "
+                             f"{sorted(self.maps)}")
+        return self.maps[key]
+
+    def has(self, path="transmit", direction: str = "backward") -> bool:
+        pid = 0 if path == "transmit" else int(path)
+        return f"{direction}.{pid}" in self.maps
+
+    @property
+    def ghost_ids(self) -> list[int]:
+        """Forward ghost paths with a map, in the order stored (largest energy first)."""
+        return [m.path_id for m in self.maps.values() if m.direction == "forward" and m.path_id != 0]
+
+    def check_sensor_distance(self, s_mm: float):
+        lo, hi = self.sensor_distance_range
+        if not (lo - 1e-9 <= s_mm <= hi + 1e-9):
+            raise ModelError(f"{self.path or 'model'}: sensor distance {s_mm:.6g} mm is outside the range this "
+                             f"model supports [{lo:.6g}, {hi:.6g}] mm behind the last vertex; retrain with a "
+                             f"wider 'sensor_distance' range")
+
+    # ------------------------------------------------------------------ I/O
+    def metadata(self) -> dict:
+        return {"format_version": FORMAT_VERSION,
+                "lens": {"name": self.lens_name, "fingerprint": self.fingerprint},
+                "planes": {"z_front_mm": self.z_front, "z_rear_mm": self.z_rear,
+                           "z_last_vertex_mm": self.z_last_vertex},
+                "sensor_distance_mm": [float(v) for v in self.sensor_distance_range],
+                "maps": [m._meta() for m in self.maps.values()], **self.extra}
+
+    def save(self, path) -> None:
+        """Write atomically (temporary file in the same folder, then ``os.replace``)."""
+        from safetensors.numpy import save_file
+        path = os.fspath(path)
+        tensors = {}
+        for m in self.maps.values():
+            tensors.update(m._tensors())
+        meta = {"format": FORMAT, "format_version": str(FORMAT_VERSION),
+                "model": json.dumps(_jsonable(self.metadata()), sort_keys=True)}
+        d = os.path.dirname(os.path.abspath(path))
+        os.makedirs(d, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=d, prefix=".tmp-", suffix=".safetensors")
+        os.close(fd)
+        try:
+            save_file(tensors, tmp, metadata=meta)
+            _umask = os.umask(0); os.umask(_umask)
+            os.chmod(tmp, 0o666 & ~_umask)  # mkstemp files are 0600; these are ordinary files
+            os.replace(tmp, path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+
+    @staticmethod
+    def load(path, lens=None) -> "NeuralLensModel":
+        """Read and validate a model file; with ``lens``, also check it was trained for that lens.
+        Every problem raises :class:`~mi_neurallens.errors.ModelError` naming the file."""
+        return load_model(path, lens)
+
+
+def _jsonable(o):
+    if isinstance(o, dict):
+        return {str(k): _jsonable(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_jsonable(v) for v in o]
+    if isinstance(o, (np.floating, float)):
+        v = float(o)
+        return v if math.isfinite(v) else None
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, np.ndarray):
+        return _jsonable(o.tolist())
+    return o
+
+
+def _read_header(path: str):
+    try:
+        size = os.path.getsize(path)
+        with open(path, "rb") as f:
+            head = f.read(8)
+            if len(head) < 8:
+                raise ModelError(f"{path}: not a model file: {size} bytes is too short for a safetensors header")
+            (n,) = struct.unpack("<Q", head)
+            if n > size - 8 or n > 100_000_000:
+                raise ModelError(f"{path}: truncated or not a safetensors file (header claims {n} bytes, "
+                                 f"file has {size - 8} after the length)")
+            header = json.loads(f.read(n).decode("utf-8"))
+    except FileNotFoundError:
+        raise ModelError(f"{path}: model file not found") from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ModelError(f"{path}: not a safetensors model file (unreadable header: {e})") from None
+    end = max((int(v["data_offsets"][1]) for k, v in header.items() if k != "__metadata__"), default=0)
+    if 8 + n + end > size:
+        raise ModelError(f"{path}: truncated: the tensors need {8 + n + end} bytes, the file has {size}")
+    return header
+
+
+def load_model(path, lens=None) -> NeuralLensModel:
+    path = os.fspath(path)
+    header = _read_header(path)
+    meta = header.get("__metadata__") or {}
+    if meta.get("format") != FORMAT:
+        raise ModelError(f"{path}: not a mi-neurallens model (metadata 'format' is {meta.get('format')!r}, "
+                         f"expected {FORMAT!r})")
+    ver = meta.get("format_version")
+    if ver != str(FORMAT_VERSION):
+        raise ModelError(f"{path}: unknown model format version {ver!r}; this mi-neurallens reads version "
+                         f"{FORMAT_VERSION} (retrain with `mi-neurallens train`, or upgrade mi-neurallens)")
+    try:
+        doc = json.loads(meta["model"])
+        lens_fp = doc["lens"]["fingerprint"]
+        planes = doc["planes"]
+        srange = tuple(float(v) for v in doc["sensor_distance_mm"])
+        maps_meta = doc["maps"]
+    except (KeyError, TypeError, json.JSONDecodeError) as e:
+        raise ModelError(f"{path}: malformed model metadata ({type(e).__name__}: {e})") from None
+    if lens is not None and lens.fingerprint() != lens_fp:
+        raise ModelError(f"{path}: this model was trained for lens '{doc['lens'].get('name')}' (fingerprint "
+                         f"{lens_fp}), not for '{lens.name}' (fingerprint {lens.fingerprint()}); train a model "
+                         f"for this lens with `mi-neurallens train`")
+    try:
+        from safetensors.numpy import load_file
+        tensors = load_file(path)
+    except Exception as e:  # SafetensorError and friends
+        raise ModelError(f"{path}: cannot read tensors ({e})") from None
+
+    def get(name, shape):
+        if name not in tensors:
+            raise ModelError(f"{path}: missing tensor '{name}'")
+        t = tensors[name]
+        if tuple(t.shape) != tuple(shape):
+            raise ModelError(f"{path}: tensor '{name}' has shape {tuple(t.shape)}, expected {tuple(shape)}")
+        if not np.all(np.isfinite(t)):
+            raise ModelError(f"{path}: tensor '{name}' contains NaN or infinity")
+        return t.astype(np.float64)
+
+    maps = {}
+    for mm in maps_meta:
+        try:
+            key = mm["key"]
+            wc, wr = mm["classifier"]["layers"], mm["regressor"]["layers"]
+            ac, ar = mm["classifier"].get("activation", "tanh"), mm["regressor"].get("activation", "tanh")
+            if ac not in ACTIVATIONS or ar not in ACTIVATIONS:
+                raise ModelError(f"{path}: map {key}: unknown activation {ac!r}/{ar!r}; known: {ACTIVATIONS}")
+            if wc[0] != 4 or wr[0] != 4 or wc[-1] != 1 or wr[-1] != len(OUTPUTS):
+                raise ModelError(f"{path}: map {key}: architecture {wc} / {wr} does not map 4 inputs to 1 logit "
+                                 f"and {len(OUTPUTS)} outputs")
+            cls = [(get(f"{key}.classifier.{i}.weight", (wc[i + 1], wc[i])), get(f"{key}.classifier.{i}.bias", (wc[i + 1],)))
+                   for i in range(len(wc) - 1)]
+            reg = [(get(f"{key}.regressor.{i}.weight", (wr[i + 1], wr[i])), get(f"{key}.regressor.{i}.bias", (wr[i + 1],)))
+                   for i in range(len(wr) - 1)]
+            tm = TransportMap(
+                path_id=int(mm["path_id"]), direction=str(mm["direction"]), z_in=float(mm["z_in_mm"]),
+                z_out=float(mm["z_out_mm"]), domain={k: float(v) for k, v in mm["domain"].items()},
+                input_center=np.asarray(mm["input_norm"]["center"], np.float64),
+                input_scale=np.asarray(mm["input_norm"]["scale"], np.float64),
+                classifier=cls, regressor=reg,
+                skip=get(f"{key}.regressor.skip.weight", (len(OUTPUTS), 4)),
+                out_scale=get(f"{key}.regressor.out_scale", (len(OUTPUTS),)),
+                out_shift=get(f"{key}.regressor.out_shift", (len(OUTPUTS),)),
+                classifier_activation=ac, regressor_activation=ar,
+                training=mm.get("training", {}), metrics=mm.get("metrics", {}))
+            if tm.direction not in ("forward", "backward") or tm.key != key:
+                raise ModelError(f"{path}: map {key}: inconsistent key/direction/path id")
+            if tm.input_center.shape != (4,) or tm.input_scale.shape != (4,) or np.any(tm.input_scale == 0):
+                raise ModelError(f"{path}: map {key}: input_norm must hold 4 centres and 4 non-zero scales")
+        except (KeyError, TypeError, ValueError) as e:
+            if isinstance(e, ModelError):
+                raise
+            raise ModelError(f"{path}: malformed map metadata ({type(e).__name__}: {e})") from None
+        maps[key] = tm
+    extra = {k: v for k, v in doc.items()
+             if k not in ("format_version", "lens", "planes", "sensor_distance_mm", "maps")}
+    return NeuralLensModel(lens_name=doc["lens"].get("name", "?"), fingerprint=lens_fp,
+                           z_front=float(planes["z_front_mm"]), z_rear=float(planes["z_rear_mm"]),
+                           z_last_vertex=float(planes.get("z_last_vertex_mm", math.nan)),
+                           sensor_distance_range=srange, maps=maps, extra=extra, path=path)
+
+
+def bundled_model_path(lens_name: str) -> str:
+    """``lenses/models/<lens>.model.safetensors`` of the repository (or the installed package)."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    return os.path.join(os.path.dirname(os.path.dirname(here)), "lenses", "models", f"{lens_name}.model.safetensors")

@@ -1,0 +1,353 @@
+"""Training data for lens transport maps, streamed from the exact Dr.Jit tracer.
+
+Everything here works in the **reduced input domain** of :mod:`mi_neurallens.trace.symmetry`:
+``(r, ωx, ωy, λ)`` with 0 ≤ r ≤ ``r_max`` on the input plane and (ωx, ωy) in the half disk
+ωx² + ωy² ≤ ``s_max``², ωy ≥ 0.  A sample is addressed by a point ``u`` of the unit cube [0, 1)⁴:
+
+* ``r = r_max·u0`` (uniform in r, as the paper: uniform over the reduced domain),
+* ``(ωx, ωy) = s_max·√u1·(cos πu2, sin πu2)`` (uniform over the half disk's area),
+* ``λ = CIE sample of u3`` (:func:`sample_cie_wavelength`, Mitsuba's ``sample_rgb_spectrum`` curve).
+
+The map u → domain is measure preserving up to a constant, so a sampler that is uniform in u
+(rejection sampling, or the Metropolis chain with symmetric proposals of :class:`MCMCSampler`) is
+uniform over the valid region of the reduced domain and CIE-importance-sampled in λ.
+
+Outputs (reduced frame, see :data:`OUTPUT_NAMES`): exit position (x, y) on the output plane (mm),
+exit direction (dx, dy) (dz follows from the heading), Fresnel throughput T.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import math
+import os
+import tempfile
+import time
+
+import numpy as np
+
+from ..errors import NeuralLensError
+
+#: names of the reduced input and output columns
+INPUT_NAMES = ("r", "wx", "wy", "lambda_nm")
+OUTPUT_NAMES = ("x", "y", "dx", "dy", "throughput")
+
+#: Mitsuba's visible-range importance curve (``sample_rgb_spectrum``, CIE 1931 on [360, 830] nm)
+CIE_MIN_NM, CIE_MAX_NM = 360.0, 830.0
+_CIE_A, _CIE_B, _CIE_C, _CIE_K = 0.8569106254698279, 1.8275019724092267, 138.88888888888889, 0.0072
+_CIE_PDF = 0.003939804229326285
+
+
+def sample_cie_wavelength(u):
+    """λ (nm) and 1/pdf for uniform ``u`` ∈ [0, 1): the same closed form as Mitsuba's
+    ``sample_rgb_spectrum`` (pdf ∝ sech²(0.0072 (λ − 538)), a fit to the CIE 1931 ȳ+x̄+z̄ sum on
+    [360, 830] nm).  Works on numpy arrays and on any Dr.Jit float type (variant-generic)."""
+    if isinstance(u, (np.ndarray, float, int)):
+        u = np.asarray(u, dtype=np.float64)
+        lam = 538.0 - np.arctanh(_CIE_A - _CIE_B * u) * _CIE_C
+        return lam, 1.0 / pdf_cie_wavelength(lam)
+    import drjit as dr
+    lam = 538.0 - dr.atanh(_CIE_A - _CIE_B * u) * _CIE_C
+    return lam, dr.rcp(pdf_cie_wavelength(lam))
+
+
+def pdf_cie_wavelength(lam):
+    """Density (1/nm) of :func:`sample_cie_wavelength`."""
+    if isinstance(lam, (np.ndarray, float, int)):
+        lam = np.asarray(lam, dtype=np.float64)
+        t = 1.0 / np.cosh(_CIE_K * (lam - 538.0))
+        return np.where((lam >= CIE_MIN_NM) & (lam <= CIE_MAX_NM), _CIE_PDF * t * t, 0.0)
+    import drjit as dr
+    t = 1.0 / dr.cosh(_CIE_K * (lam - 538.0))
+    return dr.select((lam >= CIE_MIN_NM) & (lam <= CIE_MAX_NM), _CIE_PDF * t * t, 0.0)
+
+
+def cie_u_of_lambda(lam):
+    """Inverse of :func:`sample_cie_wavelength` (numpy): u such that sample(u) = λ."""
+    lam = np.asarray(lam, dtype=np.float64)
+    return (_CIE_A - np.tanh((538.0 - lam) / _CIE_C)) / _CIE_B
+
+
+# ----------------------------------------------------------------------------- domain
+@dataclass
+class Domain:
+    """The sampled reduced input domain of one map (lens space, mm)."""
+
+    r_max: float
+    s_max: float
+    lam_min: float = CIE_MIN_NM
+    lam_max: float = CIE_MAX_NM
+
+    def u_to_x(self, u: np.ndarray) -> np.ndarray:
+        """(N, 4) unit-cube points → (N, 4) reduced inputs (r, ωx, ωy, λ), float64."""
+        u = np.asarray(u, dtype=np.float64)
+        rho = self.s_max * np.sqrt(u[:, 1])
+        th = math.pi * u[:, 2]
+        lam, _ = sample_cie_wavelength(u[:, 3])
+        return np.stack([self.r_max * u[:, 0], rho * np.cos(th), rho * np.sin(th), lam], 1)
+
+    def x_to_u(self, x: np.ndarray) -> np.ndarray:
+        x = np.asarray(x, dtype=np.float64)
+        rho = np.hypot(x[:, 1], x[:, 2])
+        return np.stack([x[:, 0] / self.r_max, (rho / self.s_max) ** 2,
+                         np.arctan2(x[:, 2], x[:, 1]) / math.pi, cie_u_of_lambda(x[:, 3])], 1)
+
+    # input normalisation used by the networks: every column to about [-1, 1]
+    def norm_center_scale(self):
+        c = np.array([0.5 * self.r_max, 0.0, 0.5 * self.s_max, 0.5 * (self.lam_min + self.lam_max)])
+        s = np.array([0.5 * self.r_max, self.s_max, 0.5 * self.s_max, 0.5 * (self.lam_max - self.lam_min)])
+        return c, s
+
+    def to_dict(self):
+        return {"r_max_mm": self.r_max, "s_max": self.s_max, "lambda_min_nm": self.lam_min,
+                "lambda_max_nm": self.lam_max}
+
+    @staticmethod
+    def from_dict(d):
+        return Domain(float(d["r_max_mm"]), float(d["s_max"]), float(d["lambda_min_nm"]), float(d["lambda_max_nm"]))
+
+
+# ----------------------------------------------------------------------------- one path's tracer
+class PathSampler:
+    """Traces unit-cube samples ``u`` of one (lens, path, direction) map from ``z_in`` to ``z_out``.
+
+    ``precision``: ``"float32"`` for training data (≈ 0.01 µm / 0.02″ rounding), ``"float64"`` for
+    held-out reference sets.
+    """
+
+    def __init__(self, lens, path_id: int, direction: str, z_in: float, z_out: float, domain: Domain,
+                 fresnel: bool = True, precision: str = "float32"):
+        from ..trace.api import float_type
+        from ..trace.tracer import LensTracer
+        self.lens, self.path_id, self.direction = lens, int(path_id), direction
+        self.z_in, self.z_out, self.domain = float(z_in), float(z_out), domain
+        self.heading = 1 if direction == "forward" else -1
+        self.F = float_type(precision)
+        self.np_dtype = np.float32 if precision == "float32" else np.float64
+        self.tracer = LensTracer(lens, fresnel=fresnel)
+        self.rays_traced = 0
+
+    # -- Dr.Jit core ---------------------------------------------------------------------------
+    def u_to_x_dr(self, u):
+        """Unit-cube components (4 Dr.Jit floats) → reduced inputs (r, ωx, ωy, λ) in Dr.Jit."""
+        import drjit as dr
+        d = self.domain
+        rho = d.s_max * dr.sqrt(u[1])
+        s, c = dr.sincos(math.pi * u[2])
+        lam, _ = sample_cie_wavelength(u[3])
+        return d.r_max * u[0], rho * c, rho * s, lam
+
+    def trace_dr(self, r, wx, wy, lam):
+        """Reduced inputs (Dr.Jit) → (valid, [x, y, dx, dy, T]) (Dr.Jit, reduced frame)."""
+        import drjit as dr
+        dz = self.heading * dr.sqrt(dr.maximum(1.0 - dr.fma(wx, wx, wy * wy), 0.0))
+        zero = r * 0.0
+        res = self.tracer.trace((r, zero, zero + self.z_in), (wx, wy, dz), lam, self.path_id, self.direction,
+                                z_out=self.z_out)
+        outs = [res.position[0], res.position[1], res.direction[0], res.direction[1], res.throughput]
+        valid = res.valid
+        for o in outs:
+            valid &= dr.isfinite(o)
+        return valid, outs
+
+    def _to_np(self, valid, outs, n):
+        import drjit as dr
+        dr.eval(outs, valid)
+        self.rays_traced += n
+        v = valid.numpy().astype(bool)
+        y = np.stack([o.numpy() for o in outs], 1).astype(np.float64)
+        y[~v] = np.nan
+        return v, y
+
+    def trace_x(self, x: np.ndarray):
+        """Reduced inputs (N, 4) → (valid (N,), outputs (N, 5) float64, NaN where invalid)."""
+        F, dt = self.F, self.np_dtype
+        x = np.asarray(x)
+        cols = [F(np.ascontiguousarray(x[:, i], dtype=dt)) for i in range(4)]
+        valid, outs = self.trace_dr(*cols)
+        return self._to_np(valid, outs, x.shape[0])
+
+    def trace_u(self, u: np.ndarray):
+        F, dt = self.F, self.np_dtype
+        u = np.asarray(u)
+        cols = [F(np.ascontiguousarray(u[:, i], dtype=dt)) for i in range(4)]
+        valid, outs = self.trace_dr(*self.u_to_x_dr(cols))
+        return self._to_np(valid, outs, u.shape[0])
+
+    def valid_u(self, u: np.ndarray) -> np.ndarray:
+        return self.trace_u(u)[0]
+
+    def random_valid(self, n_rays: int, seed: int):
+        """Trace ``n_rays`` uniform unit-cube samples drawn with Dr.Jit's PCG32 (stream ``seed``) and
+        return only the valid ones, compacted inside Dr.Jit: (u (K, 4) float32, y (K, 5) float32)."""
+        import drjit as dr
+        from ..trace.api import float_type
+        be = __import__(type(self.F(0)).__module__, fromlist=["PCG32"])
+        rng = be.PCG32(n_rays, dr.opaque(be.UInt64, seed & 0xFFFFFFFFFFFF))  # opaque: no recompile per seed
+        if self.F is float_type("float64"):
+            u = [rng.next_float64() for _ in range(4)]
+        else:
+            u = [rng.next_float32() for _ in range(4)]
+        valid, outs = self.trace_dr(*self.u_to_x_dr(u))
+        idx = dr.compress(valid)
+        cols = [dr.gather(type(u[0]), a, idx) for a in u + outs]
+        dr.eval(cols)
+        self.rays_traced += n_rays
+        arr = np.stack([c.numpy() for c in cols], 1)
+        return arr[:, :4].astype(np.float64), arr[:, 4:].astype(np.float64)
+
+
+# ----------------------------------------------------------------------------- samplers
+def rejection_sample(ps: PathSampler, n: int, rng: np.random.Generator, chunk: int = 1 << 21,
+                     max_rays: int | None = None):
+    """Up to ``n`` valid samples uniform over the valid region: returns (u, x, y, stats).
+    Random numbers come from Dr.Jit's PCG32 (streams seeded from ``rng``) and the valid rays are
+    compacted inside Dr.Jit.  Stops early (returning fewer) after ``max_rays`` traced rays."""
+    us, ys, got, traced = [], [], 0, 0
+    t0 = time.perf_counter()
+    while got < n and (max_rays is None or traced < max_rays):
+        u, y = ps.random_valid(chunk, int(rng.integers(0, 2**47)))
+        traced += chunk
+        us.append(u)
+        ys.append(y)
+        got += len(u)
+    u = np.concatenate(us)[:n] if us else np.zeros((0, 4))
+    y = np.concatenate(ys)[:n] if ys else np.zeros((0, 5))
+    dt = time.perf_counter() - t0
+    stats = {"rays": traced, "valid": int(got), "acceptance": got / max(traced, 1), "seconds": dt,
+             "valid_per_s": got / max(dt, 1e-9), "rays_per_s": traced / max(dt, 1e-9)}
+    return u, ps.domain.u_to_x(u), y, stats
+
+
+class MCMCSampler:
+    """Metropolis sampler of the uniform distribution over a path's valid region (binary visibility
+    target, Hachisuka & Jensen 2011 style).
+
+    ``n_chains`` independent chains in the unit cube run in lock-step (one traced ray per chain per
+    step).  Each step proposes, per chain, with probability ``p_large`` an independent uniform point
+    (a *large step*) and otherwise a Gaussian mutation of width ``sigma`` (wrapped into the cube).
+    Both proposals are symmetric and the target is the indicator of validity, so a proposal is
+    accepted iff it is valid; every chain's state after each step is one (correlated) valid sample.
+    Chains start from valid seeds found by rejection sampling (replicated if few) plus ``burn_in``
+    steps.
+    """
+
+    def __init__(self, ps: PathSampler, rng: np.random.Generator, n_chains: int = 1 << 16,
+                 p_large: float = 0.3, sigma: float = 0.02, burn_in: int = 16,
+                 seed_rays: int = 1 << 24):
+        self.ps, self.rng = ps, rng
+        self.p_large, self.sigma = float(p_large), float(sigma)
+        u, _, y, st = rejection_sample(ps, n_chains, rng, chunk=1 << 20, max_rays=seed_rays)
+        if len(u) == 0:
+            raise NeuralLensError(f"path {ps.path_id} ({ps.direction}): no valid ray in {st['rays']} random "
+                                  "rays; the path carries no light in this domain")
+        idx = rng.integers(0, len(u), n_chains) if len(u) < n_chains else np.arange(n_chains)
+        self.u, self.y = u[idx].copy(), y[idx].copy()
+        self.proposed = self.accepted = 0
+        self.proposed_large = self.accepted_large = 0
+        for _ in range(int(burn_in) if len(u) < n_chains else 0):
+            self.step()
+        self.proposed = self.accepted = self.proposed_large = self.accepted_large = 0
+
+    def step(self):
+        n = len(self.u)
+        large = self.rng.random(n) < self.p_large
+        prop = np.where(large[:, None], self.rng.random((n, 4)),
+                        np.mod(self.u + self.sigma * self.rng.standard_normal((n, 4)), 1.0))
+        v, y = self.ps.trace_u(prop)
+        self.u[v] = prop[v]
+        self.y[v] = y[v]
+        self.proposed += n
+        self.accepted += int(v.sum())
+        self.proposed_large += int(large.sum())
+        self.accepted_large += int((v & large).sum())
+        return self.u.copy(), self.y.copy()
+
+    def sample(self, n: int):
+        """At least ``n`` valid samples (whole steps): (u, x, y)."""
+        us, ys = [], []
+        while sum(len(a) for a in us) < n:
+            u, y = self.step()
+            us.append(u)
+            ys.append(y)
+        u = np.concatenate(us)[:n]
+        return u, self.ps.domain.u_to_x(u), np.concatenate(ys)[:n]
+
+    @property
+    def acceptance(self) -> float:
+        return self.accepted / max(self.proposed, 1)
+
+    def stats(self) -> dict:
+        return {"acceptance": self.acceptance, "p_large": self.p_large, "sigma": self.sigma,
+                "acceptance_large": self.accepted_large / max(self.proposed_large, 1),
+                "acceptance_small": (self.accepted - self.accepted_large)
+                / max(self.proposed - self.proposed_large, 1)}
+
+
+def valid_fraction(ps: PathSampler, rng: np.random.Generator, n: int = 1 << 20) -> float:
+    return float(ps.valid_u(rng.random((n, 4))).mean())
+
+
+class RegressorStream:
+    """Valid (x, y) training samples of one map: rejection sampling when the valid fraction is at
+    least ``mcmc_threshold``, the Metropolis sampler otherwise."""
+
+    def __init__(self, ps: PathSampler, seed: int, mcmc_threshold: float = 0.02, n_chains: int = 1 << 16,
+                 p_large: float = 0.3, sigma: float = 0.02):
+        self.ps = ps
+        self.rng = np.random.default_rng(seed)
+        self.fraction = valid_fraction(ps, self.rng)
+        self.mcmc = None
+        if self.fraction < mcmc_threshold:
+            self.mcmc = MCMCSampler(ps, self.rng, n_chains=n_chains, p_large=p_large, sigma=sigma)
+
+    def sample(self, n: int):
+        if self.mcmc is not None:
+            u, x, y = self.mcmc.sample(n)
+        else:
+            u, x, y, _ = rejection_sample(self.ps, n, self.rng)
+        return u, x, y
+
+    @property
+    def method(self):
+        return "mcmc" if self.mcmc is not None else "rejection"
+
+
+def classifier_samples(ps: PathSampler, valid_u: np.ndarray, n: int, rng: np.random.Generator,
+                       sigma_range=(1e-3, 5e-2)):
+    """A labelled set for the classifier: ⅓ uniform over the domain (natural labels), ⅓ valid samples
+    (``valid_u``, e.g. from :class:`RegressorStream`) and ⅓ boundary samples: valid points perturbed by
+    a Gaussian of log-uniform width in ``sigma_range`` (unit-cube units), labelled by the tracer.
+    Returns (x (N, 4), label (N,) float32)."""
+    k = n // 3
+    u_uni = rng.random((k, 4))
+    pick = valid_u[rng.integers(0, len(valid_u), n - 2 * k)]
+    u_val = valid_u[rng.integers(0, len(valid_u), k)]
+    sig = np.exp(rng.uniform(math.log(sigma_range[0]), math.log(sigma_range[1]), (len(pick), 1)))
+    u_per = np.clip(pick + sig * rng.standard_normal(pick.shape), 0.0, 1.0 - 1e-7)
+    u_lab = np.concatenate([u_uni, u_per])
+    lab = ps.valid_u(u_lab)
+    u = np.concatenate([u_lab, u_val])
+    label = np.concatenate([lab, np.ones(len(u_val), dtype=bool)]).astype(np.float32)
+    perm = rng.permutation(len(u))
+    return ps.domain.u_to_x(u[perm]), label[perm]
+
+
+# ----------------------------------------------------------------------------- optional disk cache
+def cache_array(path: str, make):
+    """Return ``np.load(path, mmap_mode='r')`` if it exists, else ``make()`` written atomically to
+    ``path`` (temporary file + ``os.replace``) and memory-mapped."""
+    if os.path.exists(path):
+        return np.load(path, mmap_mode="r")
+    arr = np.ascontiguousarray(make())
+    d = os.path.dirname(os.path.abspath(path))
+    os.makedirs(d, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=d, suffix=".npy.tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.save(f, arr)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return np.load(path, mmap_mode="r")

@@ -1,0 +1,151 @@
+"""Held-out accuracy of learned maps against the exact tracer (float64 reference).
+
+Regressor (on valid rays, uniform over the valid region, or MCMC for rare paths): exit-position error
+on the output plane (µm), exit-direction error (arcsec), relative throughput error.  Classifier (on rays
+uniform over the whole reduced domain, i.e. the natural mix): misclassification rate, false-valid and
+false-blocked rates (fractions of all rays), and for each misclassified ray the distance to the true
+boundary (in normalised input units, 1 = half the domain's width): the smallest radius at which one of
+32 random perturbations changes the true label.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .data import MCMCSampler, PathSampler, rejection_sample, valid_fraction
+
+ARCSEC = 180.0 / np.pi * 3600.0
+
+
+def regression_errors(y_pred: np.ndarray, y_true: np.ndarray, heading: int) -> dict:
+    """Per-sample errors → summary dict.  Columns (x, y, dx, dy, T) in the reduced frame."""
+    pos = np.hypot(y_pred[:, 0] - y_true[:, 0], y_pred[:, 1] - y_true[:, 1]) * 1000.0  # µm
+
+    def d3(y):
+        dz = heading * np.sqrt(np.maximum(1.0 - y[:, 2] ** 2 - y[:, 3] ** 2, 0.0))
+        v = np.stack([y[:, 2], y[:, 3], dz], 1)
+        return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+    a, b = d3(y_pred), d3(y_true)
+    cross = np.linalg.norm(np.cross(a, b), axis=1)
+    ang = np.arctan2(cross, np.sum(a * b, axis=1)) * ARCSEC
+    rel = np.abs(y_pred[:, 4] - y_true[:, 4]) / np.maximum(np.abs(y_true[:, 4]), 1e-12)
+    q = lambda v, p: float(np.percentile(v, p))
+    return {"n": int(len(pos)),
+            "position_um_median": q(pos, 50), "position_um_p99": q(pos, 99), "position_um_max": float(pos.max()),
+            "direction_arcsec_median": q(ang, 50), "direction_arcsec_p99": q(ang, 99),
+            "direction_arcsec_max": float(ang.max()),
+            "throughput_rel_median": q(rel, 50), "throughput_rel_p99": q(rel, 99)}
+
+
+def heldout_valid(lens, tm_or_spec, domain, n: int, seed: int, mcmc_threshold: float = 0.02,
+                  fresnel: bool = True):
+    """(x, y) float64 valid held-out samples of a map (independent seed)."""
+    path_id, direction, z_in, z_out = tm_or_spec
+    ps = PathSampler(lens, path_id, direction, z_in, z_out, domain, fresnel=fresnel, precision="float64")
+    rng = np.random.default_rng(seed)
+    if valid_fraction(ps, rng, 1 << 18) >= mcmc_threshold:
+        _, x, y, _ = rejection_sample(ps, n, rng)
+    else:
+        m = MCMCSampler(ps, rng, n_chains=min(n, 1 << 14), burn_in=32)
+        # thin the chain (every 4th step) to reduce correlation in the held-out set
+        xs, ys = [], []
+        while sum(len(a) for a in xs) < n:
+            for _ in range(3):
+                m.step()
+            u, yy = m.step()
+            xs.append(ps.domain.u_to_x(u))
+            ys.append(yy)
+        x, y = np.concatenate(xs)[:n], np.concatenate(ys)[:n]
+    return x, y
+
+
+def boundary_distance(ps: PathSampler, xn_wrong: np.ndarray, label_true: np.ndarray, center, scale,
+                      rng, n_dir: int = 32, radii=None) -> np.ndarray:
+    """For each point (normalised coordinates), the smallest radius at which a random perturbation has
+    the opposite true label (inf when none within the largest radius)."""
+    if radii is None:
+        radii = np.geomspace(1e-4, 0.5, 24)
+    out = np.full(len(xn_wrong), np.inf)
+    if len(xn_wrong) == 0:
+        return out
+    for r in radii:
+        todo = ~np.isfinite(out)
+        if not todo.any():
+            break
+        pts = xn_wrong[todo]
+        d = rng.standard_normal((len(pts), n_dir, 4))
+        d /= np.linalg.norm(d, axis=2, keepdims=True)
+        q = (pts[:, None, :] + r * d).reshape(-1, 4)
+        x = q * scale + center
+        x[:, 0] = np.abs(x[:, 0])               # r ≥ 0 (mirror image is the same ray family)
+        x[:, 2] = np.abs(x[:, 2])               # ωy ≥ 0 (mirror symmetry)
+        v, _ = ps.trace_x(x)
+        flip = (v.reshape(len(pts), n_dir) != label_true[todo][:, None]).any(1)
+        idx = np.nonzero(todo)[0][flip]
+        out[idx] = r
+    return out
+
+
+def evaluate_map(lens, tm, n: int = 200_000, seed: int = 999, mcmc_threshold: float = 0.02,
+                 fresnel: bool = True, boundary: bool = True, reg_data=None) -> dict:
+    """Every metric of one :class:`~mi_neurallens.neural.model.TransportMap`."""
+    from .data import Domain
+    dom = Domain.from_dict(tm.domain)
+    rng = np.random.default_rng(seed)
+    if reg_data is None:
+        reg_data = heldout_valid(lens, (tm.path_id, tm.direction, tm.z_in, tm.z_out), dom, n, seed + 1,
+                                 mcmc_threshold, fresnel)
+    x, y = reg_data
+    _, yp = tm.eval_reduced_np(x)
+    m = {"regressor": regression_errors(yp, y, tm.heading)}
+    # classifier on the natural (uniform-domain) mix
+    ps = PathSampler(lens, tm.path_id, tm.direction, tm.z_in, tm.z_out, dom, fresnel=fresnel, precision="float64")
+    xu = dom.u_to_x(rng.random((n, 4)))
+    v, _ = ps.trace_x(xu)
+    logit, _ = tm.eval_reduced_np(xu)
+    pv = logit > 0
+    wrong = pv != v
+    c = {"n": int(n), "valid_fraction": float(v.mean()), "misclassification": float(wrong.mean()),
+         "false_valid": float((pv & ~v).mean()), "false_blocked": float((~pv & v).mean()),
+         "false_valid_of_invalid": float((pv & ~v).sum() / max((~v).sum(), 1)),
+         "false_blocked_of_valid": float((~pv & v).sum() / max(v.sum(), 1))}
+    # classifier on truly-valid regressor samples (important for rare ghosts, where the natural mix is
+    # almost all invalid)
+    lv, _ = tm.eval_reduced_np(x)
+    c["false_blocked_on_valid_set"] = float((lv <= 0).mean())
+    if boundary and wrong.any():
+        idx = np.nonzero(wrong)[0][:2000]
+        xn = tm.normalise_np(xu[idx])
+        dist = boundary_distance(ps, xn, v[idx], tm.input_center, tm.input_scale, rng)
+        fin = dist[np.isfinite(dist)]
+        c["wrong_boundary_distance_median"] = float(np.median(fin)) if len(fin) else None
+        c["wrong_boundary_distance_p99"] = float(np.percentile(fin, 99)) if len(fin) else None
+        c["wrong_boundary_distance_units"] = "normalised input (1 = half the domain width)"
+        c["wrong_far_from_boundary"] = int((~np.isfinite(dist)).sum())
+    m["classifier"] = c
+    return m
+
+
+GOALS = {"position_um_median": 2.0, "position_um_p99": 20.0, "direction_arcsec_median": 5.0,
+         "direction_arcsec_p99": 40.0, "throughput_rel_median": 0.005, "misclassification": 0.005}
+
+
+def meets_goals(m: dict) -> dict:
+    r, c = m["regressor"], m["classifier"]
+    vals = {**{k: r[k] for k in GOALS if k in r}, "misclassification": c["misclassification"]}
+    return {k: bool(vals[k] <= g) for k, g in GOALS.items()}
+
+
+def markdown_table(model, rows) -> str:
+    hdr = ("| map | path | pos µm med | pos µm p99 | dir ″ med | dir ″ p99 | T rel med | misclass | "
+           "false-valid | false-blocked | wrong: boundary dist med |\n|---|---|---|---|---|---|---|---|---|---|---|\n")
+    lines = []
+    for key, m in rows:
+        r, c = m["regressor"], m["classifier"]
+        bd = c.get("wrong_boundary_distance_median")
+        lines.append(f"| {key} | {m.get('describe', '')} | {r['position_um_median']:.3g} | {r['position_um_p99']:.3g} | "
+                     f"{r['direction_arcsec_median']:.3g} | {r['direction_arcsec_p99']:.3g} | "
+                     f"{100 * r['throughput_rel_median']:.3g}% | {100 * c['misclassification']:.3g}% | "
+                     f"{100 * c['false_valid']:.3g}% | {100 * c['false_blocked']:.3g}% | "
+                     f"{'—' if bd is None else f'{bd:.3g}'} |")
+    return hdr + "\n".join(lines) + "\n"

@@ -1,0 +1,135 @@
+"""Where each map lives: planes, supported sensor distances, sampled domains and which ghosts to learn.
+
+Planes (lens space, mm, +z toward the sensor; stored in every model file):
+
+* ``z_front`` = (the front-most point of any surface within its clear aperture, at most 0) − 1 mm.
+  Forward maps start here; backward maps end here.
+* ``z_rear`` lies between the rear-most point of any surface (rim sag included) and the *nearest*
+  sensor plane the model supports, ``z_last_vertex + sensor_distance_min``: the midpoint, but at most
+  1 mm behind the rear-most surface point.  Backward maps start here; forward maps end here.
+  Because rays travel straight through the air between ``z_rear`` and the sensor, one map serves
+  every sensor distance in ``[sensor_distance_min, sensor_distance_max]`` (manual focusing).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..errors import NeuralLensError
+from .data import Domain, PathSampler
+
+
+def surface_extent(lens):
+    """(front-most z, rear-most z) of every optical surface within its clear aperture (mm)."""
+    zs = lens.vertex_z
+    lo, hi = math.inf, -math.inf
+    for i, s in enumerate(lens.surfaces):
+        if s.is_stop:
+            continue
+        r = np.linspace(0.0, s.semi_diameter, 129)
+        z = zs[i] + s.sag(r)
+        lo, hi = min(lo, float(np.nanmin(z))), max(hi, float(np.nanmax(z)))
+    return lo, hi
+
+
+def sensor_distance_range(lens, close_focus_mm: float | None, margin: float = 0.02):
+    """[s_min, s_max] (mm behind the last vertex): from just beyond infinity focus (``margin`` ·
+    BFL closer, and never farther than the file's own sensor distance) to the paraxial sensor
+    distance for an object ``close_focus_mm`` in front of the first vertex."""
+    px = lens.paraxial(587.5618)
+    s_inf = float(px.bfl)
+    s_min = min(s_inf, float(lens.surfaces[-1].thickness)) * (1.0 - margin)
+    s_max = s_inf if not close_focus_mm else float(px.sensor_distance_for(float(close_focus_mm)))
+    return s_min, max(s_max, s_inf, float(lens.surfaces[-1].thickness))
+
+
+def planes(lens, s_min: float):
+    front, rear = surface_extent(lens)
+    z_front = min(front, 0.0) - 1.0
+    z_sensor_min = lens.total_track + s_min
+    if not z_sensor_min > rear:
+        raise NeuralLensError(f"lens '{lens.name}': the nearest supported sensor plane (z = {z_sensor_min:.4g} mm) "
+                              f"lies inside the lens (rear-most surface point z = {rear:.4g} mm)")
+    z_rear = min(0.5 * (rear + z_sensor_min), rear + 1.0)
+    return z_front, z_rear
+
+
+def forward_domain(lens, z_front: float, field_half_angle_deg: float, margin: float = 1.02) -> Domain:
+    """Rays entering the front within the field: r covers every ray that can still hit the front
+    surface's clear aperture at that angle."""
+    s = lens.surfaces[lens.optical_indices[0]]
+    rim = float(s.sag(s.semi_diameter)) if not s.is_stop else 0.0
+    t = math.tan(math.radians(field_half_angle_deg))
+    r = (s.semi_diameter + max(rim - z_front, 0.0) * t) * margin
+    return Domain(r_max=r, s_max=min(math.sin(math.radians(field_half_angle_deg)), 0.999))
+
+
+def backward_domain(lens, path_id: int, z_rear: float, z_front: float, rng, n: int = 1 << 22,
+                    margin: float = 1.04) -> Domain:
+    """Pilot-traced extent of the valid backward region (largest r and |ω_xy| of a valid ray), plus
+    ``margin``."""
+    big = max(s.semi_diameter for s in lens.surfaces) * 2.0
+    ps = PathSampler(lens, path_id, "backward", z_rear, z_front, Domain(big, 0.995))
+    u = rng.random((n, 4))
+    v, _ = ps.trace_u(u)
+    xv = ps.domain.u_to_x(u[v])
+    if len(xv) == 0:
+        raise NeuralLensError(f"lens '{lens.name}': no backward ray passes the lens")
+    r = float(xv[:, 0].max()) * margin
+    s = min(float(np.hypot(xv[:, 1], xv[:, 2]).max()) * margin, 0.999)
+    return Domain(r_max=r, s_max=s)
+
+
+def default_field_half_angle(lens, film_half_diagonal_mm: float = 21.6333, margin: float = 1.1) -> float:
+    px = lens.paraxial(587.5618)
+    return min(math.degrees(math.atan(film_half_diagonal_mm / abs(px.efl))) * margin, 80.0)
+
+
+def rank_ghosts(lens, z_front: float, domain: Domain, sensor_distance: float, film_half_diagonal_mm: float,
+                n_rays: int = 1 << 20, seed: int = 0):
+    """Energy each ghost carries to the film: mean Fresnel throughput over rays uniform over the forward
+    domain (a bright light anywhere in the field, over the whole front aperture, CIE wavelengths) that
+    land on the film (radius ``film_half_diagonal_mm`` on the sensor plane ``sensor_distance`` behind
+    the last vertex).  Returns a list of dicts sorted by energy (largest first), with each ghost's share
+    of the total ghost energy and the transmit path's energy for scale."""
+    from ..trace.paths import all_ghosts
+    rng = np.random.default_rng(seed)
+    u = rng.random((n_rays, 4))
+    z_s = lens.total_track + sensor_distance
+    out = []
+
+    def energy(pid):
+        ps = PathSampler(lens, pid, "forward", z_front, z_s, domain)
+        v, y = ps.trace_u(u)
+        hit = v & (np.hypot(y[:, 0], y[:, 1]) <= film_half_diagonal_mm)
+        return float(np.where(hit, y[:, 4], 0.0).sum() / n_rays), float(hit.mean())
+
+    e_t, _ = energy(0)
+    for pid, a, b in all_ghosts(lens):
+        try:
+            e, f = energy(pid)
+        except NeuralLensError:
+            e, f = 0.0, 0.0
+        out.append({"path_id": pid, "surfaces": [a, b], "energy": e, "valid_fraction": f})
+    out.sort(key=lambda d: -d["energy"])
+    tot = sum(d["energy"] for d in out) or 1.0
+    c = 0.0
+    for d in out:
+        d["share"] = d["energy"] / tot
+        c += d["share"]
+        d["cumulative_share"] = c
+        d["relative_to_transmit"] = d["energy"] / e_t if e_t > 0 else 0.0
+    return out
+
+
+def select_ghosts(ranking, energy_fraction: float = 0.99, max_ghosts: int = 32):
+    """The smallest top-K that carries ``energy_fraction`` of the ghost energy, at most ``max_ghosts``."""
+    keep = []
+    for d in ranking:
+        if len(keep) >= max_ghosts or d["energy"] <= 0:
+            break
+        keep.append(d)
+        if d["cumulative_share"] >= energy_fraction:
+            break
+    return keep

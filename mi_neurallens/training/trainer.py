@@ -1,0 +1,584 @@
+"""The PyTorch trainer (torch is imported lazily, inside the functions).
+
+One map = a classifier (BCE, 2×32 tanh) and a regressor (5×32 tanh) on normalised reduced inputs.
+The regressor predicts the standardised *residual* of a least-squares linear guess (``residual =
+"linear"``; the linear part is kept as a skip connection in the model file) — see docs/training.md for
+what that buys.  Data are streamed from the tracer into an in-memory pool that is partly refreshed
+with fresh samples every ``refresh_every`` steps (no data files; nothing is re-used for long).
+
+Checkpoints (``<workdir>/<map>.<net>.ckpt.safetensors`` + ``.json``; tensors only, never pickle) hold
+weights, Adam state, best weights, step and history; they are written atomically every
+``checkpoint_seconds`` and at the end.  A rerun with the same workdir resumes from them; a finished
+network is not retrained.  The data stream after a resume is re-seeded deterministically from
+(seed, map, step).
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+import time
+
+import numpy as np
+
+from ..errors import NeuralLensError
+from .config import NetConfig, TrainConfig
+from .data import Domain, PathSampler, RegressorStream, classifier_samples
+
+CHECKPOINT_SECONDS = 60.0
+
+
+# ----------------------------------------------------------------------------- torch helpers
+def _torch(threads: int = 2):
+    import torch
+    if threads:
+        torch.set_num_threads(int(threads))
+    return torch
+
+
+def pick_device(torch, want: str = "auto"):
+    if want == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(want)
+
+
+def make_net(torch, n_in: int, n_out: int, hidden: int, width: int, activation: str):
+    nn = torch.nn
+    act = {"tanh": nn.Tanh, "relu": nn.ReLU}[activation]
+    layers, w = [], n_in
+    for _ in range(hidden):
+        layers += [nn.Linear(w, width), act()]
+        w = width
+    layers.append(nn.Linear(w, n_out))
+    return nn.Sequential(*layers)
+
+
+def net_layers(net) -> list:
+    import torch
+    return [(m.weight.detach().cpu().double().numpy(), m.bias.detach().cpu().double().numpy())
+            for m in net if isinstance(m, torch.nn.Linear)]
+
+
+def lr_at(step: int, nc: NetConfig, seconds: float = 0.0) -> float:
+    """Learning rate.  ``paper``: lr·decay^(step // decay_every).  ``fast``: linear warm-up, then a
+    cosine from lr to lr_min whose progress is the larger of the step fraction and the fraction of the
+    wall-clock budget used, so the decay completes whichever limit is hit first."""
+    if nc.schedule == "paper":
+        return nc.lr * nc.decay ** (step // max(nc.decay_every, 1))
+    if step < nc.warmup_steps:
+        return nc.lr * (step + 1) / nc.warmup_steps
+    t = min(max((step - nc.warmup_steps) / max(nc.max_steps - nc.warmup_steps, 1),
+                seconds / max(nc.max_minutes * 60.0, 1e-9)), 1.0)
+    return nc.lr_min + 0.5 * (nc.lr - nc.lr_min) * (1.0 + math.cos(math.pi * t))
+
+
+def _atomic_write(path: str, write):
+    d = os.path.dirname(os.path.abspath(path))
+    os.makedirs(d, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=d, prefix=".tmp-")
+    os.close(fd)
+    try:
+        write(tmp)
+        _umask = os.umask(0); os.umask(_umask)
+        os.chmod(tmp, 0o666 & ~_umask)  # mkstemp files are 0600; these are ordinary files
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def save_checkpoint(path: str, net, opt, best_state, state: dict):
+    """Weights + Adam moments + best weights as safetensors, the rest as JSON (both atomic)."""
+    from safetensors.torch import save_file
+    t = {f"net.{k}": v.detach().cpu().contiguous() for k, v in net.state_dict().items()}
+    t.update({f"best.{k}": v.detach().cpu().contiguous() for k, v in best_state.items()})
+    for i, (pid, st) in enumerate(opt.state.items()):
+        for name in ("exp_avg", "exp_avg_sq"):
+            if name in st:
+                t[f"adam.{i}.{name}"] = st[name].detach().cpu().contiguous()
+        if "step" in st:
+            state.setdefault("adam_steps", {})[str(i)] = float(st["step"])
+    _atomic_write(path + ".safetensors", lambda p: save_file(t, p))
+    _atomic_write(path + ".json", lambda p: open(p, "w").write(json.dumps(state)))
+
+
+def load_checkpoint(path: str, net, opt, torch):
+    if not (os.path.exists(path + ".safetensors") and os.path.exists(path + ".json")):
+        return None
+    from safetensors.torch import load_file
+    try:
+        t = load_file(path + ".safetensors")
+        state = json.loads(open(path + ".json").read())
+    except Exception:
+        return None          # a broken checkpoint is ignored (training restarts)
+    dev = next(net.parameters()).device
+    net.load_state_dict({k[4:]: v.to(dev) for k, v in t.items() if k.startswith("net.")})
+    best = {k[5:]: v.to(dev) for k, v in t.items() if k.startswith("best.")}
+    params = [p for g in opt.param_groups for p in g["params"]]
+    for i, p in enumerate(params):
+        if f"adam.{i}.exp_avg" in t:
+            opt.state[p] = {"step": torch.tensor(state.get("adam_steps", {}).get(str(i), 0.0)),
+                            "exp_avg": t[f"adam.{i}.exp_avg"].to(dev),
+                            "exp_avg_sq": t[f"adam.{i}.exp_avg_sq"].to(dev)}
+    return state, best
+
+
+def _progress(total, desc, enabled):
+    try:
+        from tqdm.auto import tqdm
+        return tqdm(total=total, desc=desc, disable=not enabled, leave=False, dynamic_ncols=True)
+    except ImportError:  # pragma: no cover
+        class _N:
+            def update(self, *a): pass
+            def set_postfix(self, *a, **k): pass
+            def close(self): pass
+        return _N()
+
+
+# ----------------------------------------------------------------------------- output standardisation
+def fit_output_transform(xn: np.ndarray, y: np.ndarray, residual: str):
+    """(skip (5, 4), out_shift (5,), out_scale (5,)) so that the network target
+    ``(y − shift − skip·xn) / scale`` has zero mean and unit variance per column."""
+    if residual == "linear":
+        A = np.concatenate([xn, np.ones((len(xn), 1))], 1)
+        coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+        skip, c = coef[:-1].T, coef[-1]
+        res = y - A @ coef
+        shift = c + res.mean(0)
+        scale = res.std(0)
+    elif residual == "none":
+        skip = np.zeros((y.shape[1], xn.shape[1]))
+        shift, scale = y.mean(0), y.std(0)
+    else:
+        raise NeuralLensError(f"unknown residual mode {residual!r}: use 'linear' or 'none'")
+    scale = np.where(scale > 1e-9, scale, 1e-9)
+    return skip, shift, scale
+
+
+#: accuracy goals per output column (x, y in mm; dx, dy; T relative), used by loss_weights="goals"
+GOAL_UNITS = (0.002, 0.002, 5.0 / 206264.8, 5.0 / 206264.8, 0.005)
+
+
+def loss_weights(mode: str, oscale, y) -> np.ndarray:
+    """Per-column weights of the standardised MSE.  ``goals``: ∝ std / goal, i.e. columns whose
+    residual spread is large compared with their accuracy goal (directions, usually) get more weight;
+    normalised to mean 1 and floored at 0.05 so no column is ignored.  ``uniform``: all 1."""
+    if mode == "uniform":
+        return np.ones(5)
+    if mode != "goals":
+        raise NeuralLensError(f"unknown loss_weights {mode!r}: use 'goals' or 'uniform'")
+    goal = np.array(GOAL_UNITS, dtype=np.float64)
+    goal[4] *= max(float(np.mean(np.abs(y[:, 4]))), 1e-6)
+    w = np.asarray(oscale, np.float64) / goal
+    w = w / w.mean()
+    return np.maximum(w, 0.05)
+
+
+# ----------------------------------------------------------------------------- regressor
+def train_regressor(stream: RegressorStream, val, nc: NetConfig, *, heading: int, center, scale_in, seed: int,
+                    ckpt: str | None, threads: int = 2, device: str = "auto", progress: bool = True,
+                    desc: str = "regressor", log=None) -> dict:
+    """Train one regressor.  ``val``: (x, y) float64 held-out (valid) samples for validation."""
+    torch = _torch(threads)
+    dev = pick_device(torch, device)
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    t_start = time.perf_counter()
+    _, x0, y0 = stream.sample(nc.pool)
+    xn0 = (x0 - center) / scale_in
+    skip, shift, oscale = fit_output_transform(xn0, y0, nc.residual)
+    net = make_net(torch, 4, 5, nc.hidden, nc.width, nc.activation).to(dev)
+    opt = torch.optim.Adam(net.parameters(), lr=nc.lr)
+    state = {"step": 0, "best_val": math.inf, "best_step": 0, "history": [], "evals_since_best": 0,
+             "seconds": 0.0, "samples": 0}
+    best = {k: v.detach().clone() for k, v in net.state_dict().items()}
+    if ckpt:
+        got = load_checkpoint(ckpt, net, opt, torch)
+        if got is not None:
+            state, best = got
+            skip, shift, oscale = (np.asarray(state["skip"]), np.asarray(state["shift"]), np.asarray(state["oscale"]))
+            if state.get("done"):
+                net.load_state_dict(best)
+                return _reg_result(net, skip, shift, oscale, state)
+            stream.rng = np.random.default_rng([seed, state["step"]])
+            _, x0, y0 = stream.sample(nc.pool)
+            xn0 = (x0 - center) / scale_in
+    state.update(skip=skip.tolist(), shift=shift.tolist(), oscale=oscale.tolist())
+    f32 = lambda a: torch.as_tensor(np.ascontiguousarray(a, dtype=np.float32), device=dev)
+    T_skip, T_shift, T_scale = f32(skip), f32(shift), f32(oscale)
+    sig_d2 = float(np.mean(oscale[2:4] ** 2))
+    W = f32(loss_weights(nc.loss_weights, oscale, y0))
+
+    def targets(xn, y):
+        return (y - shift - xn @ skip.T) / oscale
+
+    X = f32(xn0)
+    Y = f32(targets(xn0, y0))
+    Yraw = f32(y0)
+    xv, yv = val
+    xvn = (xv - center) / scale_in
+    Xv, Yv = f32(xvn), f32(targets(xvn, yv))
+
+    def dir3(dxy):
+        dz = heading * torch.sqrt(torch.clamp(1.0 - (dxy * dxy).sum(1, keepdim=True), min=0.0))
+        v = torch.cat([dxy, dz], 1)
+        return v / v.norm(dim=1, keepdim=True)
+
+    def loss_fn(xb, tb, yb_raw):
+        p = net(xb)
+        if nc.direction_loss == "cosine":
+            l = (((p - tb) ** 2) * W)[:, [0, 1, 4]].mean() * 3.0 / 5.0
+        else:
+            l = (((p - tb) ** 2) * W).mean()
+        if nc.direction_loss in ("cosine", "mse+cosine"):
+            d_pred = T_shift[2:4] + T_scale[2:4] * p[:, 2:4] + xb @ T_skip[2:4].T
+            # 1 − cos(a, b) = |â − b̂|²/2 for unit vectors (the stable form in float32)
+            cos_term = ((dir3(d_pred) - dir3(yb_raw[:, 2:4])) ** 2).sum(1).mean() / (2.0 * sig_d2)
+            l = l + nc.cosine_weight * cos_term * (2.0 / 5.0)
+        return l
+
+    bar = _progress(nc.max_steps, desc, progress)
+    bar.update(state["step"])
+    last_ckpt = time.perf_counter()
+    t0 = time.perf_counter() - state["seconds"]
+    step = state["step"]
+    stop_reason = "max_steps"
+    loss = None
+    def evaluate_now(loss):
+        """Validate, keep the best weights; True when early stopping is due."""
+        nonlocal best
+        with torch.no_grad():
+            pv = net(Xv)
+            vl = float(((pv - Yv) ** 2).mean())
+            yp = (pv.double().cpu().numpy() * oscale + shift + xvn @ skip.T)
+        from .evaluate import regression_errors
+        m = regression_errors(yp, yv, heading)
+        rec = {"step": step, "loss": loss.item() if loss is not None else math.nan, "val_mse": vl,
+               "seconds": time.perf_counter() - t0,
+               "pos_um_med": m["position_um_median"], "pos_um_p99": m["position_um_p99"],
+               "dir_as_med": m["direction_arcsec_median"], "dir_as_p99": m["direction_arcsec_p99"],
+               "T_rel_med": m["throughput_rel_median"]}
+        state["history"].append(rec)
+        bar.set_postfix(val=f"{vl:.2e}", pos=f"{m['position_um_median']:.2f}µm", dir=f"{m['direction_arcsec_median']:.2f}\"")
+        if log:
+            log(desc, rec)
+        if vl < state["best_val"]:
+            state.update(best_val=vl, best_step=step, evals_since_best=0)
+            best = {k: v.detach().clone() for k, v in net.state_dict().items()}
+        else:
+            state["evals_since_best"] += 1
+        return state["evals_since_best"] >= nc.patience
+
+    while step < nc.max_steps:
+        if step > 0 and step % nc.refresh_every == 0:
+            k = int(nc.pool * nc.refresh_fraction)
+            _, xr, yr = stream.sample(k)
+            xrn = (xr - center) / scale_in
+            idx = torch.as_tensor(rng.choice(len(X), k, replace=False), device=dev)
+            X[idx], Y[idx], Yraw[idx] = f32(xrn), f32(targets(xrn, yr)), f32(yr)
+        for g in opt.param_groups:
+            g["lr"] = lr_at(step, nc, time.perf_counter() - t0)
+        bi = torch.randint(0, len(X), (nc.batch,), device=dev)
+        loss = loss_fn(X[bi], Y[bi], Yraw[bi])
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        step += 1
+        state["samples"] += nc.batch
+        bar.update(1)
+        if step % nc.eval_every == 0 or step == nc.max_steps:
+            if evaluate_now(loss):
+                stop_reason = "early_stop"
+                break
+        state["step"] = step
+        state["seconds"] = time.perf_counter() - t0
+        if state["seconds"] > nc.max_minutes * 60.0:
+            stop_reason = "time_budget"
+            break
+        if ckpt and time.perf_counter() - last_ckpt > CHECKPOINT_SECONDS:
+            save_checkpoint(ckpt, net, opt, best, state)
+            last_ckpt = time.perf_counter()
+    state["step"] = step
+    if not state["history"] or state["history"][-1]["step"] != step:
+        evaluate_now(loss)                       # the budget ended between evaluations
+    bar.close()
+    state.update(step=step, seconds=time.perf_counter() - t0, done=True, stop_reason=stop_reason,
+                 wall_seconds_total=time.perf_counter() - t_start)
+    net.load_state_dict(best)
+    if ckpt:
+        save_checkpoint(ckpt, net, opt, best, state)
+    return _reg_result(net, skip, shift, oscale, state)
+
+
+def _reg_result(net, skip, shift, oscale, state):
+    return {"layers": net_layers(net), "skip": np.asarray(skip), "out_shift": np.asarray(shift),
+            "out_scale": np.asarray(oscale), "state": state}
+
+
+# ----------------------------------------------------------------------------- classifier
+def train_classifier(ps: PathSampler, valid_u_source, val, nc: NetConfig, *, center, scale_in, seed: int,
+                     ckpt: str | None, threads: int = 2, device: str = "auto", progress: bool = True,
+                     desc: str = "classifier", log=None) -> dict:
+    """``valid_u_source(n)`` → (n, 4) valid unit-cube samples; ``val``: (x, label) natural-mix held-out."""
+    torch = _torch(threads)
+    dev = pick_device(torch, device)
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    net = make_net(torch, 4, 1, nc.hidden, nc.width, nc.activation).to(dev)
+    opt = torch.optim.Adam(net.parameters(), lr=nc.lr)
+    state = {"step": 0, "best_val": math.inf, "best_step": 0, "history": [], "evals_since_best": 0,
+             "seconds": 0.0, "samples": 0}
+    best = {k: v.detach().clone() for k, v in net.state_dict().items()}
+    if ckpt:
+        got = load_checkpoint(ckpt, net, opt, torch)
+        if got is not None:
+            state, best = got
+            if state.get("done"):
+                net.load_state_dict(best)
+                return {"layers": net_layers(net), "state": state}
+            rng = np.random.default_rng([seed, state["step"]])
+    f32 = lambda a: torch.as_tensor(np.ascontiguousarray(a, dtype=np.float32), device=dev)
+
+    def pool(n):
+        x, lab = classifier_samples(ps, valid_u_source(max(n // 3, 1024)), n, rng)
+        return f32((x - center) / scale_in), f32(lab)
+
+    X, L = pool(nc.pool)
+    xv, lv = val
+    Xv, Lv = f32((xv - center) / scale_in), torch.as_tensor(lv.astype(bool), device=dev)
+    bce = torch.nn.BCEWithLogitsLoss()
+    bar = _progress(nc.max_steps, desc, progress)
+    bar.update(state["step"])
+    last_ckpt = time.perf_counter()
+    t0 = time.perf_counter() - state["seconds"]
+    step = state["step"]
+    stop_reason = "max_steps"
+    loss = None
+
+    def evaluate_now(loss):
+        nonlocal best
+        with torch.no_grad():
+            lg = net(Xv)[:, 0]
+            err = float(((lg > 0) != Lv).float().mean())
+            vb = float(bce(lg, Lv.float()))
+        rec = {"step": step, "loss": loss.item() if loss is not None else math.nan, "val_bce": vb,
+               "val_misclass": err, "seconds": time.perf_counter() - t0}
+        state["history"].append(rec)
+        bar.set_postfix(miscls=f"{100 * err:.3f}%")
+        if log:
+            log(desc, rec)
+        score = err + 0.01 * vb
+        if score < state["best_val"]:
+            state.update(best_val=score, best_step=step, evals_since_best=0)
+            best = {k: v.detach().clone() for k, v in net.state_dict().items()}
+        else:
+            state["evals_since_best"] += 1
+        return state["evals_since_best"] >= nc.patience
+
+    while step < nc.max_steps:
+        if step > 0 and step % nc.refresh_every == 0:
+            k = int(nc.pool * nc.refresh_fraction)
+            xr, lr_ = pool(k)
+            idx = torch.as_tensor(rng.choice(len(X), k, replace=False), device=dev)
+            X[idx], L[idx] = xr, lr_
+        for g in opt.param_groups:
+            g["lr"] = lr_at(step, nc, time.perf_counter() - t0)
+        bi = torch.randint(0, len(X), (nc.batch,), device=dev)
+        loss = bce(net(X[bi])[:, 0], L[bi])
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        step += 1
+        state["samples"] += nc.batch
+        bar.update(1)
+        if step % nc.eval_every == 0 or step == nc.max_steps:
+            if evaluate_now(loss):
+                stop_reason = "early_stop"
+                break
+        state["step"] = step
+        state["seconds"] = time.perf_counter() - t0
+        if state["seconds"] > nc.max_minutes * 60.0:
+            stop_reason = "time_budget"
+            break
+        if ckpt and time.perf_counter() - last_ckpt > CHECKPOINT_SECONDS:
+            save_checkpoint(ckpt, net, opt, best, state)
+            last_ckpt = time.perf_counter()
+    if not state["history"] or state["history"][-1]["step"] != step:
+        evaluate_now(loss)                       # the budget ended between evaluations
+    bar.close()
+    state.update(step=step, seconds=time.perf_counter() - t0, done=True, stop_reason=stop_reason)
+    net.load_state_dict(best)
+    if ckpt:
+        save_checkpoint(ckpt, net, opt, best, state)
+    return {"layers": net_layers(net), "state": state}
+
+
+# ----------------------------------------------------------------------------- prior calibration
+def calibrate_classifier(lens, tm, n: int = 200_000, seed: int = 0, fresnel: bool = True) -> float:
+    """Shift the classifier's decision threshold to the natural class prior.
+
+    The classifier is trained on a balanced mix (valid samples and boundary perturbations are
+    over-represented, by about 1/valid-fraction), so its logit carries a prior offset of roughly
+    log(1 + 1/f) in regions it cannot resolve.  This picks the logit offset that minimises the
+    misclassification on ``n`` fresh rays uniform over the domain (a calibration set, seeded apart from
+    the held-out evaluation) and folds it into the last bias.  Returns the offset."""
+    rng = np.random.default_rng(seed)
+    dom = Domain.from_dict(tm.domain)
+    ps = PathSampler(lens, tm.path_id, tm.direction, tm.z_in, tm.z_out, dom, fresnel=fresnel, precision="float64")
+    x = dom.u_to_x(rng.random((n, 4)))
+    v, _ = ps.trace_x(x)
+    logit, _ = tm.eval_reduced_np(x)
+    grid = np.linspace(-8.0, 8.0, 641)
+    err = np.array([np.mean((logit > b) != v) for b in grid])
+    best = np.flatnonzero(err <= err.min() + 1e-12)
+    off = float(grid[best[np.argmin(np.abs(grid[best]))]])
+    W, b = tm.classifier[-1]
+    tm.classifier[-1] = (W, np.asarray(b) - off)
+    tm.training["classifier_logit_offset"] = off
+    tm.training["classifier_calibration"] = {"n": n, "misclassification_before": float(np.mean((logit > 0) != v)),
+                                             "misclassification_after": float(err.min())}
+    return off
+
+
+# ----------------------------------------------------------------------------- one map
+def train_map(lens, path_id: int, direction: str, z_in: float, z_out: float, domain: Domain, cfg: TrainConfig,
+              workdir: str | None = None, progress: bool = True, log=None, evaluate: bool = True,
+              eval_n: int | None = None):
+    """Train the classifier and regressor of one map; returns a :class:`TransportMap` with held-out
+    metrics."""
+    from ..neural.model import TransportMap
+    from .evaluate import evaluate_map, heldout_valid
+    key = f"{direction}.{path_id}"
+    seed = int(cfg.seed) * 1_000_003 + int(path_id) * 2 + (direction == "forward")
+    rc, cc = cfg.net("regressor", direction), cfg.net("classifier", direction)
+    ps = PathSampler(lens, path_id, direction, z_in, z_out, domain, fresnel=cfg.fresnel)
+    stream = RegressorStream(ps, seed, cfg.mcmc_threshold, cfg.mcmc_chains, cfg.mcmc_p_large, cfg.mcmc_sigma)
+    center, scale_in = domain.norm_center_scale()
+    nval = min(cfg.heldout, 20_000)
+    val = heldout_valid(lens, (path_id, direction, z_in, z_out), domain, nval, seed + 7, cfg.mcmc_threshold,
+                        cfg.fresnel)
+    ck = (lambda n: os.path.join(workdir, f"{key}.{n}.ckpt")) if workdir else (lambda n: None)
+    t0 = time.perf_counter()
+    reg = train_regressor(stream, val, rc, heading=1 if direction == "forward" else -1, center=center,
+                          scale_in=scale_in, seed=seed, ckpt=ck("regressor"), threads=cfg.threads,
+                          device=cfg.device, progress=progress, desc=f"{key} regressor", log=log)
+    t1 = time.perf_counter()
+    # classifier validation: the natural mix (uniform over the domain), float64 labels
+    vrng = np.random.default_rng(seed + 11)
+    psv = PathSampler(lens, path_id, direction, z_in, z_out, domain, fresnel=cfg.fresnel, precision="float64")
+    xcv = domain.u_to_x(vrng.random((nval * 2, 4)))
+    lcv, _ = psv.trace_x(xcv)
+    cls = train_classifier(ps, lambda n: stream.sample(n)[0], (xcv, lcv), cc, center=center, scale_in=scale_in,
+                           seed=seed + 1, ckpt=ck("classifier"), threads=cfg.threads, device=cfg.device,
+                           progress=progress, desc=f"{key} classifier", log=log)
+    t2 = time.perf_counter()
+    training = {"config_digest": cfg.digest(), "regressor": {k: v for k, v in rc.__dict__.items()},
+                "classifier": {k: v for k, v in cc.__dict__.items()},
+                "regressor_steps": reg["state"]["step"], "classifier_steps": cls["state"]["step"],
+                "regressor_seconds": reg["state"]["seconds"], "classifier_seconds": cls["state"]["seconds"],
+                "regressor_stop": reg["state"].get("stop_reason"), "classifier_stop": cls["state"].get("stop_reason"),
+                "regressor_samples": reg["state"]["samples"], "classifier_samples": cls["state"]["samples"],
+                "data_sampler": stream.method, "valid_fraction": stream.fraction,
+                "mcmc": stream.mcmc.stats() if stream.mcmc is not None else None,
+                "wall_seconds_this_run": t2 - t0, "regressor_wall_this_run": t1 - t0,
+                "seed": cfg.seed,
+                "regressor_history": reg["state"]["history"], "classifier_history": cls["state"]["history"]}
+    tm = TransportMap(path_id=int(path_id), direction=direction, z_in=float(z_in), z_out=float(z_out),
+                      domain=domain.to_dict(), input_center=center, input_scale=scale_in,
+                      classifier=cls["layers"], regressor=reg["layers"], skip=reg["skip"],
+                      out_scale=reg["out_scale"], out_shift=reg["out_shift"],
+                      classifier_activation=cc.activation, regressor_activation=rc.activation,
+                      training=training)
+    calibrate_classifier(lens, tm, min(cfg.heldout, 200_000), seed + 13, cfg.fresnel)
+    if evaluate:
+        tm.metrics = evaluate_map(lens, tm, n=eval_n or cfg.heldout, seed=seed + 99,
+                                  mcmc_threshold=cfg.mcmc_threshold, fresnel=cfg.fresnel)
+    return tm
+
+
+# ----------------------------------------------------------------------------- a whole lens
+def select_maps(cfg: TrainConfig, paths: str | None):
+    """Which (direction, path) groups to train: ``paths`` is a comma list of ``transmit`` (the configured
+    transmit maps of both directions), ``backward``, ``forward``, ``ghosts`` or integer path ids
+    (forward); None: everything configured."""
+    want = None if not paths else [p.strip() for p in paths.split(",") if p.strip()]
+    groups = []
+    for d in ("backward", "forward"):
+        for p in getattr(cfg, d):
+            if want is None or p in want or d in want or (p == "transmit" and f"{d}-transmit" in want):
+                groups.append((d, p))
+    if want:
+        for w in want:
+            if w.isdigit():
+                groups.append(("forward", int(w)))
+            elif w not in ("transmit", "backward", "forward", "ghosts", "backward-transmit", "forward-transmit"):
+                raise NeuralLensError(f"--paths: unknown item {w!r}; use transmit, ghosts, backward, forward, "
+                                      "backward-transmit, forward-transmit or integer path ids")
+    return groups
+
+
+def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, workdir: str | None = None,
+               progress: bool = True, log=None):
+    """Plan, train and save every selected map of ``lens`` to ``out_path`` (re-saved atomically after each
+    map, so an interruption loses at most the map in progress — whose networks resume from checkpoints)."""
+    from ..neural.model import NeuralLensModel, load_model
+    from . import plan
+    from ..errors import ModelError
+    s0, s1 = plan.sensor_distance_range(lens, cfg.close_focus_mm)
+    z_front, z_rear = plan.planes(lens, s0)
+    workdir = workdir or (out_path + ".work")
+    os.makedirs(workdir, exist_ok=True)
+    model = NeuralLensModel(lens_name=lens.name, fingerprint=lens.fingerprint(), z_front=z_front, z_rear=z_rear,
+                            z_last_vertex=float(lens.total_track), sensor_distance_range=(s0, s1))
+    if os.path.exists(out_path):
+        try:
+            old = load_model(out_path, lens)
+            for k, m in old.maps.items():
+                if m.training.get("config_digest") == cfg.digest():
+                    model.maps[k] = m
+            model.extra.update(old.extra)
+        except ModelError:
+            pass
+    model.extra.update({"software": "mi-neurallens", "training_config": cfg.to_dict()})
+    groups = select_maps(cfg, paths)
+    fwd_domain = plan.forward_domain(lens, z_front, plan.default_field_half_angle(
+        lens, cfg.film_half_diagonal_mm, cfg.field_margin))
+    todo = []
+    for d, p in groups:
+        if d == "backward":
+            pid = 0 if p == "transmit" else int(p)
+            dom_path = os.path.join(workdir, f"domain.backward.{pid}.json")
+            if os.path.exists(dom_path):
+                dom = Domain.from_dict(json.load(open(dom_path)))
+            else:
+                dom = plan.backward_domain(lens, pid, z_rear, z_front, np.random.default_rng(cfg.seed))
+                _atomic_write(dom_path, lambda q: open(q, "w").write(json.dumps(dom.to_dict())))
+            todo.append((pid, "backward", z_rear, z_front, dom))
+        elif p == "ghosts":
+            rk_path = os.path.join(workdir, "ghost_ranking.json")
+            if os.path.exists(rk_path):
+                ranking = json.load(open(rk_path))
+            else:
+                ranking = plan.rank_ghosts(lens, z_front, fwd_domain, lens.surfaces[-1].thickness,
+                                           cfg.film_half_diagonal_mm, cfg.ghost_rank_rays, cfg.seed)
+                _atomic_write(rk_path, lambda q: open(q, "w").write(json.dumps(ranking)))
+            keep = plan.select_ghosts(ranking, cfg.ghost_energy_fraction, cfg.max_ghosts)
+            model.extra["ghost_ranking"] = ranking
+            model.extra["ghosts_selected"] = [g["path_id"] for g in keep]
+            model.extra["ghosts_trained"] = [g["path_id"] for g in keep[:cfg.ship_ghosts]]
+            for g in keep[:cfg.ship_ghosts]:
+                todo.append((g["path_id"], "forward", z_front, z_rear, fwd_domain))
+        else:
+            pid = 0 if p == "transmit" else int(p)
+            todo.append((pid, "forward", z_front, z_rear, fwd_domain))
+    for pid, d, zi, zo, dom in todo:
+        key = f"{d}.{pid}"
+        if key in model.maps:
+            continue
+        tm = train_map(lens, pid, d, zi, zo, dom, cfg, workdir, progress=progress, log=log)
+        model.maps[key] = tm
+        model.save(out_path)
+    model.save(out_path)
+    return model

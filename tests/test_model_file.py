@@ -1,0 +1,231 @@
+"""The model file: round trip, every bad-file error, and Dr.Jit evaluation == numpy evaluation."""
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from mi_neurallens import Lens, ModelError
+from mi_neurallens.neural import NeuralLensModel, TransportMap, bundled_model_path, load_model
+from mi_neurallens.neural.mlp import mlp_dr, mlp_np, tanh_eigen
+from mi_neurallens.trace.api import float_type
+
+
+def _layers(rng, widths, scale=0.6):
+    return [(rng.normal(0, scale, (o, i)), rng.normal(0, 0.2, o)) for i, o in zip(widths[:-1], widths[1:])]
+
+
+def _map(rng, direction="backward", path_id=0, width=8):
+    return TransportMap(
+        path_id=path_id, direction=direction, z_in=40.0 if direction == "backward" else -1.0,
+        z_out=-1.0 if direction == "backward" else 40.0,
+        domain={"r_max_mm": 10.0, "s_max": 0.6, "lambda_min_nm": 360.0, "lambda_max_nm": 830.0},
+        input_center=np.array([5.0, 0.0, 0.3, 595.0]), input_scale=np.array([5.0, 0.6, 0.3, 235.0]),
+        classifier=_layers(rng, [4, width, width, 1]), regressor=_layers(rng, [4, width, width, width, 5]),
+        skip=rng.normal(0, 0.5, (5, 4)), out_scale=np.array([2.0, 0.5, 0.1, 0.05, 0.01]),
+        out_shift=np.array([0.0, 0.0, 0.0, 0.0, 0.9]), training={"note": "random"}, metrics={"x": 1.0})
+
+
+@pytest.fixture(scope="module")
+def lens():
+    return Lens.load("wide-22mm")
+
+
+@pytest.fixture()
+def model(lens):
+    rng = np.random.default_rng(0)
+    m = NeuralLensModel(lens_name=lens.name, fingerprint=lens.fingerprint(), z_front=-1.0, z_rear=40.0,
+                        z_last_vertex=lens.total_track, sensor_distance_range=(14.0, 16.0))
+    for tm in (_map(rng), _map(rng, "forward", 0), _map(rng, "forward", 2560)):
+        m.maps[tm.key] = tm
+    m.extra["ghost_ranking"] = [{"path_id": 2560, "energy": 1e-4}]
+    return m
+
+
+def _save(model, tmp_path, name="m.model.safetensors"):
+    p = str(tmp_path / name)
+    model.save(p)
+    return p
+
+
+def _rays(n, heading, seed=1):
+    rng = np.random.default_rng(seed)
+    o = np.stack([rng.uniform(-9, 9, n), rng.uniform(-9, 9, n), np.full(n, 45.0 if heading < 0 else -5.0)], 1)
+    a, s = rng.uniform(0, 2 * np.pi, n), 0.62 * np.sqrt(rng.random(n))
+    d = np.stack([s * np.cos(a), s * np.sin(a), heading * np.sqrt(1 - s * s)], 1)
+    return o, d, rng.uniform(380, 800, n)
+
+
+def test_round_trip(model, lens, tmp_path):
+    p = _save(model, tmp_path)
+    assert [f for f in os.listdir(tmp_path) if f.startswith(".tmp")] == []
+    m2 = load_model(p, lens)
+    assert set(m2.maps) == set(model.maps)
+    assert m2.fingerprint == lens.fingerprint() and m2.sensor_distance_range == (14.0, 16.0)
+    assert m2.extra["ghost_ranking"][0]["path_id"] == 2560 and m2.ghost_ids == [2560]
+    for k, a in model.maps.items():
+        b = m2.maps[k]
+        assert (b.z_in, b.z_out, b.domain, b.training, b.metrics) == (a.z_in, a.z_out, a.domain, a.training, a.metrics)
+        o, d, lam = _rays(2000, a.heading)
+        ra, rb = a.eval_np(o, d, lam), b.eval_np(o, d, lam)   # b has float32-rounded weights
+        np.testing.assert_array_equal(ra["valid"] | (np.abs(ra["logit"]) < 1e-4), rb["valid"] | (np.abs(ra["logit"]) < 1e-4))
+        np.testing.assert_allclose(ra["position"], rb["position"], atol=1e-4)
+    # metadata is plain JSON inside __metadata__
+    from safetensors import safe_open
+    with safe_open(p, "np") as f:
+        meta = f.metadata()
+    doc = json.loads(meta["model"])
+    assert meta["format_version"] == "1" and doc["lens"]["fingerprint"] == lens.fingerprint()
+    assert {m["key"] for m in doc["maps"]} == set(model.maps)
+
+
+def _rewrite(p, drop=None, reshape=None, meta_edit=None):
+    from safetensors.numpy import load_file, save_file
+    from safetensors import safe_open
+    t = load_file(p)
+    with safe_open(p, "np") as f:
+        meta = dict(f.metadata())
+    if drop:
+        del t[drop]
+    if reshape:
+        t[reshape] = np.zeros((3, 3), np.float32)
+    if meta_edit:
+        meta_edit(meta)
+    save_file(t, p, metadata=meta)
+
+
+def test_missing_tensor(model, tmp_path):
+    p = _save(model, tmp_path)
+    _rewrite(p, drop="backward.0.regressor.1.weight")
+    with pytest.raises(ModelError, match="missing tensor 'backward.0.regressor.1.weight'"):
+        load_model(p)
+
+
+def test_wrong_shape(model, tmp_path):
+    p = _save(model, tmp_path)
+    _rewrite(p, reshape="forward.2560.classifier.0.weight")
+    with pytest.raises(ModelError, match=r"forward.2560.classifier.0.weight.*shape \(3, 3\), expected \(8, 4\)"):
+        load_model(p)
+
+
+def test_other_lens(model, tmp_path):
+    p = _save(model, tmp_path)
+    with pytest.raises(ModelError, match="trained for lens 'wide-22mm'.*not for 'ood-59mm'"):
+        load_model(p, Lens.load("ood-59mm"))
+
+
+def test_truncated(model, tmp_path):
+    p = _save(model, tmp_path)
+    data = open(p, "rb").read()
+    for cut in (len(data) - 7, 100, 5):
+        q = str(tmp_path / f"cut{cut}.safetensors")
+        open(q, "wb").write(data[:cut])
+        with pytest.raises(ModelError, match="truncated|too short"):
+            load_model(q)
+
+
+def test_unknown_version_and_not_a_model(model, tmp_path):
+    p = _save(model, tmp_path)
+    _rewrite(p, meta_edit=lambda m: m.update(format_version="99"))
+    with pytest.raises(ModelError, match="unknown model format version '99'"):
+        load_model(p)
+    q = str(tmp_path / "other.safetensors")
+    from safetensors.numpy import save_file
+    save_file({"a": np.zeros(3, np.float32)}, q)
+    with pytest.raises(ModelError, match="not a mi-neurallens model"):
+        load_model(q)
+    with pytest.raises(ModelError, match="not found"):
+        load_model(str(tmp_path / "nope.safetensors"))
+    r = str(tmp_path / "garbage.safetensors")
+    open(r, "wb").write(b"\x10\x00\x00\x00\x00\x00\x00\x00{not json at all}")
+    with pytest.raises(ModelError):
+        load_model(r)
+
+
+def test_tanh_eigen():
+    x = np.linspace(-12, 12, 100001)
+    assert np.max(np.abs(tanh_eigen(x) - np.tanh(x))) < 1e-6
+    F = float_type("float32")
+    y = tanh_eigen(F(x.astype(np.float32))).numpy()
+    assert np.max(np.abs(y - np.tanh(x))) < 1e-6
+
+
+@pytest.mark.parametrize("activation", ["tanh", "relu"])
+def test_mlp_drjit_equals_numpy(activation):
+    rng = np.random.default_rng(5)
+    layers = _layers(rng, [4, 32, 32, 32, 5], scale=0.4)
+    x = rng.uniform(-1, 1, (4096, 4))
+    ref = mlp_np(x, layers, activation)
+    F = float_type("float32")
+    out = mlp_dr([F(x[:, i].astype(np.float32)) for i in range(4)], layers, activation)
+    got = np.stack([o.numpy() for o in out], 1)
+    np.testing.assert_allclose(got, ref, atol=5e-5 * np.abs(ref).max())
+
+
+@pytest.mark.parametrize("direction", ["backward", "forward"])
+def test_transport_map_eval_dr_equals_numpy(direction):
+    """Full lens-space evaluation (reduction, domain test, classifier, regressor, undo) in Dr.Jit
+    matches the float64 numpy reference to float32 precision."""
+    tm = _map(np.random.default_rng(9), direction, 0, width=16)
+    o, d, lam = _rays(8192, tm.heading, seed=4)
+    ref = tm.eval_np(o, d, lam)
+    F = float_type("float32")
+    col = lambda a, i: F(np.ascontiguousarray(a[:, i], dtype=np.float32))
+    valid, (pos, dirn, thr) = tm.eval_dr(tuple(col(o, i) for i in range(3)), tuple(col(d, i) for i in range(3)),
+                                         F(lam.astype(np.float32)))
+    v = valid.numpy().astype(bool)
+    sure = np.abs(ref["logit"]) > 1e-3            # away from the decision boundary
+    assert 0.05 < ref["valid"].mean() < 0.95
+    np.testing.assert_array_equal(v[sure], ref["valid"][sure])
+    P = np.stack([c.numpy() for c in pos], 1)
+    D = np.stack([c.numpy() for c in dirn], 1)
+    scale = np.abs(ref["position"][:, :2]).max()
+    np.testing.assert_allclose(P[:, :2], ref["position"][:, :2], atol=2e-6 * scale + 1e-6)
+    np.testing.assert_allclose(P[:, 2], tm.z_out)
+    np.testing.assert_allclose(D, ref["direction"], atol=5e-6)
+    np.testing.assert_allclose(thr.numpy(), ref["throughput"], atol=2e-6 * np.abs(ref["throughput"]).max())
+
+
+def test_bundled_models_load():
+    found = 0
+    for name in ("wide-22mm", "ood-59mm", "canon-ef-24mm-f1.4l"):
+        p = bundled_model_path(name)
+        if not os.path.exists(p):
+            continue
+        lens = Lens.load(name)
+        m = load_model(p, lens)
+        tm = m.map("transmit", "backward")
+        assert tm.metrics["regressor"]["n"] > 0
+        lo, hi = m.sensor_distance_range
+        assert lo <= lens.surfaces[-1].thickness <= hi or lo <= lens.bfl() <= hi
+        assert os.path.getsize(p) < 2_000_000
+        found += 1
+    if not found:
+        pytest.skip("no bundled model files yet")
+
+
+def test_bundled_22mm_backward_map_matches_tracer():
+    """End to end in lens space: rays from a sensor plane inside the supported range, neural vs exact."""
+    p = bundled_model_path("wide-22mm")
+    if not os.path.exists(p):
+        pytest.skip("no bundled wide-22mm model")
+    lens = Lens.load("wide-22mm")
+    m = load_model(p, lens)
+    tm = m.map("transmit", "backward")
+    lo, hi = m.sensor_distance_range
+    rng = np.random.default_rng(0)
+    n = 60000
+    o = np.stack([rng.uniform(-12, 12, n), rng.uniform(-12, 12, n),
+                  np.full(n, lens.total_track + 0.5 * (lo + hi))], 1)
+    a, s = rng.uniform(0, 2 * np.pi, n), 0.7 * np.sqrt(rng.random(n))
+    d = np.stack([s * np.cos(a), s * np.sin(a), -np.sqrt(1 - s * s)], 1)
+    ex = lens.trace(o, d, 550.0, direction="backward", z_out=tm.z_out, precision="float64")
+    nn = tm.eval_np(o, d, 550.0)
+    assert ex.valid.sum() > 1000
+    assert (nn["valid"] == ex.valid).mean() > 0.995
+    both = ex.valid & nn["valid"]
+    err_um = np.hypot(*(nn["position"][both, :2] - ex.position[both, :2]).T) * 1000
+    assert np.median(err_um) < 10.0 and np.percentile(err_um, 99) < 60.0
+    np.testing.assert_allclose(nn["throughput"][both], ex.throughput[both], rtol=0.01)

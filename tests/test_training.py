@@ -1,0 +1,149 @@
+"""Training data and the trainer: CIE wavelengths, MCMC validity and coverage, a tiny training run."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mi_neurallens import Lens, NeuralLensError
+from mi_neurallens.optics.glass import AIR, constant
+from mi_neurallens.optics.prescription import Surface
+from mi_neurallens.trace.api import float_type
+from mi_neurallens.training import data, plan
+from mi_neurallens.training.config import load_config
+
+
+def thick_lens():
+    """A single biconvex element (n = 1.6, f ≈ 42 mm) behind a stop."""
+    return Lens((Surface(math.inf, 3.0, AIR, 7.0, is_stop=True),
+                 Surface(50.0, 6.0, constant(1.6), 12.0),
+                 Surface(-50.0, 40.0, AIR, 12.0)), name="thick")
+
+
+# ----------------------------------------------------------------------------- wavelengths
+def test_cie_sampling_matches_mitsuba_and_its_pdf():
+    import mitsuba as mi
+    u = np.linspace(0.001, 0.999, 257)
+    lam, w = data.sample_cie_wavelength(u)
+    ref = np.array([mi.scalar_rgb.sample_rgb_spectrum(float(v)) for v in u])
+    np.testing.assert_allclose(lam, ref[:, 0], rtol=1e-5)
+    np.testing.assert_allclose(w, ref[:, 1], rtol=1e-4)
+    # the pdf integrates to 1 on [360, 830] nm and the inverse is exact
+    g = np.linspace(360, 830, 200001)
+    assert abs(np.trapezoid(data.pdf_cie_wavelength(g), g) - 1.0) < 1e-3
+    np.testing.assert_allclose(data.cie_u_of_lambda(lam), u, atol=1e-9)
+    # Dr.Jit version (what the generator runs) agrees
+    F = float_type("float32")
+    lam_d, _ = data.sample_cie_wavelength(F(u.astype(np.float32)))
+    np.testing.assert_allclose(lam_d.numpy(), lam, rtol=1e-5)
+
+
+def test_generator_wavelength_histogram_follows_cie():
+    lens = thick_lens()
+    ps = data.PathSampler(lens, 0, "forward", -1.0, 60.0, data.Domain(8.0, 0.1))
+    u, y = ps.random_valid(1 << 18, seed=5)
+    lam = ps.domain.u_to_x(u)[:, 3]
+    edges = np.linspace(360, 830, 48)
+    h, _ = np.histogram(lam, edges)
+    c = np.linspace(0, 1, 4001)
+    cdf_lam = data.sample_cie_wavelength(c)[0]
+    expected = np.diff(np.interp(edges, cdf_lam, c)) * len(lam)
+    chi2 = np.sum((h - expected) ** 2 / expected)
+    assert chi2 < 120, chi2          # 47 bins: ~47 ± 10 for a correct sampler
+    # and it is not uniform
+    assert h[len(h) // 2] > 3 * h[0]
+
+
+# ----------------------------------------------------------------------------- MCMC
+def test_mcmc_samples_valid_and_cover_valid_region():
+    lens = Lens.load("wide-22mm")
+    s0, _ = plan.sensor_distance_range(lens, 300.0)
+    z_front, z_rear = plan.planes(lens, s0)
+    dom = plan.forward_domain(lens, z_front, 45.0)
+    pid = 2560
+    ps = data.PathSampler(lens, pid, "forward", z_front, z_rear, dom)
+    rng = np.random.default_rng(3)
+    m = data.MCMCSampler(ps, rng, n_chains=1 << 13, p_large=0.3, sigma=0.03, seed_rays=1 << 20)
+    for _ in range(8):
+        m.step()
+    u, x, y = m.sample(1 << 17)
+    assert 0.05 < m.acceptance < 1.0
+    # every sample is valid when re-traced (float32 tracer), and in float64 all but a rounding few
+    assert ps.valid_u(u).all()
+    ps64 = data.PathSampler(lens, pid, "forward", z_front, z_rear, dom, precision="float64")
+    assert ps64.valid_u(u).mean() > 0.999
+    # coverage: marginal histograms match rejection sampling (uniform over the valid region)
+    ur, _, _, st = data.rejection_sample(ps, 1 << 17, np.random.default_rng(4))
+    for k in range(4):
+        hm, _ = np.histogram(u[:, k], np.linspace(0, 1, 21))
+        hr, _ = np.histogram(ur[:, k], np.linspace(0, 1, 21))
+        tv = 0.5 * np.abs(hm / hm.sum() - hr / hr.sum()).sum()
+        assert tv < 0.06, (k, tv)
+    # a 2-D joint histogram too (r vs direction radius)
+    hm, _, _ = np.histogram2d(u[:, 0], u[:, 1], 8, [[0, 1], [0, 1]])
+    hr, _, _ = np.histogram2d(ur[:, 0], ur[:, 1], 8, [[0, 1], [0, 1]])
+    assert 0.5 * np.abs(hm / hm.sum() - hr / hr.sum()).sum() < 0.08
+
+
+def test_classifier_samples_are_balanced_with_boundary_points():
+    lens = thick_lens()
+    ps = data.PathSampler(lens, 0, "backward", 52.0, -1.0, data.Domain(12.0, 0.4))
+    rng = np.random.default_rng(0)
+    u, _, _, st = data.rejection_sample(ps, 20000, rng)
+    x, lab = data.classifier_samples(ps, u, 30000, rng)
+    assert 0.3 < lab.mean() < 0.8
+    assert st["acceptance"] < 0.6          # the natural mix is mostly blocked, the training mix is not
+
+
+# ----------------------------------------------------------------------------- config
+def test_config_rejects_unknown_keys(tmp_path):
+    p = tmp_path / "c.toml"
+    p.write_text("seed = 3\n[regressor]\nmax_stepz = 10\n")
+    with pytest.raises(NeuralLensError, match="max_stepz"):
+        load_config(str(p))
+    p.write_text("seed = 3\n[regressor]\nschedule = 'paper'\n")
+    c = load_config(str(p))
+    assert c.regressor.lr == 1e-4 and c.regressor.decay == 0.95 and c.regressor.batch == 8192
+
+
+# ----------------------------------------------------------------------------- a tiny training run
+def test_tiny_training_run_learns(tmp_path):
+    """Train the backward transmit map of a single thick lens for a few hundred steps: held-out errors
+    must fall far below the untrained network's (a broken loss, optimiser or data pipeline fails)."""
+    pytest.importorskip("torch")
+    from mi_neurallens.neural import NeuralLensModel, load_model
+    from mi_neurallens.training.evaluate import evaluate_map
+    from mi_neurallens.training.trainer import train_map
+    lens = thick_lens()
+    s0, s1 = plan.sensor_distance_range(lens, 500.0)
+    z_front, z_rear = plan.planes(lens, s0)
+    dom = plan.backward_domain(lens, 0, z_rear, z_front, np.random.default_rng(0), n=1 << 18)
+    small = dict(hidden=3, width=16, batch=1024, pool=40000, refresh_every=200, eval_every=100,
+                 max_minutes=1.0, warmup_steps=20, residual="none", patience=100, loss_weights="uniform")
+    cfg = load_config(overrides={"regressor": dict(small, max_steps=600, lr=1e-2),
+                                 "classifier": dict(small, hidden=2, width=32, max_steps=1000, lr=1e-2),
+                                 "heldout": 20000, "threads": 1})
+    tm = train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, str(tmp_path), progress=False, eval_n=20000)
+    m = tm.metrics
+    # the untrained start: the same map with the regressor's last layer zeroed (predicts the mean)
+    import copy
+    tm0 = copy.deepcopy(tm)
+    tm0.regressor[-1] = (tm0.regressor[-1][0] * 0, tm0.regressor[-1][1] * 0)
+    tm0._fold = None
+    m0 = evaluate_map(lens, tm0, n=5000, seed=1, boundary=False)
+    assert m["regressor"]["position_um_median"] < 0.1 * m0["regressor"]["position_um_median"]
+    assert m["regressor"]["direction_arcsec_median"] < 0.2 * m0["regressor"]["direction_arcsec_median"]
+    assert m["regressor"]["position_um_median"] < 300.0
+    assert m["classifier"]["misclassification"] < 0.06
+    assert m["classifier"]["misclassification"] < 0.3 * min(m["classifier"]["valid_fraction"], 1 - m["classifier"]["valid_fraction"])
+    # checkpoints exist and a rerun resumes (finished networks are not retrained)
+    tm2 = train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, str(tmp_path), progress=False,
+                    evaluate=False)
+    np.testing.assert_array_equal(tm2.regressor[0][0], tm.regressor[0][0])
+    # and the model file round-trips with its metrics
+    model = NeuralLensModel(lens.name, lens.fingerprint(), z_front, z_rear, lens.total_track, (s0, s1))
+    model.maps[tm.key] = tm
+    model.save(str(tmp_path / "thick.model.safetensors"))
+    back = load_model(str(tmp_path / "thick.model.safetensors"), lens)
+    assert back.map("transmit", "backward").metrics["regressor"]["n"] == 20000
