@@ -13,4 +13,6 @@ def register_all() -> list[str]:
         reg_sensors = None
     if reg_sensors is not None:
         names += reg_sensors()
+    from .integrators import register as reg_integrators
+    names += reg_integrators()
     return names

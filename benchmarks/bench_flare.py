@@ -1,0 +1,91 @@
+"""Flare benchmark: forward samples/s per ghost (exact vs neural where a ghost map exists), pass
+fractions before/after the pilot bounds, and equal-time MAPE against a converged exact reference.
+
+    python benchmarks/bench_flare.py [--lens wide-22mm] [--ghosts N] [--samples 2^20] [--ref-samples 2^23]
+
+Prints a table and writes benchmarks/results/bench_flare.json.  MAPE as in `mi-neurallens flare
+--compare` (luminance, mask Y_ref > 1e-2·max, ε = 1e-3·max).
+"""
+from __future__ import annotations
+
+import argparse, json, os, platform, time
+
+import numpy as np
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser()
+    p.add_argument("--lens", default="wide-22mm")
+    p.add_argument("--ghosts", type=int, default=4, help="benchmark the N strongest ghosts")
+    p.add_argument("--samples", type=int, default=1 << 20)
+    p.add_argument("--ref-samples", type=int, default=1 << 23)
+    p.add_argument("--model", default=None)
+    p.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "bench_flare.json"))
+    a = p.parse_args(argv)
+    import mitsuba as mi
+    import drjit as dr
+    mi.set_variant("llvm_ad_rgb")
+    import mi_neurallens as nl
+    nl.register()
+    from mi_neurallens.flare.render import FlareOptions, FlareRenderer
+    from mi_neurallens.commands.flare import mape
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    model = a.model or os.path.join(root, "lenses", "models", f"{a.lens}.model.safetensors")
+    model = model if os.path.exists(model) else None
+    scene = mi.load_dict({"type": "scene",
+                          "sensor": {"type": "realistic_lens", "lens": a.lens,
+                                     "film": {"type": "hdrfilm", "width": 240, "height": 160}},
+                          "light": {"type": "point", "position": [0.9, 0.45, 5.0],
+                                    "intensity": {"type": "rgb", "value": [100, 100, 100]}}})
+    fr0 = FlareRenderer(scene, 0, FlareOptions(mode="exact"))
+    ids = fr0.ghost_ids()[:a.ghosts]
+    rows = []
+    for pid in ids:
+        row = {"path_id": pid}
+        ref = FlareRenderer(scene, 0, FlareOptions(mode="exact", ghosts=[pid], samples=a.ref_samples)).render(seed=99)
+        modes = ["exact"]
+        if model is not None:
+            from mi_neurallens.neural.model import NeuralLensModel
+            m = NeuralLensModel.load(model)
+            if m.has(pid, "forward"):
+                modes.append("neural")
+        for mode in modes:
+            for bounds in ("none", "pilot"):
+                fr = FlareRenderer(scene, 0, FlareOptions(mode=mode, ghosts=[pid], samples=a.samples, bounds=bounds,
+                                                          model=model if mode == "neural" else None))
+                fr.render(seed=0)  # warm-up (compile)
+                best = 1e9
+                for k in range(3):
+                    t0 = time.perf_counter(); r = fr.render(seed=k + 1); dr.sync_thread()
+                    best = min(best, time.perf_counter() - t0)
+                st = r.stats[0]
+                row[f"{mode}_{bounds}"] = {"seconds": best, "samples_per_s": st.samples / best,
+                                           "fraction_before": st.fraction_before,
+                                           "fraction_after": st.fraction_after,
+                                           "mape_vs_ref": mape(r.total, ref.total)}
+        rows.append(row)
+    print(f"{'ghost':>8} {'mode':>14} {'Msamples/s':>10} {'before':>7} {'after':>7} {'MAPE':>7}")
+    for row in rows:
+        for k, v in row.items():
+            if k == "path_id":
+                continue
+            print(f"{row['path_id']:>8} {k:>14} {v['samples_per_s'] / 1e6:10.2f} {v['fraction_before']:7.3f} "
+                  f"{v['fraction_after']:7.3f} {v['mape_vs_ref']:7.4f}")
+    # equal-time MAPE (exact vs neural) where both exist
+    for row in rows:
+        if "neural_pilot" in row and "exact_pilot" in row and row["neural_pilot"]["samples_per_s"] > 0:
+            e, n = row["exact_pilot"], row["neural_pilot"]
+            row["equal_time_note"] = ("at equal time exact gets "
+                                      f"{e['samples_per_s'] / n['samples_per_s']:.2f}x the samples of neural")
+    out = {"machine": platform.processor() or platform.machine(), "threads": dr.thread_count(),
+           "lens": a.lens, "samples": a.samples, "ref_samples": a.ref_samples, "model": model, "rows": rows}
+    os.makedirs(os.path.dirname(a.out), exist_ok=True)
+    tmp = a.out + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(out, f, indent=1)
+    os.replace(tmp, a.out)
+    print("wrote", a.out)
+
+
+if __name__ == "__main__":
+    main()

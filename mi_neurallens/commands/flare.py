@@ -1,0 +1,137 @@
+"""``mi-neurallens flare``: render the lens flare of a scene's bright lights alone (no backward render).
+
+The scene's first sensor must be ``realistic_lens`` or ``neural_lens``.  Options of the scene's
+``lens_flare`` integrator (if any) are not read; give them here.  ``--spp N`` sets the forward
+samples per light to N × film pixels (``--samples`` gives the count directly).
+
+``--compare`` renders exact and neural (same samples) and writes them side by side with the
+error map, for all ghosts combined and per ghost, and prints the MAPE:
+
+    MAPE(a, b) = mean over p in M of |Y_a(p) − Y_b(p)| / (|Y_b(p)| + ε)
+
+with Y the Rec.709 luminance, b the exact reference, M = {p : Y_b(p) > 0.01 · max Y_b} and
+ε = 1e-3 · max Y_b.
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+
+import numpy as np
+
+LUM = np.array([0.2126, 0.7152, 0.0722], np.float64)
+#: MAPE mask threshold and epsilon, relative to the reference's maximum luminance
+MAPE_MASK, MAPE_EPS = 1e-2, 1e-3
+
+
+def mape(a, b, mask_rel=MAPE_MASK, eps_rel=MAPE_EPS):
+    """MAPE of image ``a`` against reference ``b`` (H, W, 3) as defined in the module docstring."""
+    ya = np.asarray(a, np.float64)[..., :3] @ LUM
+    yb = np.asarray(b, np.float64)[..., :3] @ LUM
+    mx = float(yb.max()) if yb.size else 0.0
+    if not mx > 0:
+        return float("nan")
+    m = yb > mask_rel * mx
+    return float(np.mean(np.abs(ya[m] - yb[m]) / (np.abs(yb[m]) + eps_rel * mx)))
+
+
+def add_parser(subparsers):
+    p = subparsers.add_parser("flare", help="render the lens flare of a scene's lights (exact or neural)",
+                              description=__doc__.split("\n\n", 1)[1] if __doc__ else None)
+    p.add_argument("scene", help="Mitsuba XML scene (its first sensor: realistic_lens or neural_lens)")
+    p.add_argument("-o", "--output", help="output PNG (default: <scene>_flare.png); an EXR is written next to it")
+    p.add_argument("--lens", help="lens of the sensor (bundled name or file)")
+    p.add_argument("--mode", choices=("auto", "exact", "neural"), default="auto")
+    p.add_argument("--model", help="neural model file (default: the sensor's model)")
+    p.add_argument("--ghost", dest="ghosts", action="append", default=[], metavar="ID",
+                   help="render only this ghost (path id or a:b surface pair; repeatable)")
+    p.add_argument("--exclude", dest="exclude", action="append", default=[], metavar="ID")
+    p.add_argument("--max-ghosts", type=int, default=32)
+    p.add_argument("--spp", type=int, help="forward samples per light per film pixel")
+    p.add_argument("--samples", type=int, help="forward samples per light (default 2^22)")
+    p.add_argument("--coating", choices=("lens", "none", "quarter_wave"), default="lens")
+    p.add_argument("--blades", type=int)
+    p.add_argument("--resolution", help="film size WxH")
+    p.add_argument("--variant", default="llvm_ad_rgb")
+    p.add_argument("-D", dest="params", action="append", default=[], metavar="NAME=VALUE")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops")
+    p.add_argument("--compare", action="store_true", help="exact vs neural side by side with error maps and MAPE")
+    p.add_argument("--per-ghost", action="store_true", help="also write one PNG per ghost")
+    p.add_argument("--json", help="write the statistics (pass fractions, timings, MAPE) to this JSON file")
+    p.set_defaults(func=run)
+    return p
+
+
+def _norm_png(path, img, ref_max=None, exposure=0.0):
+    from ..render_utils import write_png
+    img = np.asarray(img, np.float32)[..., :3]
+    m = ref_max if ref_max is not None else float(np.percentile(img[img > 0], 99.5)) if (img > 0).any() else 1.0
+    write_png(path, img / max(m, 1e-30), exposure)
+
+
+def run(args) -> int:
+    from .render import _resolution, load_scene
+    from ..errors import NeuralLensError
+    from ..flare.render import FlareOptions, FlareRenderer, parse_id_list
+    res = _resolution(args.resolution) if args.resolution else None
+    scene = load_scene(args.scene, variant=args.variant, lens=args.lens, resolution=res, params=args.params)
+    sensor = scene.sensors()[0]
+    W, H = (int(v) for v in sensor.film().crop_size())
+    n = args.samples or (args.spp * W * H if args.spp else 1 << 22)
+    kw = dict(samples=int(n), ghosts=parse_id_list(args.ghosts) or None, exclude_ghosts=parse_id_list(args.exclude),
+              max_ghosts=args.max_ghosts, coating=args.coating, blades=args.blades, model=args.model)
+    out = args.output or os.path.splitext(os.path.basename(args.scene))[0] + "_flare.png"
+    base = os.path.splitext(out)[0]
+    report = {"scene": args.scene, "samples_per_light": int(n), "film": [W, H]}
+    modes = ("exact", "neural") if args.compare else (args.mode,)
+    results = {}
+    for mode in modes:
+        fr = FlareRenderer(scene, sensor, FlareOptions(mode=mode, **kw))
+        if not fr.lights:
+            raise NeuralLensError(f"{args.scene}: no point, spot or directional emitter to flare")
+        t0 = time.perf_counter()
+        r = fr.render(seed=args.seed, per_ghost=args.per_ghost or args.compare)
+        secs = time.perf_counter() - t0
+        results[mode] = r
+        report[mode] = {"seconds": secs, "ghosts": [s.as_dict() for s in r.stats]}
+        print(f"{mode}: {len(set(s.path_id for s in r.stats))} path(s) x {len(fr.lights)} light(s) in {secs:.2f} s",
+              file=sys.stderr)
+        for s in r.stats:
+            print(f"  ghost {s.path_id:>8} {str(tuple(s.surfaces)):>9} {s.evaluator:6} {s.light:16} "
+                  f"samples {s.samples:>9}  reach sensor: before {s.fraction_before:6.3f}  after "
+                  f"{s.fraction_after:6.3f}", file=sys.stderr)
+    if not args.compare:
+        r = results[args.mode]
+        from ..render_utils import write_exr
+        write_exr(base + ".exr", r.total)
+        _norm_png(out, r.total, exposure=args.exposure)
+        if args.per_ghost:
+            for pid, img in r.ghosts.items():
+                _norm_png(f"{base}_ghost{pid}.png", img, exposure=args.exposure)
+        print(f"wrote {out} and {base}.exr")
+    else:
+        ex, ne = results["exact"], results["neural"]
+        m_all = mape(ne.total, ex.total)
+        report["mape_all"] = m_all
+        report["mape_per_ghost"] = {}
+        ref_max = float(np.percentile(ex.total[ex.total > 0], 99.5)) if (ex.total > 0).any() else 1.0
+        err = np.abs(ne.total - ex.total)
+        _norm_png(out, np.concatenate([ex.total, ne.total, err * 10.0], 1), ref_max, args.exposure)
+        print(f"MAPE all ghosts (neural vs exact): {m_all:.4f}")
+        for pid in ex.ghosts:
+            if pid in ne.ghosts:
+                mg = mape(ne.ghosts[pid], ex.ghosts[pid])
+                report["mape_per_ghost"][str(pid)] = mg
+                print(f"  ghost {pid:>8}: MAPE {mg:.4f}")
+                if args.per_ghost:
+                    a, b = ex.ghosts[pid], ne.ghosts[pid]
+                    _norm_png(f"{base}_ghost{pid}.png", np.concatenate([a, b, np.abs(b - a) * 10], 1),
+                              None, args.exposure)
+        print(f"wrote {out} (exact | neural | 10x |error|)")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(report, f, indent=1)
+    return 0

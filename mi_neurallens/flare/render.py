@@ -1,0 +1,608 @@
+"""Forward light tracing of lens ghosts (the flare image), exact or neural, for the current variant.
+
+Measurement (what a splat deposits)
+-----------------------------------
+The lens sensors report ``I(x) = K ∫ L T cosθ dω`` with ``K = 1/(π NA'²)``: K times the
+sensor-plane irradiance E(x).  A pixel of area A_pix (mm² on the sensor) therefore reads
+``K · Φ_pix / A_pix``, Φ_pix the flux landing on it (the cosθ of the measurement equation is the
+projected-area factor that turns radiance into irradiance; a flux splat already carries it).
+
+A forward sample starts at a point q on the input plane z = z_in (in front of the first surface),
+sampled uniformly over a region of area A_q (mm²); the emitter is sampled from q with
+``emitter.sample_direction`` which returns the direction toward the light and
+``E⊥ = L/pdf_ω`` (for a point/spot light: I/r², r in scene units; directional: its irradiance).
+The flux through dA_q from that direction is ``E⊥ · |cos θ_q| · dA_q`` (θ_q: angle to the lens
+axis), so with N samples each sample that reaches the sensor along a path with Fresnel
+throughput T deposits into its pixel
+
+    v = E⊥ · w_λ · T · |cos θ_q| · (A_q / N) · K / A_pix          (A_q, A_pix both in mm²)
+
+w_λ is the sensor's own wavelength weight (:func:`~mi_neurallens.sensors.wavelengths.sample_wavelength`,
+the same λ sampling and RGB weights as the backward render).  Lens-space frames, film mapping and
+K come from the sensor (``sensor.setup``); nothing is duplicated here.  Radiometry is checked in
+``tests/test_flare.py`` against a backward ``realistic_lens`` + ``path`` render of a tiny sphere of
+equal power (transmit path splatted forward).
+
+Sampling region
+---------------
+A pilot pass traces ``pilot_grid²`` cells × ``pilot_spp`` jittered samples over the conservative
+disk that can hit the front element (per light and ghost), keeps the cells where a sample reached
+the film, dilates them by one cell and the main pass samples uniformly inside the kept cells (a
+cell is picked uniformly, then a point in it).  The pilot also estimates each ghost's flux, which
+sets the per-ghost sample budget (∝ energy, with a floor).  With ``bounds='none'`` the main pass
+samples the whole disk (the "before" pass fraction).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import math
+import time
+
+import numpy as np
+
+from ..errors import ModelError, NeuralLensError
+from .energy import front_radius, ghost_energy_ranking, input_plane, select_ghosts, trivial_ghost
+
+MODES = ("auto", "exact", "neural")
+COATINGS = ("lens", "none", "quarter_wave")
+BOUNDS = ("pilot", "none")
+
+# golden-ratio style additive recurrence (R_d sequence, d = 6) in 32-bit fixed point
+_PHI6 = 1.0
+for _ in range(64):
+    _PHI6 = (1.0 + _PHI6) ** (1.0 / 7.0)
+_ALPHA = [int((1.0 / _PHI6 ** (k + 1)) % 1.0 * 2 ** 32) & 0xFFFFFFFF for k in range(6)]
+
+
+class FlareError(NeuralLensError, ValueError):
+    """Bad flare options (ghost ids, modes, missing ghost models...)."""
+
+
+@dataclass
+class FlareOptions:
+    mode: str = "auto"                 #: auto | exact | neural
+    ghosts: list | None = None         #: ghost path ids to render (None: automatic selection)
+    exclude_ghosts: list = field(default_factory=list)
+    max_ghosts: int = 32               #: cap of the automatic selection
+    energy_fraction: float = 0.99      #: automatic selection covers this share of ghost energy
+    samples: int = 1 << 20             #: forward samples per light (split over its ghosts)
+    min_samples: int = 1 << 12         #: floor per ghost
+    pilot_grid: int = 64
+    pilot_spp: int = 4
+    bounds: str = "pilot"              #: pilot | none
+    coating: str = "lens"              #: lens (as the sensor's lens) | none | quarter_wave
+    coating_index: float = 1.38
+    coating_wavelength: float = 550.0
+    coating_surfaces: list | None = None   #: optical-surface indices that get the coating (None: all)
+    blades: int | None = None
+    blade_rotation: float | None = None
+    visibility: bool = True            #: shadow-test the light from the front of the lens
+    small_emitters: int = 0            #: also flare the N brightest small area emitters
+    small_emitter_size: float = 0.05   #: "small": bounding-box diagonal below this (scene units)
+    include_transmit: bool = False     #: also splat the transmit path (radiometric checks)
+    transmit_only: bool = False        #: splat only the transmit path
+    model: object = None               #: NeuralLensModel or a file (default: the sensor's model)
+
+    def validate(self):
+        if self.mode not in MODES:
+            raise FlareError(f"lens_flare: 'mode' must be one of {', '.join(MODES)}, got {self.mode!r}")
+        if self.coating not in COATINGS:
+            raise FlareError(f"lens_flare: 'coating' must be one of {', '.join(COATINGS)}, got {self.coating!r}")
+        if self.bounds not in BOUNDS:
+            raise FlareError(f"lens_flare: 'bounds' must be one of {', '.join(BOUNDS)}, got {self.bounds!r}")
+        if not self.samples > 0:
+            raise FlareError(f"lens_flare: 'flare_samples' must be > 0, got {self.samples}")
+        if not 1 <= self.max_ghosts:
+            raise FlareError(f"lens_flare: 'max_ghosts' must be >= 1, got {self.max_ghosts}")
+        if not 0 < self.energy_fraction <= 1:
+            raise FlareError(f"lens_flare: 'energy_fraction' must be in (0, 1], got {self.energy_fraction}")
+        if self.blades is not None and self.blades != 0 and self.blades < 3:
+            raise FlareError(f"lens_flare: 'blades' must be 0 (circular) or >= 3, got {self.blades}")
+        if not self.pilot_grid >= 4 or not self.pilot_spp >= 1:
+            raise FlareError("lens_flare: 'pilot_grid' must be >= 4 and 'pilot_spp' >= 1")
+        return self
+
+
+def parse_id_list(text, what="ghosts"):
+    """'12 40, 3' or [12, 40] → [12, 40, 3]; 'a:b' pairs (optical-surface indices) → ghost ids."""
+    from ..trace.paths import ghost_id
+    if text is None:
+        return None
+    if isinstance(text, (list, tuple)):
+        items = list(text)
+    else:
+        items = [t for t in str(text).replace(",", " ").split() if t]
+    out = []
+    for t in items:
+        if isinstance(t, (int, np.integer)):
+            out.append(int(t))
+            continue
+        t = str(t)
+        try:
+            if ":" in t:
+                a, b = (int(v) for v in t.split(":"))
+                out.append(ghost_id(max(a, b), min(a, b)))
+            else:
+                out.append(int(t))
+        except (ValueError, NeuralLensError):
+            raise FlareError(f"lens_flare: '{what}': cannot read {t!r}: give integer path ids (e.g. 132) "
+                             f"or optical-surface pairs 'a:b'") from None
+    return out
+
+
+@dataclass
+class Light:
+    emitter: object
+    name: str
+    kind: str          # point | spot | directional | area
+
+
+@dataclass
+class GhostStats:
+    path_id: int
+    surfaces: tuple
+    light: str
+    evaluator: str                    # exact | neural
+    samples: int = 0
+    pilot_samples: int = 0
+    pilot_hits: int = 0
+    hits: int = 0
+    cells: int = 0
+    cells_total: int = 0
+    energy: float = 0.0               #: pilot estimate of the luminance flux on the film (pixel units · pixels)
+    seconds: float = 0.0
+
+    @property
+    def fraction_before(self):
+        return self.pilot_hits / self.pilot_samples if self.pilot_samples else 0.0
+
+    @property
+    def fraction_after(self):
+        return self.hits / self.samples if self.samples else 0.0
+
+    def as_dict(self):
+        return {"path_id": self.path_id, "surfaces": list(self.surfaces), "light": self.light,
+                "evaluator": self.evaluator, "samples": self.samples, "hits": self.hits,
+                "fraction_before": self.fraction_before, "fraction_after": self.fraction_after,
+                "cells": self.cells, "cells_total": self.cells_total, "energy": self.energy,
+                "seconds": self.seconds}
+
+
+@dataclass
+class FlareResult:
+    """``total``: (H, W, 3) numpy flare image (crop window); ``ghosts``: {path_id: (H, W, 3)} when
+    per-ghost images were requested; ``stats``: one :class:`GhostStats` per (light, ghost)."""
+    total: np.ndarray
+    ghosts: dict
+    stats: list
+
+
+# ------------------------------------------------------------------------------------ evaluators
+class ExactGhost:
+    """Exact tracer on one path; output on the sensor plane."""
+    kind = "exact"
+
+    def __init__(self, tracer, pid):
+        self.tracer, self.pid = tracer, pid
+
+    def __call__(self, o, d, lam, active):
+        res = self.tracer.trace(o, d, lam, self.pid, "forward", active=active)
+        return res.valid, res.position[0], res.position[1], res.throughput
+
+
+class NeuralGhost:
+    """Learned map (classifier, then regressor) on one path, continued straight to the sensor plane."""
+    kind = "neural"
+
+    def __init__(self, tmap, z_sensor, fresnel=True):
+        self.map, self.z, self.fresnel = tmap, float(z_sensor), fresnel
+
+    def __call__(self, o, d, lam, active):
+        import drjit as dr
+        valid, (p, dd, T) = self.map.eval_dr(o, d, lam, active)
+        t = (self.z - p[2]) / dd[2]
+        x, y = dr.fma(t, dd[0], p[0]), dr.fma(t, dd[1], p[1])
+        valid = valid & (dd[2] > 0.0)
+        if not self.fresnel:
+            T = T * 0.0 + 1.0
+        return valid, x, y, T
+
+
+# ------------------------------------------------------------------------------------ helpers
+def scene_lights(scene, opts: FlareOptions):
+    """The emitters that flare: point, spot, directional; plus the brightest small area emitters."""
+    import mitsuba as mi
+    lights, areas = [], []
+    for i, e in enumerate(scene.emitters()):
+        cls = e.class_().name() if hasattr(e, "class_") else type(e).__name__
+        name = f"{e.id() or cls}#{i}"
+        fl = e.flags()
+        if mi.has_flag(fl, mi.EmitterFlags.DeltaPosition):
+            kind = "spot" if "spot" in cls.lower() or "Spot" in str(e) else "point"
+            lights.append(Light(e, name, kind))
+        elif mi.has_flag(fl, mi.EmitterFlags.DeltaDirection):
+            lights.append(Light(e, name, "directional"))
+        elif opts.small_emitters > 0 and mi.has_flag(fl, mi.EmitterFlags.Surface) and e.get_shape() is not None:
+            sh = e.get_shape()
+            bb = sh.bbox()
+            diag = float(dr_norm(bb.max - bb.min))
+            if diag <= opts.small_emitter_size:
+                p = mi.traverse(e)
+                val = None
+                for k in p.keys():
+                    if k.startswith("radiance"):
+                        val = np.asarray(p[k], dtype=np.float64).ravel()
+                        break
+                lum = float(np.mean(val)) if val is not None and val.size else 1.0
+                power = math.pi * lum * float(sh.surface_area()[0] if hasattr(sh.surface_area(), '__len__')
+                                              else sh.surface_area())
+                areas.append((power, Light(e, name, "area")))
+    areas.sort(key=lambda t: -t[0])
+    lights += [l for _, l in areas[:opts.small_emitters]]
+    return lights
+
+
+def dr_norm(v):
+    return math.sqrt(sum(float(c) ** 2 for c in v))
+
+
+def sensor_model(sensor, opts: FlareOptions, lens):
+    """The neural model to use: ``opts.model`` (object or file) else the sensor's, else None."""
+    from ..neural.model import NeuralLensModel
+    m = opts.model
+    if m is None:
+        m = getattr(sensor, "model", None)
+    if m is None or isinstance(m, NeuralLensModel):
+        return m
+    if isinstance(m, str) and m:
+        return NeuralLensModel.load(m, None)
+    return None
+
+
+def flare_lens(setup, opts: FlareOptions):
+    """The sensor's configured lens with the flare options (coatings, blades) applied."""
+    from ..optics.prescription import Coating
+    import dataclasses
+    lens = setup.lens
+    if opts.coating == "none":
+        lens = lens.with_coating(None)
+    elif opts.coating == "quarter_wave":
+        c = Coating(index=float(opts.coating_index), design_wavelength_nm=float(opts.coating_wavelength))
+        opt = lens.optical_indices
+        if opts.coating_surfaces is None:
+            sel = set(range(len(opt)))
+        else:
+            sel = set(int(k) for k in opts.coating_surfaces)
+            bad = [k for k in sel if not 0 <= k < len(opt)]
+            if bad:
+                raise FlareError(f"lens_flare: 'coating_surfaces': {bad} out of range; lens '{lens.name}' has "
+                                 f"{len(opt)} optical surfaces (0..{len(opt) - 1})")
+        surfs = list(lens.surfaces)
+        for k in sel:
+            i = opt[k]
+            if lens.medium_before(i) != surfs[i].medium:
+                surfs[i] = dataclasses.replace(surfs[i], coating=c)
+        lens = lens.replace(surfaces=tuple(surfs))
+    kw = {}
+    if opts.blades is not None:
+        kw["blades"] = int(opts.blades)
+    if opts.blade_rotation is not None:
+        kw["blade_rotation_deg"] = float(opts.blade_rotation)
+    if kw:
+        lens = lens.with_surface(lens.stop_index, **kw)
+    return lens
+
+
+def _u32_to_unit(mi, dr, x):
+    return mi.Float(x >> 8) * (1.0 / 16777216.0)
+
+
+# ------------------------------------------------------------------------------------ the renderer
+class FlareRenderer:
+    """Renders the flare of ``scene`` as seen by ``sensor`` (a ``realistic_lens``/``neural_lens``)."""
+
+    def __init__(self, scene, sensor, opts: FlareOptions | None = None):
+        import mitsuba as mi
+        self.opts = (opts or FlareOptions()).validate()
+        if isinstance(sensor, int):
+            sensor = scene.sensors()[sensor]
+        setup = getattr(sensor, "setup", None)
+        if setup is None:
+            raise FlareError("lens_flare: the sensor must be a lens sensor (realistic_lens or neural_lens); "
+                             f"got {sensor.class_().name() if hasattr(sensor, 'class_') else type(sensor).__name__}")
+        self.scene, self.sensor, self.setup = scene, sensor, setup
+        self.lens = flare_lens(setup, self.opts)
+        self.lens_modified = self.lens != setup.lens
+        self.fresnel = bool(setup.fresnel)
+        from ..sensors.wavelengths import LAMBDA_NONE, LAMBDA_SAMPLE1
+        lam_dep = (any(not m.is_constant for m in [self.lens.object_medium] + [s.medium for s in self.lens.surfaces])
+                   or (self.fresnel and any(s.coating is not None for s in self.lens.surfaces)))
+        self.lambda_mode = LAMBDA_SAMPLE1 if lam_dep else LAMBDA_NONE
+        from ..trace.tracer import LensTracer
+        self.tracer = LensTracer(self.lens, fresnel=self.fresnel)
+        self.model = sensor_model(sensor, self.opts, self.lens)
+        film = sensor.film()
+        self.size = (int(film.size()[0]), int(film.size()[1]))
+        self.crop_size = (int(film.crop_size()[0]), int(film.crop_size()[1]))
+        self.crop_offset = (int(film.crop_offset()[0]), int(film.crop_offset()[1]))
+        self.z_in = input_plane(self.lens)
+        self.z_img = float(self.lens.image_z)
+        w, h = setup.sensor_width_mm, setup.sensor_height_mm
+        self.pix_area_mm2 = (w / self.size[0]) * (h / self.size[1])
+        self.K = float(setup.normalisation)
+        self.lights = scene_lights(scene, self.opts)
+        self._to_world = sensor.m_to_world
+        self._to_cam = sensor.m_to_world.inverse()
+        self._box = mi.load_dict({"type": "box"})
+
+    # -------------------------------------------------------------- ghost selection
+    def ranking(self):
+        """Ghost energy ranking: the model's stored ranking when neural maps are used and the lens is
+        unmodified, else :func:`~mi_neurallens.flare.energy.ghost_energy_ranking` with the tracer."""
+        if self.model is not None and not self.lens_modified and self.opts.mode != "exact":
+            rk = self.model.extra.get("ghost_ranking")
+            if rk:
+                return [dict(d) for d in rk]
+        return ghost_energy_ranking(self.lens, sensor_width_mm=self.setup.sensor_width_mm,
+                                    sensor_height_mm=self.setup.sensor_height_mm, fresnel=self.fresnel)
+
+    def ghost_ids(self):
+        from ..trace.paths import all_ghosts
+        valid = {pid: (a, b) for pid, a, b in all_ghosts(self.lens)}
+        if self.opts.transmit_only:
+            return [0]
+        for g in list(self.opts.ghosts or []) + list(self.opts.exclude_ghosts or []):
+            if g not in valid:
+                raise FlareError(
+                    f"lens_flare: ghost id {g} is not a forward two-reflection path of lens '{self.lens.name}' "
+                    f"({len(self.lens.optical_indices)} optical surfaces); valid ids are "
+                    f"ghost_id(a, b) = (1<<a)|(1<<(2a-b)) for 0 <= b < a < {len(self.lens.optical_indices)}, "
+                    f"e.g. {sorted(valid)[:6]} ...; pairs can be given as 'a:b'")
+        if self.opts.ghosts:
+            ids = [g for g in self.opts.ghosts if g not in set(self.opts.exclude_ghosts or [])]
+        else:
+            rk = [d for d in self.ranking() if int(d["path_id"]) not in set(self.opts.exclude_ghosts or [])]
+            ids = select_ghosts(rk, self.opts.energy_fraction, self.opts.max_ghosts)
+        ids = [g for g in ids if not trivial_ghost(self.lens, *valid[g])]
+        if self.opts.include_transmit:
+            ids = [0] + ids
+        return ids
+
+    def evaluator(self, pid):
+        """Exact or neural evaluator for path ``pid`` according to ``mode``."""
+        mode = self.opts.mode
+        if mode == "exact" or pid == 0 and mode == "auto":
+            return ExactGhost(self.tracer, pid)
+        m = self.model
+        if mode == "neural":
+            if m is None:
+                raise ModelError("lens_flare: mode='neural' needs a neural model: use a neural_lens sensor "
+                                 "or give the integrator a 'model' file")
+            if self.lens_modified:
+                raise FlareError("lens_flare: mode='neural' cannot change the lens (coating/blades options): "
+                                 "the learned maps were trained for the lens as it is; use mode='exact'")
+            if not m.has(pid, "forward"):
+                raise ModelError(f"lens_flare: the model {m.path or ''} has no forward map for path {pid}; "
+                                 f"it has ghost maps {m.ghost_ids}; use mode='auto' (exact for missing ghosts) "
+                                 f"or restrict 'ghosts'")
+            return NeuralGhost(m.map(pid, "forward"), self.z_img, self.fresnel)
+        if m is not None and not self.lens_modified and m.has(pid, "forward"):
+            return NeuralGhost(m.map(pid, "forward"), self.z_img, self.fresnel)
+        return ExactGhost(self.tracer, pid)
+
+    # -------------------------------------------------------------- sampling core
+    def _region_radius(self, light):
+        """Radius of the conservative input disk for ``light`` (lens space, mm)."""
+        import mitsuba as mi
+        import drjit as dr
+        st = self.setup
+        # direction from the light toward the lens centre, via a sample from the axis point
+        tmax = 0.0
+        for r in (0.0,):
+            it = self._interaction(mi.Float(0.0), mi.Float(0.0), None)
+            ds, _ = light.emitter.sample_direction(it, mi.Point2f(0.5, 0.5), True)
+            dl = self._to_cam @ (-ds.d)
+            dz = abs(float(dl.z[0]))
+            s = math.sqrt(max(1.0 - dz * dz, 0.0))
+            tmax = max(tmax, s / max(dz, 1e-3))
+        # a finite light near the lens sees the rim at steeper angles: add the rim's angular size
+        R0 = front_radius(self.lens, min(tmax * 1.2 + 0.05, 20.0), self.z_in)
+        return R0
+
+    def _interaction(self, qx, qy, wav):
+        import mitsuba as mi
+        import drjit as dr
+        from ..sensors.common import lens_to_camera
+        zq = dr.zeros(mi.Float, dr.width(qx)) + self.z_in
+        (cx, cy, cz), _ = lens_to_camera(self.setup, (qx, qy, zq), (qx, qy, zq))
+        it = dr.zeros(mi.Interaction3f, dr.width(qx))
+        it.p = self._to_world @ mi.Point3f(cx, cy, cz)
+        it.t = mi.Float(0.0)
+        if wav is not None:
+            it.wavelengths = wav
+        return it
+
+    def _contrib(self, ev, light, qx, qy, u_lam, u_em, active=True):
+        """One forward sample per lane: returns (hit, px, py, rgb list, luminance) — rgb without the
+        A_q/N area factor (the caller scales)."""
+        import mitsuba as mi
+        import drjit as dr
+        from ..sensors.wavelengths import sample_wavelength
+        lam, wav, wspec, _ = sample_wavelength(mi, dr, self.sensor, self.lambda_mode, mi.Float(0.0), u_lam,
+                                               None, None, active)
+        it = self._interaction(qx, qy, wav)
+        ds, E = light.emitter.sample_direction(it, u_em, active)
+        dcam = self._to_cam @ (-ds.d)
+        dx, dy, dz = dcam.x, dcam.y, -dcam.z          # camera → lens direction
+        ok = active & (dz > 1e-6) & (ds.pdf > 0.0)
+        if self.opts.visibility:
+            ray = mi.Ray3f(it.p, ds.d, dr.select(dr.isfinite(ds.dist), ds.dist * (1.0 - 1e-4), dr.inf),
+                           mi.Float(0.0), wav if wav is not None else [])
+            ok &= ~self.scene.ray_test(ray, ok)
+        zq = dr.zeros(mi.Float, dr.width(qx)) + self.z_in
+        lam_t = lam if not isinstance(lam, float) else lam
+        valid, x, y, T = ev((qx, qy, zq), (dx, dy, dz), lam_t, ok)
+        W, H = self.size
+        px = (x * (1.0 / self.setup.sensor_width_mm) + 0.5) * W
+        py = (y * (1.0 / self.setup.sensor_height_mm) + 0.5) * H
+        ox, oy = self.crop_offset
+        cw, ch = self.crop_size
+        hit = valid & (px >= ox) & (px < ox + cw) & (py >= oy) & (py < oy + ch)
+        val = E * (T * dz * dr.opaque(mi.Float, self.K / self.pix_area_mm2))
+        if not isinstance(wspec, float):
+            val = val * wspec
+        if mi.is_spectral:
+            rgb = mi.spectrum_to_srgb(val, wav, hit)
+        else:
+            rgb = val
+        rgb = [dr.select(hit, rgb[i], 0.0) for i in range(3)]
+        lum = 0.2126 * rgb[0] + 0.7152 * rgb[1] + 0.0722 * rgb[2]
+        return hit, px, py, rgb, lum
+
+    def pilot(self, light, ev, seed=0):
+        """Occupied cells (dilated) of the input region for ``light`` and evaluator ``ev``.
+        Returns (cells (n, 2) lower-left corners in mm, cell size, R, n_samples, n_hits, energy)."""
+        import mitsuba as mi
+        import drjit as dr
+        G, S = self.opts.pilot_grid, self.opts.pilot_spp
+        R = self._region_radius(light)
+        c = 2.0 * R / G
+        gx, gy = np.meshgrid(np.arange(G), np.arange(G), indexing="xy")
+        x0 = -R + gx.ravel() * c
+        y0 = -R + gy.ravel() * c
+        # cells that intersect the disk
+        nx = np.clip(0.0, x0, x0 + c)
+        ny = np.clip(0.0, y0, y0 + c)
+        indisk = nx * nx + ny * ny <= R * R
+        cells = np.nonzero(indisk)[0]
+        n = len(cells) * S
+        rng = mi.PCG32(size=n, initseq=mi.UInt64(dr.arange(mi.UInt32, n))
+                         + dr.opaque(mi.UInt64, (0x51ed * (seed + 1) + 7 * ev_hash(ev)) & 0xFFFFFFFF))
+        cid = np.repeat(cells, S).astype(np.uint32)
+        cx = mi.Float(x0[cid].astype(np.float32))
+        cy = mi.Float(y0[cid].astype(np.float32))
+        c_o, R_o = dr.opaque(mi.Float, c), dr.opaque(mi.Float, R)
+        qx = cx + rng.next_float32() * c_o
+        qy = cy + rng.next_float32() * c_o
+        indisk_s = dr.fma(qx, qx, qy * qy) <= R_o * R_o
+        u_lam = rng.next_float32()
+        u_em = mi.Point2f(rng.next_float32(), rng.next_float32())
+        hit, px, py, rgb, lum = self._contrib(ev, light, qx, qy, u_lam, u_em, indisk_s)
+        dr.eval(hit, lum, indisk_s)
+        h = hit.numpy().astype(bool)
+        ins = indisk_s.numpy().astype(bool)
+        lum_np = lum.numpy().astype(np.float64)
+        n_in = int(ins.sum())
+        n_hit = int(h.sum())
+        area = math.pi * R * R
+        energy = float(lum_np.sum()) * area / max(n_in, 1)
+        occ = np.zeros(G * G, bool)
+        occ[cid[h]] = True
+        occ = occ.reshape(G, G)
+        if occ.any():
+            d = occ.copy()
+            d[1:, :] |= occ[:-1, :]; d[:-1, :] |= occ[1:, :]
+            d2 = d.copy()
+            d2[:, 1:] |= d[:, :-1]; d2[:, :-1] |= d[:, 1:]
+            occ = d2
+        keep = np.nonzero(occ.ravel())[0]
+        return np.stack([x0[keep], y0[keep]], 1), c, R, n_in, n_hit, energy
+
+    def splat(self, light, ev, n, block, cells, c, R, seed=0):
+        """Splat ``n`` samples of one (light, path) into ``block``; cells None = whole disk."""
+        import mitsuba as mi
+        import drjit as dr
+        idx = dr.arange(mi.UInt32, n)
+        rng = np.random.default_rng([seed, ev_hash(ev), hash(light.name) & 0xFFFF])
+        shift = [dr.opaque(mi.UInt32, int(v)) for v in rng.integers(0, 2 ** 32, 6, dtype=np.uint64)]
+        u = [_u32_to_unit(mi, dr, idx * a + s) for a, s in zip(_ALPHA, shift)]
+        c_, R_ = c, R
+        c = dr.opaque(mi.Float, c_)
+        R = dr.opaque(mi.Float, R_)
+        if cells is None:
+            r = R * dr.sqrt(u[1])
+            ph = 2.0 * math.pi * u[2]
+            s_, c_ = dr.sincos(ph)
+            qx, qy = r * c_, r * s_
+            area = math.pi * R_ * R_
+        else:
+            ncell = len(cells)
+            nc = dr.opaque(mi.UInt32, ncell)
+            k = dr.minimum(mi.UInt32(u[0] * mi.Float(nc)), nc - 1)
+            cxs = mi.Float(cells[:, 0].astype(np.float32))
+            cys = mi.Float(cells[:, 1].astype(np.float32))
+            qx = dr.gather(mi.Float, cxs, k) + u[1] * c
+            qy = dr.gather(mi.Float, cys, k) + u[2] * c
+            area = ncell * c_ * c_
+        scale = dr.opaque(mi.Float, area / n)
+        hit, px, py, rgb, lum = self._contrib(ev, light, qx, qy, u[3], mi.Point2f(u[4], u[5]), True)
+        block.put(mi.Point2f(px, py), [v * scale for v in rgb], hit)
+        nh = dr.count(hit)
+        return nh
+
+    def new_block(self):
+        import mitsuba as mi
+        return mi.ImageBlock(mi.ScalarVector2u(*self.crop_size), mi.ScalarPoint2i(*self.crop_offset), 3,
+                             rfilter=self._box, border=False, normalize=True)
+
+    def render(self, seed=0, per_ghost=False, samples=None):
+        """Render the flare; returns a :class:`FlareResult` (numpy images)."""
+        import mitsuba as mi
+        import drjit as dr
+        opts = self.opts
+        N = int(samples or opts.samples)
+        ids = self.ghost_ids()
+        from ..trace.paths import ghost_surfaces
+        total = self.new_block()
+        blocks = {}
+        stats = []
+        for li, light in enumerate(self.lights):
+            plan = []
+            for pid in ids:
+                t0 = time.perf_counter()
+                ev = self.evaluator(pid)
+                cells, c, R, n_in, n_hit, energy = self.pilot(light, ev, seed * 1000 + li)
+                st = GhostStats(pid, ghost_surfaces(pid) if pid else (), light.name, ev.kind,
+                                pilot_samples=n_in, pilot_hits=n_hit, cells=len(cells),
+                                cells_total=int(round(math.pi * R * R / (c * c))), energy=energy,
+                                seconds=time.perf_counter() - t0)
+                stats.append(st)
+                if n_hit > 0:
+                    plan.append((pid, ev, cells, c, R, st))
+            etot = sum(max(p[5].energy, 0.0) for p in plan)
+            for pid, ev, cells, c, R, st in plan:
+                t0 = time.perf_counter()
+                share = max(st.energy, 0.0) / etot if etot > 0 else 1.0 / len(plan)
+                n = max(int(N * share), opts.min_samples)
+                n = (n + 255) // 256 * 256
+                blk = total
+                if per_ghost:
+                    blk = blocks.setdefault(pid, self.new_block())
+                nh = self.splat(light, ev, n, blk, None if opts.bounds == "none" else cells, c, R,
+                                seed=seed * 7919 + li)
+                dr.eval(blk.tensor())
+                st.samples, st.hits = n, int(nh[0] if hasattr(nh, "__len__") else nh)
+                st.seconds += time.perf_counter() - t0
+        ghosts = {}
+        if per_ghost:
+            acc = None
+            for pid, b in blocks.items():
+                img = b.tensor().numpy()
+                ghosts[pid] = img
+                acc = img.copy() if acc is None else acc + img
+            tot = acc if acc is not None else np.zeros((self.crop_size[1], self.crop_size[0], 3), np.float32)
+        else:
+            tot = total.tensor().numpy()
+        return FlareResult(np.asarray(tot), ghosts, stats)
+
+
+def ev_hash(ev):
+    return (int(ev.pid if hasattr(ev, "pid") else ev.map.path_id) * 2654435761 + (0 if ev.kind == "exact" else 1)) \
+        & 0xFFFFFFFF
+
+
+def render_flare(scene, sensor=0, *, seed=0, per_ghost=False, **options):
+    """Python API: render the flare image of ``scene`` (loaded with a lens sensor) alone.
+    ``options`` are :class:`FlareOptions` fields.  Returns a :class:`FlareResult`."""
+    opts = FlareOptions(**options)
+    return FlareRenderer(scene, sensor, opts).render(seed=seed, per_ghost=per_ghost)
