@@ -1,0 +1,218 @@
+"""What every baseline shares: the map planes and domains of the neural maps, the TransportMap-like
+evaluation interface, and normal-incidence Fresnel factors.
+
+Every baseline is a map from an input plane ``z_in`` to an output plane ``z_out`` (lens space, mm) for
+one path id and direction, with the interface of :class:`~mi_neurallens.neural.model.TransportMap`:
+
+* ``eval_np(o, d, lam_nm)`` → dict ``valid`` (N,), ``position`` (N, 3) on ``z_out``, ``direction`` (N, 3)
+  unit, ``throughput`` (N,), float64;
+* ``eval_dr(o, d, lam_nm, active=True)`` → ``(valid, (position, direction, throughput))`` with (x, y, z)
+  tuples of the input's Dr.Jit float type; no ``dr.eval``.
+
+``o`` may be any point of the ray before the lens: it is moved to ``z_in`` along ``d``.
+"""
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+
+from ..errors import NeuralLensError
+
+LAM0_NM = 550.0      # expansion / normalisation centre of the wavelength variable
+LAM_SCALE_NM = 100.0  # l = (λ − 550 nm) / 100 nm
+
+
+def heading_of(direction: str) -> int:
+    if direction not in ("forward", "backward"):
+        raise NeuralLensError(f"direction must be 'forward' or 'backward', got {direction!r}")
+    return 1 if direction == "forward" else -1
+
+
+# ----------------------------------------------------------------------------- planes and domains
+def bundled_model(lens):
+    """The bundled neural model of ``lens`` (None when there is none or it does not load)."""
+    from ..errors import ModelError
+    from ..neural.model import bundled_model_path, load_model
+    p = bundled_model_path(lens.name)
+    if not os.path.exists(p):
+        return None
+    try:
+        return load_model(p, lens)
+    except ModelError:
+        return None
+
+
+def default_planes(lens, model=None):
+    """(z_front, z_rear, (s_min, s_max)) as the neural maps use them: the bundled model's when there is
+    one, else :func:`mi_neurallens.training.plan.planes` with the lens's training recipe (close focus)."""
+    model = bundled_model(lens) if model is None else model
+    if model is not None:
+        return model.z_front, model.z_rear, tuple(model.sensor_distance_range)
+    from ..training import plan
+    from ..training.config import default_config_path, load_config
+    cfg = load_config(default_config_path(lens.name), lens=lens.name)
+    s0, s1 = plan.sensor_distance_range(lens, cfg.close_focus_mm)
+    zf, zr = plan.planes(lens, s0)
+    return zf, zr, (s0, s1)
+
+
+def default_map_planes(lens, direction: str, model=None):
+    """(z_in, z_out) of a neural map in ``direction``: forward z_front → z_rear, backward the reverse."""
+    zf, zr, _ = default_planes(lens, model)
+    return (zf, zr) if direction == "forward" else (zr, zf)
+
+
+def default_domain(lens, path_id: int, direction: str, model=None, seed: int = 1):
+    """The reduced input domain the neural map of (path, direction) uses (or would use):
+    the model's stored domain when present; forward: :func:`plan.forward_domain` over the default field;
+    backward: the pilot-traced :func:`plan.backward_domain`."""
+    from ..training import plan
+    from ..training.data import Domain
+    model = bundled_model(lens) if model is None else model
+    if model is not None and model.has(path_id, direction):
+        return Domain.from_dict(model.map(path_id, direction).domain)
+    if model is not None:  # same domain as any other map of that direction
+        for m in model.maps.values():
+            if m.direction == direction and (direction == "forward" or m.path_id == path_id):
+                return Domain.from_dict(m.domain)
+    zf, zr, _ = default_planes(lens, model)
+    if direction == "forward":
+        return plan.forward_domain(lens, zf, plan.default_field_half_angle(lens))
+    return plan.backward_domain(lens, path_id, zr, zf, np.random.default_rng(seed), n=1 << 20)
+
+
+# ----------------------------------------------------------------------------- Fresnel at normal incidence
+def fresnel_normal_R(n1, n2, coating=None, lam_nm=550.0):
+    """Unpolarised reflectance at normal incidence (numpy), with the optional single-layer coating
+    (exact thin-film formula at cos = 1, as in :mod:`mi_neurallens.trace.interactions`)."""
+    n1 = np.asarray(n1, np.float64)
+    n2 = np.asarray(n2, np.float64)
+    if coating is None:
+        return ((n1 - n2) / (n1 + n2)) ** 2
+    nc = coating.index
+    r12 = (n1 - nc) / (n1 + nc)
+    r23 = (nc - n2) / (nc + n2)
+    c2b = np.cos(4.0 * math.pi * nc * coating.thickness_nm / np.asarray(lam_nm, np.float64))
+    ab2 = 2.0 * r12 * r23 * c2b
+    return (r12 * r12 + r23 * r23 + ab2) / (1.0 + r12 * r12 * r23 * r23 + ab2)
+
+
+# ----------------------------------------------------------------------------- shared evaluation
+def move_to_plane_np(o, d, z):
+    o = np.asarray(o, np.float64)
+    d = np.asarray(d, np.float64)
+    t = (z - o[:, 2]) / d[:, 2]
+    return o[:, 0] + t * d[:, 0], o[:, 1] + t * d[:, 1]
+
+
+def move_to_plane_dr(o, d, z):
+    import drjit as dr
+    t = (z - o[2]) / d[2]
+    return dr.fma(t, d[0], o[0]), dr.fma(t, d[1], o[1])
+
+
+class BaselineMap:
+    """Common attributes: ``method``, ``path_id``, ``direction``, ``heading``, ``z_in``, ``z_out``,
+    ``lens``; :meth:`flops` per ray; :meth:`describe`."""
+
+    method = "?"
+
+    def __init__(self, lens, path, direction, z_in, z_out):
+        from ..trace.paths import resolve_path
+        self.lens = lens
+        self.spec = resolve_path(lens, path, direction)
+        self.path_id = self.spec.id
+        self.direction = direction
+        self.heading = heading_of(direction)
+        if z_in is None or z_out is None:
+            zi, zo = default_map_planes(lens, direction)
+            z_in = zi if z_in is None else z_in
+            z_out = zo if z_out is None else z_out
+        self.z_in, self.z_out = float(z_in), float(z_out)
+
+    @property
+    def key(self) -> str:
+        return f"{self.direction}.{self.path_id}"
+
+    def flops(self) -> int:  # pragma: no cover - overridden
+        return 0
+
+    def describe(self) -> dict:
+        return {"method": self.method, "path_id": self.path_id, "direction": self.direction,
+                "z_in": self.z_in, "z_out": self.z_out, "flops_per_ray": self.flops()}
+
+
+class LensSpacePolyMap(BaselineMap):
+    """A map given by one :class:`~.poly.SparsePoly` ``core`` of the lens-space inputs
+    ``(x, y, a, b, λ)`` on ``z_in`` — ``(a, b)`` the direction cosines (``angles = "cosines"``) or the
+    slopes dx/dz, dy/dz (``"slopes"``) — with outputs ``[X, Y, A, B, T, ax_0, ay_0, ax_1, ay_1, …]``:
+    position on ``z_out``, direction in the same parametrisation, throughput, and for each aperture
+    check k the position (ax_k, ay_k) whose radius must not exceed ``self.ap_radii[k]``."""
+
+    angles = "cosines"
+
+    def _setup_core(self, core, ap_radii):
+        self.core = core
+        self.ap_radii = [float(r) for r in ap_radii]
+
+    def flops(self) -> int:
+        return self.core.flops() + 12 + 3 * len(self.ap_radii)
+
+    def eval_np(self, o, d, lam_nm):
+        o = np.asarray(o, np.float64)
+        d = np.asarray(d, np.float64)
+        n = len(o)
+        lam = np.broadcast_to(np.asarray(lam_nm, np.float64), (n,))
+        px, py = move_to_plane_np(o, d, self.z_in)
+        if self.angles == "cosines":
+            a, b = d[:, 0], d[:, 1]
+        else:
+            a, b = d[:, 0] / d[:, 2], d[:, 1] / d[:, 2]
+        with np.errstate(all="ignore"):
+            y = self.core.eval_np(np.stack([px, py, a, b, lam], 1))
+            valid = d[:, 2] * self.heading > 0
+            for k, R in enumerate(self.ap_radii):
+                ax, ay = y[:, 5 + 2 * k], y[:, 6 + 2 * k]
+                valid &= ax * ax + ay * ay <= R * R
+            h = 1.0 if self.direction == "forward" else -1.0
+            A, B = y[:, 2], y[:, 3]
+            if self.angles == "cosines":
+                s2 = A * A + B * B
+                valid &= s2 < 1.0
+                D = np.stack([A, B, h * np.sqrt(np.maximum(1.0 - s2, 0.0))], 1)
+            else:
+                D = np.stack([A, B, np.ones(n)], 1)
+                D *= h / np.linalg.norm(D, axis=1, keepdims=True)   # d = h·(sx, sy, 1)/‖·‖
+            pos = np.stack([y[:, 0], y[:, 1], np.full(n, self.z_out)], 1)
+            valid &= np.isfinite(pos).all(1) & np.isfinite(D).all(1)
+        return {"valid": valid, "position": pos, "direction": D, "throughput": y[:, 4]}
+
+    def eval_dr(self, o, d, lam_nm, active=True):
+        import drjit as dr
+        px, py = move_to_plane_dr(o, d, self.z_in)
+        dx, dy, dz = d
+        lam = lam_nm if not isinstance(lam_nm, (int, float)) else px * 0.0 + float(lam_nm)
+        if self.angles == "cosines":
+            a, b = dx, dy
+        else:
+            inv = 1.0 / dz
+            a, b = dx * inv, dy * inv
+        y = self.core.eval_dr([px, py, a, b, lam])
+        valid = ((dz > 0.0) if self.heading > 0 else (dz < 0.0)) & active
+        for k, R in enumerate(self.ap_radii):
+            ax, ay = y[5 + 2 * k], y[6 + 2 * k]
+            valid &= dr.fma(ax, ax, ay * ay) <= R * R
+        h = 1.0 if self.direction == "forward" else -1.0
+        A, B = y[2], y[3]
+        if self.angles == "cosines":
+            s2 = dr.fma(A, A, B * B)
+            valid &= s2 < 1.0
+            D = (A, B, h * dr.sqrt(dr.maximum(1.0 - s2, 0.0)))
+        else:
+            inv = h * dr.rsqrt(dr.fma(A, A, dr.fma(B, B, 1.0)))   # d = h·(sx, sy, 1)/‖·‖
+            D = (A * inv, B * inv, inv)
+        X, Y = y[0], y[1]
+        valid &= dr.isfinite(X) & dr.isfinite(Y)
+        return valid, ((X, Y, X * 0.0 + self.z_out), D, y[4])
