@@ -1,5 +1,5 @@
 """Render time of the still-life scene with Mitsuba's ``perspective`` and ``thinlens`` and our
-``realistic_lens`` (same scene, resolution, spp, sampler; one process; warm-up excluded;
+``realistic_lens`` and ``neural_lens`` (when the lens has a bundled model) (same scene, resolution, spp, sampler; one process; warm-up excluded;
 ``dr.sync_thread()``), plus the camera-ray generation rate of each sensor alone.
 
     python benchmarks/bench_render.py [--res 320x240] [--spp 64] [--repeats 5] [--lens wide-22mm]
@@ -49,6 +49,10 @@ def build_scenes(mi, args):
     text = open(path, encoding="utf-8").read()
     text = apply_sensor_overrides(text, resolution=(w, h), spp=args.spp, lens=args.lens)
     out = {"realistic_lens": real}
+    from mi_neurallens.neural.model import bundled_model_path
+    if os.path.exists(bundled_model_path(args.lens)):
+        out["neural_lens"] = load_scene(path, variant=args.variant, lens=args.lens, resolution=(w, h),
+                                        spp=args.spp, sensor_type="neural_lens", sets=[f"model={args.lens}"])
     for kind in ("perspective", "thinlens"):
         root = ET.fromstring(text)
         old = root.find("sensor")
@@ -153,7 +157,7 @@ def main(argv=None):
     scenes = build_scenes(mi, args)
     w, h = args.res
     n_rays = w * h * args.spp
-    names = ("perspective", "thinlens", "realistic_lens")
+    names = tuple(n for n in ("perspective", "thinlens", "realistic_lens", "neural_lens") if n in scenes)
     for name in names:                                   # warm-up: trace + compile, not timed
         mi.render(scenes[name], spp=args.spp, seed=0)
         dr.sync_thread()

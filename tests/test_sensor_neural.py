@@ -131,3 +131,14 @@ def test_errors(tmp_path):
     shutil.copy(MODEL, other)
     with pytest.raises(Exception, match="unreferenced property|ignore_me"):
         mi.load_dict(sensor(model="wide-22mm", ignore_me=1.0))
+
+
+def test_coopvec_equals_fused():
+    """The cooperative-vector evaluation renders the same image as the literal-weight one."""
+    use(RGB)
+    kw = dict(focus_distance=1.0, w=24, h=18, spp=16)
+    a = render(sensor(model="wide-22mm", **kw))
+    b = render(sensor(model="wide-22mm", mlp="coopvec", **kw))
+    assert np.abs(a - b).max() < 1e-3 * max(a.max(), 1e-6) + 1e-4
+    with pytest.raises(Exception, match="'mlp'.*must be one of"):
+        mi.load_dict(sensor(model="wide-22mm", mlp="magic"))

@@ -107,13 +107,24 @@ class TransportMap:
         y = mlp_np(xn, self._folded(), self.regressor_activation) + xn @ np.asarray(self.skip, np.float64).T
         return logit, y
 
-    def eval_reduced_dr(self, x):
-        """Reduced inputs (4 Dr.Jit floats) → (logit, [5 outputs]) fused into one kernel."""
+    def eval_reduced_dr(self, x, mlp: str = "fused"):
+        """Reduced inputs (4 Dr.Jit floats) → (logit, [5 outputs]) fused into one kernel.
+
+        ``mlp``: ``"fused"`` (weights as kernel literals, rational tanh; the default) or
+        ``"coopvec"`` (Dr.Jit cooperative vectors, weights in a packed buffer; see
+        :mod:`mi_neurallens.neural.coopvec`)."""
         import drjit as dr
         xn = [dr.fma(v, 1.0 / float(s), -float(c) / float(s))
               for v, c, s in zip(x, self.input_center, self.input_scale)]
-        logit = mlp_dr(xn, self.classifier, self.classifier_activation)[0]
-        y = mlp_dr(xn, self._folded(), self.regressor_activation)
+        if mlp == "fused":
+            logit = mlp_dr(xn, self.classifier, self.classifier_activation)[0]
+            y = mlp_dr(xn, self._folded(), self.regressor_activation)
+        elif mlp == "coopvec":
+            cls, reg = self._coopvec()
+            logit = cls(xn)[0]
+            y = reg(xn)
+        else:
+            raise ModelError(f"unknown MLP evaluation {mlp!r}: use 'fused' or 'coopvec'")
         A = np.asarray(self.skip, np.float64)
         for j in range(len(y)):
             for i in range(len(xn)):
@@ -143,7 +154,18 @@ class TransportMap:
         return {"valid": valid, "position": pos, "direction": np.stack([DX, DY, dz], 1),
                 "throughput": y[:, 4], "logit": logit}
 
-    def eval_dr(self, o, d, lam_nm, active=True, use_classifier: bool = True):
+    def _coopvec(self):
+        """Packed cooperative-vector networks for the current Mitsuba variant (built once)."""
+        import mitsuba as mi
+        key = mi.variant()
+        cache = self.__dict__.setdefault("_coopvec_cache", {})
+        if key not in cache:
+            from .coopvec import CoopVecMLP
+            cache[key] = (CoopVecMLP(self.classifier, self.classifier_activation),
+                          CoopVecMLP(self._folded(), self.regressor_activation))
+        return cache[key]
+
+    def eval_dr(self, o, d, lam_nm, active=True, use_classifier: bool = True, mlp: str = "fused"):
         """Fused Dr.Jit evaluation for renderers: ``o``, ``d`` (x, y, z) tuples of Dr.Jit floats in lens
         space (mm; ``o`` any point on the ray before the lens, ``d`` unit), ``lam_nm`` Dr.Jit float or
         Python float.  Returns ``(valid, (position, direction, throughput))`` with position on
@@ -163,7 +185,7 @@ class TransportMap:
         ok = (r <= dm["r_max_mm"]) & (dr.fma(wx, wx, wy * wy) <= dm["s_max"] ** 2)
         ok &= (lam >= dm["lambda_min_nm"]) & (lam <= dm["lambda_max_nm"])
         ok &= (dz > 0.0) if self.heading > 0 else (dz < 0.0)
-        logit, y = self.eval_reduced_dr((r, wx, wy, lam))
+        logit, y = self.eval_reduced_dr((r, wx, wy, lam), mlp=mlp)
         valid = (ok & (logit > 0.0) & active) if use_classifier else (ok & active)
         X, Y, DX, DY = symmetry.undo(y[0], y[1], y[2], y[3], frame)
         DZ = self.heading * dr.sqrt(dr.maximum(1.0 - dr.fma(DX, DX, DY * DY), 0.0))

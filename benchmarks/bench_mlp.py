@@ -1,0 +1,107 @@
+"""Standalone evaluation speed of a learned lens map: classifier + regressor on 2^k rays, fused with
+literal weights (the default) vs Dr.Jit cooperative vectors (``drjit.nn``), beside the exact
+tracer on the same rays, in one run.  Also the kernel compile time of each (cold, in-process).
+
+    python benchmarks/bench_mlp.py [--lens wide-22mm] [--rays 22] [--repeats 5]
+
+Prints a markdown table and writes benchmarks/results/bench_mlp.json.  The bar (issue 5):
+>= 10 M rays/s for classifier + regressor on this 2-core CPU.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+
+import numpy as np
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--lens", default="wide-22mm")
+    ap.add_argument("--rays", type=int, default=22)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "bench_mlp.json"))
+    a = ap.parse_args(argv)
+    import drjit as dr
+    import mitsuba as mi
+    mi.set_variant("llvm_ad_rgb")
+    from mi_neurallens import Lens
+    from mi_neurallens.neural.model import bundled_model_path, load_model
+    from mi_neurallens.trace.tracer import LensTracer
+
+    lens = Lens.load(a.lens)
+    model = load_model(bundled_model_path(a.lens), lens)
+    tm = model.map("transmit", "backward")
+    n = 1 << a.rays
+    rng = np.random.default_rng(0)
+    d = tm.domain
+    x_np = [rng.uniform(0, d["r_max_mm"], n), rng.uniform(-d["s_max"], d["s_max"], n) * 0.7,
+            rng.uniform(0, d["s_max"], n) * 0.7, rng.uniform(d["lambda_min_nm"], d["lambda_max_nm"], n)]
+    X = [mi.Float(v.astype(np.float32)) for v in x_np]
+    dr.eval(X)
+
+    def fused():
+        logit, y = tm.eval_reduced_dr(X, mlp="fused")
+        return [logit] + list(y)
+
+    def coop():
+        logit, y = tm.eval_reduced_dr(X, mlp="coopvec")
+        return [logit] + list(y)
+
+    # the exact tracer on rays from the same sensor-side plane (backward transmit)
+    tr = LensTracer(lens)
+    zi = float(lens.image_z)
+    ox, oy = mi.Float(x_np[0].astype(np.float32)), mi.Float(np.zeros(n, np.float32))
+    dxn, dyn = mi.Float(x_np[1].astype(np.float32)), mi.Float(x_np[2].astype(np.float32))
+    dzn = -dr.sqrt(dr.maximum(1.0 - dxn * dxn - dyn * dyn, 0.0))
+    lam = X[3]
+    dr.eval(ox, oy, dxn, dyn, dzn)
+
+    def exact():
+        r = tr.trace((ox, oy, ox * 0 + zi), (dxn, dyn, dzn), lam, "transmit", "backward")
+        return [*r.position, *r.direction, r.throughput, r.valid]
+
+    rows = {}
+    for name, fn in (("exact tracer", exact), ("neural, fused literals (default)", fused),
+                     ("neural, cooperative vectors", coop)):
+        t0 = time.perf_counter()
+        out = fn()
+        dr.eval(out)
+        dr.sync_thread()
+        first = time.perf_counter() - t0
+        best = float("inf")
+        for _ in range(a.repeats):
+            t0 = time.perf_counter()
+            out = fn()
+            dr.eval(out)
+            dr.sync_thread()
+            best = min(best, time.perf_counter() - t0)
+        rows[name] = {"mrays_per_s": n / best / 1e6, "first_call_s": first, "best_s": best}
+    # agreement of the two neural paths
+    f = np.stack([v.numpy() for v in fused()], 1)
+    c = np.stack([v.numpy() for v in coop()], 1)
+    rows["neural, cooperative vectors"]["max_abs_diff_vs_fused"] = float(np.abs(f - c).max())
+    print(f"{a.lens}, backward transmit map (classifier 2x32 + regressor 5x32, tanh), 2^{a.rays} rays, "
+          f"{dr.thread_count()} threads, best of {a.repeats}")
+    print("| evaluation | Mrays/s | first call incl. compile (s) |")
+    print("|---|---|---|")
+    for k, r in rows.items():
+        print(f"| {k} | {r['mrays_per_s']:.1f} | {r['first_call_s']:.2f} |")
+    print(f"cooperative vectors vs fused: max |diff| = {rows['neural, cooperative vectors']['max_abs_diff_vs_fused']:.2e}")
+    res = {"lens": a.lens, "rays": n, "threads": dr.thread_count(), "machine": platform.processor() or platform.machine(),
+           "cpus": os.cpu_count(), "rows": rows}
+    os.makedirs(os.path.dirname(a.out), exist_ok=True)
+    tmp = a.out + ".tmp"
+    with open(tmp, "w") as fh:
+        json.dump(res, fh, indent=2)
+    os.replace(tmp, a.out)
+    print(f"wrote {a.out}")
+
+
+if __name__ == "__main__":
+    main()
