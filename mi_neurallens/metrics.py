@@ -7,6 +7,11 @@ reference ``b`` (H×W×C, linear radiance):
 
 ε keeps dark pixels from dominating (0.01 is 1 % of a white diffuse surface under unit
 illumination).  ``relMSE`` = mean of (a − b)² / (b² + ε).
+
+Flare images (mostly black, with a dynamic range of many orders of magnitude) use a masked,
+scale-free variant, :func:`mape_masked`: with Y the Rec. 709 luminance and b the reference,
+
+    MAPE_flare(a, b) = mean over {p : Y_b(p) > 0.01 · max Y_b} of |Y_a − Y_b| / (|Y_b| + 0.001 · max Y_b)
 """
 from __future__ import annotations
 
@@ -40,3 +45,20 @@ def error_map(a, b, eps: float = EPSILON) -> np.ndarray:
     a, b = _prep(a, b)
     e = np.abs(a - b) / (np.abs(b) + eps)
     return e.mean(axis=2) if e.ndim == 3 else e
+
+
+#: Rec. 709 luminance weights
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722], np.float64)
+#: flare MAPE: mask threshold and epsilon, relative to the reference's maximum luminance
+FLARE_MASK_REL, FLARE_EPS_REL = 1e-2, 1e-3
+
+
+def mape_masked(a, b, mask_rel: float = FLARE_MASK_REL, eps_rel: float = FLARE_EPS_REL) -> float:
+    """Luminance MAPE over the pixels where the reference is non-negligible (see module docstring)."""
+    ya = np.asarray(a, np.float64)[..., :3] @ LUMINANCE
+    yb = np.asarray(b, np.float64)[..., :3] @ LUMINANCE
+    mx = float(yb.max()) if yb.size else 0.0
+    if not mx > 0:
+        return float("nan")
+    m = yb > mask_rel * mx
+    return float(np.mean(np.abs(ya[m] - yb[m]) / (np.abs(yb[m]) + eps_rel * mx)))

@@ -21,20 +21,7 @@ import time
 
 import numpy as np
 
-LUM = np.array([0.2126, 0.7152, 0.0722], np.float64)
-#: MAPE mask threshold and epsilon, relative to the reference's maximum luminance
-MAPE_MASK, MAPE_EPS = 1e-2, 1e-3
-
-
-def mape(a, b, mask_rel=MAPE_MASK, eps_rel=MAPE_EPS):
-    """MAPE of image ``a`` against reference ``b`` (H, W, 3) as defined in the module docstring."""
-    ya = np.asarray(a, np.float64)[..., :3] @ LUM
-    yb = np.asarray(b, np.float64)[..., :3] @ LUM
-    mx = float(yb.max()) if yb.size else 0.0
-    if not mx > 0:
-        return float("nan")
-    m = yb > mask_rel * mx
-    return float(np.mean(np.abs(ya[m] - yb[m]) / (np.abs(yb[m]) + eps_rel * mx)))
+from ..metrics import mape_masked as mape  # the flare MAPE (definition in mi_neurallens.metrics)
 
 
 def add_parser(subparsers):

@@ -1,0 +1,138 @@
+"""Regenerate the pictures and tables of docs/neural_lens.md and docs/results.md.
+
+    python docs/make_figures.py [--spp 64] [--reference-spp 1024] [--quick]
+
+1. The paper's path-tracing figure: the still life through each of the three paper lenses, converged
+   ``realistic_lens`` reference vs ``realistic_lens`` and ``neural_lens`` at equal spp
+   (``mi-neurallens compare``), → docs/images/compare_<lens>.png and out/figures/compare.json.
+2. The classifier ablation (``use_classifier=false``) → docs/images/neural_ablation_classifier.png.
+3. Manual focusing with one model: ood-59mm at three sensor distances, exact vs neural
+   → docs/images/neural_focus_sweep.png.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+IMG = os.path.join(ROOT, "docs", "images")
+OUT = os.path.join(ROOT, "out", "figures")
+LENSES = ("wide-22mm", "ood-59mm", "canon-ef-24mm-f1.4l")
+
+
+def compare_all(spp, ref_spp, res):
+    rows = {}
+    for lens in LENSES:
+        out = os.path.join(OUT, lens)
+        cmd = [sys.executable, "-m", "mi_neurallens", "compare", "scenes/still_life.xml", "--lens", lens,
+               "--spp", str(spp), "--reference-spp", str(ref_spp), "--resolution", res, "--out", out,
+               "--no-progress"]
+        print(" ".join(cmd[1:]), flush=True)
+        subprocess.run(cmd, cwd=ROOT, check=True)
+        shutil.copy(os.path.join(out, "compare.png"), os.path.join(IMG, f"compare_{lens}.png"))
+        rows[lens] = json.load(open(os.path.join(out, "compare.json")))
+    with open(os.path.join(OUT, "compare.json"), "w") as f:
+        json.dump(rows, f, indent=2)
+    print("| lens | spp | MAPE realistic | MAPE neural | ratio | MAPE(neural, realistic) | time realistic (s) | time neural (s) |")
+    print("|---|---|---|---|---|---|---|---|")
+    for lens, r in rows.items():
+        a, b = r["rows"]["realistic"], r["rows"]["neural"]
+        print(f"| {lens} | {a['spp']} | {a['mape']:.4f} | {b['mape']:.4f} | {r['ratio_mape_neural_over_realistic']:.3f} | "
+              f"{r['mape_neural_vs_realistic_same_spp']:.4f} | {a['seconds']:.2f} | {b['seconds']:.2f} |")
+    return rows
+
+
+def grid(images, titles, path, suptitle, cols):
+    import matplotlib
+    matplotlib.use("Agg", force=False)
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from mi_neurallens.render_utils import tonemap
+    rows = -(-len(images) // cols)
+    h, w = images[0].shape[:2]
+    fig = Figure(figsize=(3.3 * cols, 3.3 * rows * h / w + 0.6), dpi=110)
+    FigureCanvasAgg(fig)
+    for i, (img, t) in enumerate(zip(images, titles)):
+        ax = fig.add_subplot(rows, cols, i + 1)
+        ax.imshow(tonemap(img))
+        ax.set_title(t, fontsize=8)
+        ax.axis("off")
+    fig.suptitle(suptitle, fontsize=9)
+    fig.subplots_adjust(left=0.01, right=0.99, top=0.86, bottom=0.01, wspace=0.03, hspace=0.18)
+    fig.savefig(path + ".tmp.png")
+    os.replace(path + ".tmp.png", path)
+
+
+def render(sensor_type, lens, spp, res, sets=()):
+    from mi_neurallens.commands.render import load_scene, render_passes
+    w, h = (int(v) for v in res.split("x"))
+    extra = [f"model={lens}"] if sensor_type == "neural_lens" else []
+    scene = load_scene(os.path.join(ROOT, "scenes", "still_life.xml"), variant="llvm_ad_rgb", lens=lens,
+                       resolution=(w, h), spp=spp, sets=list(sets) + extra, sensor_type=sensor_type)
+    img, _ = render_passes(scene, spp, max(1, spp // 64), show_progress=False)
+    return img
+
+
+def ablation(spp, res):
+    from mi_neurallens.metrics import mape
+    real = render("realistic_lens", "wide-22mm", spp * 4, res)
+    a = render("neural_lens", "wide-22mm", spp, res)
+    b = render("neural_lens", "wide-22mm", spp, res, ["use_classifier=false"])
+    grid([real, a, b], [f"realistic_lens ({spp * 4} spp)", f"neural_lens ({spp} spp), MAPE {mape(a, real):.3f}",
+                        f"neural_lens without classifier, MAPE {mape(b, real):.3f}"],
+         os.path.join(IMG, "neural_ablation_classifier.png"),
+         "wide-22mm: without the classifier every ray inside the trained domain passes (brighter corners, "
+         f"mean {b.mean() / a.mean():.2f}x)", 3)
+    return {"mape_with": mape(a, real), "mape_without": mape(b, real), "brightness_ratio": float(b.mean() / a.mean())}
+
+
+def focus_sweep(spp, res):
+    from mi_neurallens import Lens
+    from mi_neurallens.metrics import mape
+    lens = Lens.load("ood-59mm")
+    px = lens.paraxial()
+    imgs, titles, out = [], [], []
+    dists = (38.5, 40.0, 42.0)
+    for kind in ("realistic_lens", "neural_lens"):
+        for s in dists:
+            imgs.append(render(kind, "ood-59mm", spp, res, [f"sensor_distance={s}"]))
+            fd = px.focus_distance_for(s) + lens.total_track + s
+            titles.append(f"{kind}, sensor {s} mm (focus {fd / 1000:.2f} m)")
+    for i, s in enumerate(dists):
+        out.append({"sensor_distance_mm": s, "mape_neural_vs_exact": mape(imgs[3 + i], imgs[i])})
+    grid(imgs, titles, os.path.join(IMG, "neural_focus_sweep.png"),
+         "ood-59mm, manual focusing by moving the sensor: one neural model serves every sensor distance", 3)
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--spp", type=int, default=64)
+    ap.add_argument("--reference-spp", type=int, default=1024)
+    ap.add_argument("--resolution", default="320x240")
+    ap.add_argument("--skip-compare", action="store_true")
+    a = ap.parse_args(argv)
+    os.makedirs(OUT, exist_ok=True)
+    import mitsuba as mi
+    mi.set_variant("llvm_ad_rgb")
+    import mi_neurallens
+    mi_neurallens.register()
+    res = {}
+    if not a.skip_compare:
+        res["compare"] = compare_all(a.spp, a.reference_spp, a.resolution)
+    res["ablation"] = ablation(a.spp, a.resolution)
+    print("ablation", res["ablation"])
+    res["focus_sweep"] = focus_sweep(a.spp, a.resolution)
+    print("focus sweep", res["focus_sweep"])
+    with open(os.path.join(OUT, "figures.json"), "w") as f:
+        json.dump(res, f, indent=2, default=float)
+
+
+if __name__ == "__main__":
+    main()
