@@ -3,16 +3,10 @@ from __future__ import annotations
 
 
 def register_all() -> list[str]:
+    """Register ``realistic_lens``, ``neural_lens`` and ``lens_flare`` for the current variant."""
     import mitsuba as mi
     if mi.variant() is None:
         raise RuntimeError("mi_neurallens.register(): set a Mitsuba variant first (mi.set_variant(...))")
-    names = []
-    try:
-        from .sensors import register as reg_sensors
-    except ImportError:
-        reg_sensors = None
-    if reg_sensors is not None:
-        names += reg_sensors()
-    from .integrators import register as reg_integrators
-    names += reg_integrators()
-    return names
+    from .integrators import register as register_integrators
+    from .sensors import register as register_sensors
+    return register_sensors() + register_integrators()
