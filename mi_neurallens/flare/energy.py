@@ -20,7 +20,6 @@ import math
 
 import numpy as np
 
-from ..errors import NeuralLensError
 
 #: wavelength range used for ranking (nm); sampled ∝ the CIE Y curve (Gaussian fit)
 RANK_LAMBDA = (380.0, 780.0)
@@ -73,7 +72,6 @@ def ghost_energy_ranking(lens, *, sensor_width_mm: float = 36.0, sensor_height_m
 def _ranking_cached(lens, w, h, fresnel, n_rays, n_angles, seed, ghost_ids):
     import drjit as dr
     from ..trace.api import float_type, tracer_for
-    from ..trace.paths import all_ghosts
     F = float_type("float32")
     tr = tracer_for(lens, fresnel)
     efl = abs(lens.efl()) if hasattr(lens, "efl") else 50.0
@@ -109,28 +107,8 @@ def _ranking_cached(lens, w, h, fresnel, n_rays, n_angles, seed, ghost_ids):
         hv = hit.numpy().astype(bool)
         return float((T.numpy() * wt).sum()), float(hv.mean())
 
-    e_t, _ = energy(0)
-    out = []
-    for pid, a, b in all_ghosts(lens):
-        if ghost_ids is not None and pid not in ghost_ids:
-            continue
-        if trivial_ghost(lens, a, b):
-            e, f = 0.0, 0.0
-        else:
-            try:
-                e, f = energy(pid)
-            except NeuralLensError:
-                e, f = 0.0, 0.0
-        out.append({"path_id": pid, "surfaces": [a, b], "energy": e, "valid_fraction": f})
-    out.sort(key=lambda dd: -dd["energy"])
-    tot = sum(dd["energy"] for dd in out) or 1.0
-    c = 0.0
-    for dd in out:
-        dd["share"] = dd["energy"] / tot
-        c += dd["share"]
-        dd["cumulative_share"] = c
-        dd["relative_to_transmit"] = dd["energy"] / e_t if e_t > 0 else 0.0
-    return tuple(out)
+    from ..trace.paths import rank_ghosts_by_energy
+    return tuple(rank_ghosts_by_energy(lens, energy, ghost_ids, skip=lambda a, b: trivial_ghost(lens, a, b)))
 
 
 def select_ghosts(ranking, energy_fraction: float = 0.99, max_ghosts: int = 32):

@@ -146,3 +146,37 @@ def resolve_path(lens, path, direction: str = FORWARD) -> PathSpec:
         raise NeuralLensError(f"path id {pid} leaves the lens through the {side}; a {direction} path must "
                               f"leave through the {'rear' if direction == FORWARD else 'front'}")
     return PathSpec(pid, direction, tuple(steps))
+
+
+def rank_ghosts_by_energy(lens, energy, ghost_ids=None, skip=None) -> list[dict]:
+    """Rank the forward ghosts of ``lens`` by the energy they carry, largest first.
+
+    ``energy(path_id) -> (energy, valid_fraction)`` is the caller's estimator (flares and training
+    sample the field differently); it is also called with ``0`` for the transmit path, which scales
+    ``relative_to_transmit``.  ``ghost_ids``: only these ids; ``skip(a, b) -> bool``: ghosts known to
+    carry nothing (energy 0 without tracing).  A ghost whose path cannot be traced (an error from
+    :func:`resolve_path`) gets energy 0.  Each entry: ``path_id``, ``surfaces`` [a, b], ``energy``,
+    ``valid_fraction``, ``share`` of the total ghost energy, ``cumulative_share``,
+    ``relative_to_transmit``.
+    """
+    e_t, _ = energy(0)
+    out = []
+    for pid, a, b in all_ghosts(lens):
+        if ghost_ids is not None and pid not in ghost_ids:
+            continue
+        e, f = 0.0, 0.0
+        if skip is None or not skip(a, b):
+            try:
+                e, f = energy(pid)
+            except NeuralLensError:
+                pass
+        out.append({"path_id": pid, "surfaces": [a, b], "energy": float(e), "valid_fraction": float(f)})
+    out.sort(key=lambda d: -d["energy"])
+    total = sum(d["energy"] for d in out) or 1.0
+    c = 0.0
+    for d in out:
+        d["share"] = d["energy"] / total
+        c += d["share"]
+        d["cumulative_share"] = c
+        d["relative_to_transmit"] = d["energy"] / e_t if e_t > 0 else 0.0
+    return out

@@ -93,11 +93,10 @@ def rank_ghosts(lens, z_front: float, domain: Domain, sensor_distance: float, fi
     land on the film (radius ``film_half_diagonal_mm`` on the sensor plane ``sensor_distance`` behind
     the last vertex).  Returns a list of dicts sorted by energy (largest first), with each ghost's share
     of the total ghost energy and the transmit path's energy for scale."""
-    from ..trace.paths import all_ghosts
+    from ..trace.paths import rank_ghosts_by_energy
     rng = np.random.default_rng(seed)
     u = rng.random((n_rays, 4))
     z_s = lens.total_track + sensor_distance
-    out = []
 
     def energy(pid):
         ps = PathSampler(lens, pid, "forward", z_front, z_s, domain)
@@ -105,22 +104,7 @@ def rank_ghosts(lens, z_front: float, domain: Domain, sensor_distance: float, fi
         hit = v & (np.hypot(y[:, 0], y[:, 1]) <= film_half_diagonal_mm)
         return float(np.where(hit, y[:, 4], 0.0).sum() / n_rays), float(hit.mean())
 
-    e_t, _ = energy(0)
-    for pid, a, b in all_ghosts(lens):
-        try:
-            e, f = energy(pid)
-        except NeuralLensError:
-            e, f = 0.0, 0.0
-        out.append({"path_id": pid, "surfaces": [a, b], "energy": e, "valid_fraction": f})
-    out.sort(key=lambda d: -d["energy"])
-    tot = sum(d["energy"] for d in out) or 1.0
-    c = 0.0
-    for d in out:
-        d["share"] = d["energy"] / tot
-        c += d["share"]
-        d["cumulative_share"] = c
-        d["relative_to_transmit"] = d["energy"] / e_t if e_t > 0 else 0.0
-    return out
+    return rank_ghosts_by_energy(lens, energy)
 
 
 def select_ghosts(ranking, energy_fraction: float = 0.99, max_ghosts: int = 32):
