@@ -145,6 +145,12 @@ def apply_sensor_overrides(xml_text: str, *, sets=(), lens=None, resolution=None
                     sensor.remove(ch)
             ET.SubElement(sensor, "string", {"name": k, "value": v})
         else:
+            # focus_distance and sensor_distance are exclusive: the one being set replaces the other
+            rival = {"focus_distance": "sensor_distance", "sensor_distance": "focus_distance"}.get(k)
+            if rival:
+                for ch in list(sensor):
+                    if ch.get("name") == rival:
+                        sensor.remove(ch)
             _set_child(sensor, k, v)
     if resolution is not None:
         f = child("film", "hdrfilm")

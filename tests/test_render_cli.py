@@ -96,3 +96,15 @@ def test_spectral_variant(tmp_path):
     img = read_exr(str(out))
     assert np.isfinite(img).all() and img.mean() > 0.02
     assert main(["render", os.path.join(SCENES, "chart.xml"), "-o", str(out), "--variant", "nope"]) == 1
+
+
+def test_focus_overrides_replace_each_other():
+    """Setting sensor_distance on a scene that gives focus_distance (or the reverse) replaces it:
+    the two are exclusive properties of the lens sensors."""
+    from mi_neurallens.render_utils import apply_sensor_overrides
+    xml = ('<scene version="3.0.0"><sensor type="realistic_lens">'
+           '<float name="focus_distance" value="1.5"/></sensor></scene>')
+    out = apply_sensor_overrides(xml, sets=["sensor_distance=15"])
+    assert 'name="sensor_distance"' in out and "focus_distance" not in out
+    back = apply_sensor_overrides(out, sets=["focus_distance=2"])
+    assert 'name="focus_distance"' in back and "sensor_distance" not in back
