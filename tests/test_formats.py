@@ -26,7 +26,9 @@ from mi_neurallens.optics.glass import AIR
 
 from conftest import WIDE22, lens_from_rows
 
-SHARED = Path(os.environ.get("MI_NEURALLENS_LENS_DATA", "/work/shared/lens-data"))
+# the shared data lives beside the repository (../shared/lens-data), also in CI
+SHARED = Path(os.environ.get("MI_NEURALLENS_LENS_DATA",
+                             Path(__file__).resolve().parents[2] / "shared" / "lens-data"))
 need_shared = pytest.mark.skipif(not SHARED.is_dir(), reason=f"shared lens data not found at {SHARED}")
 SCHEMA = json.loads((Path(nl.__file__).parent / "data" / "lens.schema.json").read_text())
 LAMBDA_D = 587.5618
