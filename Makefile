@@ -14,7 +14,7 @@ setup:
 demo: setup
 	$(PY) -m mi_neurallens lens info wide-22mm
 	$(PY) -m mi_neurallens lens plot wide-22mm -o $(OUT)/wide-22mm-layout.png
-	$(PY) -m mi_neurallens compare scenes/still_life.xml --spp 32 --reference-spp 512 --out $(OUT)/demo
+	$(PY) -m mi_neurallens compare scenes/still_life.xml --spp 64 --reference-spp 1024 --out $(OUT)/demo
 	@echo "side by side: $(OUT)/demo/compare.png (table: $(OUT)/demo/compare.md)"
 
 test: setup

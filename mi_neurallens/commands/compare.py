@@ -46,17 +46,19 @@ def _render(path, args, sensor_type, spp, seed, desc, extra_sets=(), warm_up=Tru
     res = _resolution(args.resolution) if args.resolution else None
     scene = load_scene(path, variant=args.variant, sets=list(args.sets) + list(extra_sets), lens=args.lens,
                        resolution=res, spp=spp, params=args.params, sensor_type=sensor_type)
+    # samplers round the count (ldsampler/multijitter: to a square power of two): report what ran
+    spp = int(scene.sensors()[0].sampler().sample_count())
     passes = max(1, -(-spp // 64))
     import mitsuba as mi
     if not warm_up:
         img, secs = render_passes(scene, spp, passes, show_progress=not args.no_progress, seed=seed, desc=desc)
-        return img, secs, str(scene.sensors()[0])
+        return img, secs, str(scene.sensors()[0]), spp
     # compile (or load) the kernels with the same pass size, then time the best of two renders: the
     # first render of a freshly loaded scene after another one was measured up to 2x slower
     mi.render(scene, spp=-(-spp // passes), seed=seed)
     img, secs = render_passes(scene, spp, passes, show_progress=not args.no_progress, seed=seed, desc=desc)
     _, secs2 = render_passes(scene, spp, passes, show_progress=False, seed=seed, desc=desc)
-    return img, min(secs, secs2), str(scene.sensors()[0])
+    return img, min(secs, secs2), str(scene.sensors()[0]), spp
 
 
 def compare_panel(images: dict, errors: dict, path: str, title: str, exposure: float = 0.0) -> None:
@@ -107,9 +109,9 @@ def run(args) -> int:
     elif args.lens:
         neural_sets.append(f"model={args.lens}")
     t_all = time.perf_counter()
-    ref, t_ref, s_ref = _render(scene, args, "realistic_lens", args.reference_spp, 1000, "reference",
-                                warm_up=False)
-    real, t_real, _ = _render(scene, args, "realistic_lens", args.spp, 0, "realistic")
+    ref, t_ref, s_ref, ref_spp = _render(scene, args, "realistic_lens", args.reference_spp, 1000, "reference",
+                                         warm_up=False)
+    real, t_real, _, spp = _render(scene, args, "realistic_lens", args.spp, 0, "realistic")
     if not neural_sets:
         # the scene's lens names the bundled model
         import xml.etree.ElementTree as ET
@@ -120,29 +122,29 @@ def run(args) -> int:
             lens_name = dict(kv.split("=", 1) for kv in args.params).get(lens_name[1:], None) or \
                 root.find(f".//default[@name='{lens_name[1:]}']").get("value")
         neural_sets.append(f"model={lens_name}")
-    neural, t_neu, s_neu = _render(scene, args, "neural_lens", args.spp, 0, "neural", neural_sets)
+    neural, t_neu, s_neu, _ = _render(scene, args, "neural_lens", args.spp, 0, "neural", neural_sets)
     for name, img in (("reference", ref), ("realistic", real), ("neural", neural)):
         write_exr(os.path.join(out, f"{name}.exr"), img)
         write_png(os.path.join(out, f"{name}.png"), img, args.exposure)
     rows = {
-        "realistic": {"spp": args.spp, "seconds": t_real, "mape": mape(real, ref), "rel_mse": rel_mse(real, ref)},
-        "neural": {"spp": args.spp, "seconds": t_neu, "mape": mape(neural, ref), "rel_mse": rel_mse(neural, ref)},
+        "realistic": {"spp": spp, "seconds": t_real, "mape": mape(real, ref), "rel_mse": rel_mse(real, ref)},
+        "neural": {"spp": spp, "seconds": t_neu, "mape": mape(neural, ref), "rel_mse": rel_mse(neural, ref)},
     }
     neural_vs_real = mape(neural, real)
-    result = {"scene": scene, "reference": {"spp": args.reference_spp, "seconds": t_ref, "sensor": s_ref},
+    result = {"scene": scene, "reference": {"spp": ref_spp, "seconds": t_ref, "sensor": s_ref},
               "neural_sensor": s_neu, "epsilon": EPSILON, "rows": rows,
               "mape_neural_vs_realistic_same_spp": neural_vs_real,
               "ratio_mape_neural_over_realistic": rows["neural"]["mape"] / max(rows["realistic"]["mape"], 1e-12),
               "time_ratio_neural_over_realistic": t_neu / t_real}
-    title = (f"{os.path.basename(scene)} — reference {args.reference_spp} spp; realistic and neural at {args.spp} spp\n"
+    title = (f"{os.path.basename(scene)} — reference {ref_spp} spp; realistic and neural at {spp} spp\n"
              f"MAPE vs reference: realistic {rows['realistic']['mape']:.4f}, neural {rows['neural']['mape']:.4f}"
              f"   ·   time: realistic {t_real:.2f} s, neural {t_neu:.2f} s")
-    compare_panel({f"reference ({args.reference_spp} spp)": ref, f"realistic_lens ({args.spp} spp)": real,
-                   f"neural_lens ({args.spp} spp)": neural},
+    compare_panel({f"reference ({ref_spp} spp)": ref, f"realistic_lens ({spp} spp)": real,
+                   f"neural_lens ({spp} spp)": neural},
                   {"realistic error": error_map(real, ref), "neural error": error_map(neural, ref)},
                   os.path.join(out, "compare.png"), title, args.exposure)
     md = ["| render | spp | time (s) | MAPE vs reference | relMSE vs reference |", "|---|---|---|---|---|",
-          f"| reference (realistic_lens) | {args.reference_spp} | {t_ref:.2f} | – | – |"]
+          f"| reference (realistic_lens) | {ref_spp} | {t_ref:.2f} | – | – |"]
     for k, r in rows.items():
         md.append(f"| {k}_lens | {r['spp']} | {r['seconds']:.2f} | {r['mape']:.4f} | {r['rel_mse']:.5f} |")
     md.append("")

@@ -123,7 +123,7 @@ def run(args) -> int:
     scene = load_scene(args.scene, variant=args.variant, sets=args.sets, lens=args.lens,
                        resolution=res, spp=args.spp, params=args.params)
     sensor = scene.sensors()[0]
-    spp = args.spp or sensor.sampler().sample_count()
+    spp = sensor.sampler().sample_count()   # after --spp; samplers may round it (ldsampler: square power of 2)
     passes = args.passes or max(1, math.ceil(spp / 16))
     out = args.output or os.path.splitext(os.path.basename(args.scene))[0] + ".exr"
     if not out.lower().endswith(".exr"):
