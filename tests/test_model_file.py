@@ -184,7 +184,7 @@ def test_transport_map_eval_dr_equals_numpy(direction):
     scale = np.abs(ref["position"][:, :2]).max()
     np.testing.assert_allclose(P[:, :2], ref["position"][:, :2], atol=2e-6 * scale + 1e-6)
     np.testing.assert_allclose(P[:, 2], tm.z_out)
-    np.testing.assert_allclose(D, ref["direction"], atol=5e-6)
+    np.testing.assert_allclose(D, ref["direction"], atol=1e-5)  # float32 through 6 layers; 1e-5 rad = 2″, model error ~15″
     np.testing.assert_allclose(thr.numpy(), ref["throughput"], atol=2e-6 * np.abs(ref["throughput"]).max())
 
 

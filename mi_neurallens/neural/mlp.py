@@ -56,9 +56,17 @@ def mlp_np(x: np.ndarray, layers, activation: str = "tanh") -> np.ndarray:
     return h
 
 
+#: independent partial sums per neuron in :func:`mlp_dr`: breaks the serial FMA dependency chain
+#: (measured on 2 AVX-512 cores, classifier + regressor: 1 chain 9.1, 2 chains 10.8, 4 chains
+#: 11.5 M rays/s)
+ACCUMULATORS = 4
+
+
 def mlp_dr(xs, layers, activation: str = "tanh"):
     """Fused Dr.Jit evaluation: ``xs`` a list of Dr.Jit floats (one per input) → list of outputs.
-    Weights become kernel literals (a kernel per weight set, cached by Dr.Jit)."""
+    Weights become kernel literals (a kernel per weight set, cached by Dr.Jit).  Each neuron's dot
+    product is split into :data:`ACCUMULATORS` interleaved partial sums added pairwise at the end, so
+    the multiply-adds do not form one long dependency chain."""
     import drjit as dr
     h = list(xs)
     for li, (W, b) in enumerate(layers):
@@ -66,15 +74,22 @@ def mlp_dr(xs, layers, activation: str = "tanh"):
         b = np.asarray(b, dtype=np.float64).tolist()
         out = []
         for j in range(len(b)):
-            acc = None
+            parts = [None] * ACCUMULATORS
             for i in range(len(h)):
                 w = float(W[j][i])
                 if w == 0.0:
                     continue
-                acc = dr.fma(h[i], w, float(b[j])) if acc is None else dr.fma(h[i], w, acc)
-            if acc is None:
-                acc = h[0] * 0.0 + float(b[j])
-            out.append(acc)
+                k = i % ACCUMULATORS
+                parts[k] = h[i] * w if parts[k] is None else dr.fma(h[i], w, parts[k])
+            parts = [p for p in parts if p is not None]
+            if not parts:
+                out.append(h[0] * 0.0 + float(b[j]))
+                continue
+            parts[0] = parts[0] + float(b[j])
+            while len(parts) > 1:
+                parts = [parts[a] + parts[a + 1] if a + 1 < len(parts) else parts[a]
+                         for a in range(0, len(parts), 2)]
+            out.append(parts[0])
         if li < len(layers) - 1:
             out = [tanh_eigen(v) for v in out] if activation == "tanh" else [dr.maximum(v, 0.0) for v in out]
         h = out

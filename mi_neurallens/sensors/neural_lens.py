@@ -42,7 +42,7 @@ Neural lens camera (:monosp:`neural_lens`)
    - |string|
    - How the networks are evaluated in the kernel.  ``fused`` (default): every weight is a literal in
      the generated kernel and tanh is a rational approximation accurate to float32 — the fastest on
-     the CPU (7.4 M rays/s for classifier + regressor on 2 cores vs 5.1 M for ``coopvec``), but a new
+     the CPU (11.5 M rays/s for classifier + regressor on 2 cores vs 5.8 M for ``coopvec``), but a new
      weight set compiles a new kernel (~0.6 s).  ``coopvec``: Dr.Jit cooperative vectors
      (``drjit.nn``), weights in a packed buffer: no recompilation when weights change, tensor cores on
      CUDA (fp16 there).  (Default: ``fused``)
