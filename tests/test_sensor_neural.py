@@ -142,3 +142,16 @@ def test_coopvec_equals_fused():
     assert np.abs(a - b).max() < 1e-3 * max(a.max(), 1e-6) + 1e-4
     with pytest.raises(Exception, match="'mlp'.*must be one of"):
         mi.load_dict(sensor(model="wide-22mm", mlp="magic"))
+
+
+def test_method_exact_equals_realistic_lens():
+    """method=exact runs the tracer between the model's planes with the same sampling: the image is
+    the realistic_lens image (same seeds) to float32 rounding; a baseline without an aperture model
+    (ABCD) lets vignetted rays through and is brighter."""
+    use(RGB)
+    kw = dict(focus_distance=1.0, w=24, h=18, spp=16)
+    real = render(sensor("realistic_lens", **kw))
+    exact = render(sensor(model="wide-22mm", method="exact", **kw))
+    assert np.abs(exact - real).max() < 1e-3 * real.max()
+    abcd = render(sensor(model="wide-22mm", method="abcd", **kw))
+    assert abcd.mean() > 1.05 * real.mean()

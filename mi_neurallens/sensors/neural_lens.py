@@ -12,6 +12,9 @@ import os
 
 PLUGIN = "neural_lens"
 
+#: transport of the camera rays: the learned map, or a baseline between the same planes
+METHODS = ("neural", "exact", "abcd", "taylor3", "taylor5", "fitted")
+
 DOC = r"""
 .. _sensor-neural_lens:
 
@@ -46,6 +49,13 @@ Neural lens camera (:monosp:`neural_lens`)
      weight set compiles a new kernel (~0.6 s).  ``coopvec``: Dr.Jit cooperative vectors
      (``drjit.nn``), weights in a packed buffer: no recompilation when weights change, tensor cores on
      CUDA (fp16 there).  (Default: ``fused``)
+
+ * - method
+   - |string|
+   - ``neural`` (default): the learned map.  For comparisons, the same planes and sampling with another
+     transport: ``exact`` (the tracer), ``abcd`` (paraxial matrices), ``taylor3``/``taylor5``
+     (Taylor polynomial optics), ``fitted`` (sparse polynomials fitted to traced rays; built when the
+     scene loads, ~20–40 s).  See docs/baselines.md.  (Default: ``neural``)
 
  * - focus_distance, sensor_distance, fstop, sensor_width, scene_unit_mm, fresnel, pupil_sampling,
      to_world, film, sampler, shutter_open, shutter_close
@@ -130,6 +140,7 @@ def make_neural_lens():
             self.lens_prop = rd.string("lens", None)
             self.use_classifier = rd.bool("use_classifier", True)
             self.mlp = rd.string("mlp", "fused", choices=("fused", "coopvec"))
+            self.method = rd.string("method", "neural", choices=METHODS)
 
         def _load_lens(self, rd):
             self.model_path = resolve_model_path(self.model_spec)
@@ -165,19 +176,27 @@ def make_neural_lens():
                 which = "sensor_distance" if not (st.focus_distance_mm > 0) else "focus_distance"
                 raise SensorPropertyError(PLUGIN, which, str(e)) from e
             self.tmap = self.model.map("transmit", "backward")
-            # the learned map starts on its input plane: the pupil sample only gives the direction
+            if self.method != "neural":   # a baseline between the same planes (docs/baselines.md)
+                from ..baselines import make_method
+                self.tmap = make_method(st.lens, self.method, "transmit", "backward", z_in=self.tmap.z_in,
+                                        z_out=self.tmap.z_out, **({"fresnel": st.fresnel}
+                                                                  if self.method == "exact" else {}))
+            # the map starts on its input plane: the pupil sample only gives the direction
             self.z_out = self.tmap.z_out
 
         def _transport(self, o, d, lam, active):
-            valid, (pos, dirn, T) = self.tmap.eval_dr(o, d, lam, active, use_classifier=self.use_classifier,
-                                                      mlp=self.mlp)
+            if self.method == "neural":
+                valid, (pos, dirn, T) = self.tmap.eval_dr(o, d, lam, active, use_classifier=self.use_classifier,
+                                                          mlp=self.mlp)
+            else:
+                valid, (pos, dirn, T) = self.tmap.eval_dr(o, d, lam, active)
             if not self.setup.fresnel:
                 T = dr.zeros(type(T), dr.width(T)) + 1.0
             return pos, dirn, T, valid
 
         def _describe(self):
             return (f"model='{self.model_spec}' ({os.path.basename(self.model_path)}), lens={self.setup.lens.name}, "
-                    f"use_classifier={self.use_classifier}, mlp={self.mlp}")
+                    f"use_classifier={self.use_classifier}, mlp={self.mlp}, method={self.method}")
 
     NeuralLens.__name__ = "NeuralLens"
     return NeuralLens
