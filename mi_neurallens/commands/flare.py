@@ -30,7 +30,8 @@ def add_parser(subparsers):
     p.add_argument("scene", help="Mitsuba XML scene (its first sensor: realistic_lens or neural_lens)")
     p.add_argument("-o", "--output", help="output PNG (default: <scene>_flare.png); an EXR is written next to it")
     p.add_argument("--lens", help="lens of the sensor (bundled name or file)")
-    p.add_argument("--mode", choices=("auto", "exact", "neural"), default="auto")
+    p.add_argument("--mode", choices=("auto", "exact", "neural", "abcd", "taylor3", "taylor5", "fitted"),
+                   default="auto", help="ghost evaluator: exact tracer, learned maps, or a baseline")
     p.add_argument("--model", help="neural model file (default: the sensor's model)")
     p.add_argument("--ghost", dest="ghosts", action="append", default=[], metavar="ID",
                    help="render only this ghost (path id or a:b surface pair; repeatable)")

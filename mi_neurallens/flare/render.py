@@ -44,6 +44,8 @@ from ..errors import ModelError, NeuralLensError
 from .energy import front_radius, ghost_energy_ranking, input_plane, select_ghosts, trivial_ghost
 
 MODES = ("auto", "exact", "neural")
+#: baselines usable as ghost evaluators (docs/baselines.md), planes as the neural maps'
+BASELINE_MODES = ("abcd", "taylor3", "taylor5", "fitted")
 COATINGS = ("lens", "none", "quarter_wave")
 BOUNDS = ("pilot", "none")
 
@@ -60,7 +62,7 @@ class FlareError(NeuralLensError, ValueError):
 
 @dataclass
 class FlareOptions:
-    mode: str = "auto"                 #: auto | exact | neural
+    mode: str = "auto"                 #: auto | exact | neural | abcd | taylor3 | taylor5 | fitted
     ghosts: list | None = None         #: ghost path ids to render (None: automatic selection)
     exclude_ghosts: list = field(default_factory=list)
     max_ghosts: int = 32               #: cap of the automatic selection
@@ -84,8 +86,9 @@ class FlareOptions:
     model: object = None               #: NeuralLensModel or a file (default: the sensor's model)
 
     def validate(self):
-        if self.mode not in MODES:
-            raise FlareError(f"lens_flare: 'mode' must be one of {', '.join(MODES)}, got {self.mode!r}")
+        if self.mode not in MODES + BASELINE_MODES:
+            raise FlareError(f"lens_flare: 'mode' must be one of {', '.join(MODES + BASELINE_MODES)}, "
+                             f"got {self.mode!r}")
         if self.coating not in COATINGS:
             raise FlareError(f"lens_flare: 'coating' must be one of {', '.join(COATINGS)}, got {self.coating!r}")
         if self.bounds not in BOUNDS:
@@ -191,7 +194,8 @@ class ExactGhost:
 
 
 class NeuralGhost:
-    """Learned map (classifier, then regressor) on one path, continued straight to the sensor plane."""
+    """A transport map on one path — the learned map (classifier, then regressor), or a baseline with
+    the same interface — continued straight to the sensor plane."""
     kind = "neural"
 
     def __init__(self, tmap, z_sensor, fresnel=True):
@@ -373,6 +377,9 @@ class FlareRenderer:
         mode = self.opts.mode
         if mode == "exact" or pid == 0 and mode == "auto":
             return ExactGhost(self.tracer, pid)
+        if mode in BASELINE_MODES:
+            from ..baselines import make_method
+            return NeuralGhost(make_method(self.lens, mode, pid, "forward"), self.z_img, self.fresnel)
         m = self.model
         if mode == "neural":
             if m is None:
