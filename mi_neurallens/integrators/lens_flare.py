@@ -28,7 +28,8 @@ with the same radiometric normalisation as the backward image.  The sensor must 
    - The integrator that renders the scene (e.g. ``path``).  Without one only the flare is rendered.
  * - mode
    - |string|
-   - ``auto`` (neural maps where the sensor/``model`` has them, exact otherwise), ``exact``, ``neural``.
+   - ``auto`` (neural maps where the sensor/``model`` has them, exact otherwise), ``exact``, ``neural``,
+     or a baseline for comparisons: ``abcd``, ``taylor3``, ``taylor5``, ``fitted`` (docs/baselines.md).
  * - model
    - |string|
    - Neural model file to use for ghosts (default: the ``neural_lens`` sensor's model).
