@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import math
 import os
-import tempfile
 
 import numpy as np
 
@@ -614,20 +613,6 @@ def _save(fig, path) -> str:
     FigureCanvasAgg(fig)
     path = os.fspath(path)
     ext = _image_format(path)
-    d = os.path.dirname(os.path.abspath(path))
-    os.makedirs(d, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-layout-", suffix="." + ext, dir=d)
-    os.close(fd)
-    try:
-        fig.savefig(tmp, format=ext)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)      # mkstemp creates 0600; give the usual permissions
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    from .fileio import atomic_write
+    atomic_write(path, lambda tmp: fig.savefig(tmp, format=ext))
     return path

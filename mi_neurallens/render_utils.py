@@ -4,41 +4,21 @@ Nothing here sets a Mitsuba variant; functions that need Mitsuba import it lazil
 """
 from __future__ import annotations
 
-import os
-import tempfile
 import xml.etree.ElementTree as ET
 
 import numpy as np
+
+from .fileio import atomic_write
 
 from .errors import NeuralLensError
 
 
 # ----------------------------------------------------------------------------- output
-def _atomic_write(path: str, write_fn) -> None:
-    """Call ``write_fn(tmp_path)`` for a temporary file next to ``path`` (same extension), then rename."""
-    path = os.path.abspath(path)
-    d, base = os.path.split(path)
-    os.makedirs(d or ".", exist_ok=True)
-    ext = os.path.splitext(base)[1]
-    fd, tmp = tempfile.mkstemp(prefix=f".{base}.", suffix=f".tmp{ext}", dir=d or ".")
-    os.close(fd)
-    try:
-        write_fn(tmp)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)        # mkstemp creates 0600; give the usual permissions
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def write_exr(path: str, image) -> None:
     """Write a float image (H, W, C) as OpenEXR, atomically."""
     import mitsuba as mi
     arr = np.ascontiguousarray(np.asarray(image, dtype=np.float32))
-    _atomic_write(path, lambda tmp: mi.Bitmap(arr).write(tmp))
+    atomic_write(path, lambda tmp: mi.Bitmap(arr).write(tmp))
 
 
 def tonemap(image, exposure_ev: float = 0.0) -> np.ndarray:
@@ -57,7 +37,7 @@ def write_png(path: str, image, exposure_ev: float = 0.0) -> None:
     """Tone-map (see :func:`tonemap`) and write a PNG, atomically."""
     from PIL import Image
     img = Image.fromarray(tonemap(image, exposure_ev))
-    _atomic_write(path, lambda tmp: img.save(tmp, format="PNG"))
+    atomic_write(path, lambda tmp: img.save(tmp, format="PNG"))
 
 
 # ----------------------------------------------------------------------------- progress

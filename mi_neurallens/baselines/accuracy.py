@@ -309,8 +309,6 @@ def save_flare_figure(result, lens_name, short_id, long_id, path, methods):
     log tone mapping; MAPE in each title."""
     from matplotlib.figure import Figure
     from matplotlib.backends.backend_agg import FigureCanvasAgg
-    import os
-    import tempfile
     names = ["exact"] + [m for m in methods if m in result["images_geometric"][short_id]]
     rows = [short_id, long_id]
     fig = Figure(figsize=(2.3 * len(names), 2.5 * len(rows) + 0.3), dpi=110)
@@ -335,15 +333,6 @@ def save_flare_figure(result, lens_name, short_id, long_id, path, methods):
     fig.suptitle(f"{lens_name}: ghost spot diagrams, point light {result['field_deg']:.1f}° off axis "
                  "(650/550/450 nm as R/G/B, log scale)", fontsize=9)
     fig.tight_layout()
-    d = os.path.dirname(os.path.abspath(path))
-    os.makedirs(d, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=d, suffix=".png")
-    os.close(fd)
-    try:
-        fig.savefig(tmp, format="png")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    from ..fileio import atomic_write
+    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png"))
     return path

@@ -37,7 +37,6 @@ import json
 import math
 import os
 import struct
-import tempfile
 
 import numpy as np
 
@@ -275,19 +274,8 @@ class NeuralLensModel:
             tensors.update(m._tensors())
         meta = {"format": FORMAT, "format_version": str(FORMAT_VERSION),
                 "model": json.dumps(_jsonable(self.metadata()), sort_keys=True)}
-        d = os.path.dirname(os.path.abspath(path))
-        os.makedirs(d, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=d, prefix=".tmp-", suffix=".safetensors")
-        os.close(fd)
-        try:
-            save_file(tensors, tmp, metadata=meta)
-            _umask = os.umask(0); os.umask(_umask)
-            os.chmod(tmp, 0o666 & ~_umask)  # mkstemp files are 0600; these are ordinary files
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+        from ..fileio import atomic_write
+        atomic_write(path, lambda tmp: save_file(tensors, tmp, metadata=meta))
 
     @staticmethod
     def load(path, lens=None) -> "NeuralLensModel":

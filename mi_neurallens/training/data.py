@@ -20,7 +20,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import math
 import os
-import tempfile
 import time
 
 import numpy as np
@@ -339,15 +338,10 @@ def cache_array(path: str, make):
     if os.path.exists(path):
         return np.load(path, mmap_mode="r")
     arr = np.ascontiguousarray(make())
-    d = os.path.dirname(os.path.abspath(path))
-    os.makedirs(d, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=d, suffix=".npy.tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
+    from ..fileio import atomic_write
+
+    def w(tmp):
+        with open(tmp, "wb") as f:
             np.save(f, arr)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write(path, w)
     return np.load(path, mmap_mode="r")

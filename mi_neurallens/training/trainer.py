@@ -17,12 +17,12 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 import time
 
 import numpy as np
 
 from ..errors import NeuralLensError
+from ..fileio import atomic_write, atomic_write_text
 from .config import NetConfig, TrainConfig
 from .data import Domain, PathSampler, RegressorStream, classifier_samples
 
@@ -73,22 +73,6 @@ def lr_at(step: int, nc: NetConfig, seconds: float = 0.0) -> float:
     return nc.lr_min + 0.5 * (nc.lr - nc.lr_min) * (1.0 + math.cos(math.pi * t))
 
 
-def _atomic_write(path: str, write):
-    d = os.path.dirname(os.path.abspath(path))
-    os.makedirs(d, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=d, prefix=".tmp-")
-    os.close(fd)
-    try:
-        write(tmp)
-        _umask = os.umask(0); os.umask(_umask)
-        os.chmod(tmp, 0o666 & ~_umask)  # mkstemp files are 0600; these are ordinary files
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def save_checkpoint(path: str, net, opt, best_state, state: dict):
     """Weights + Adam moments + best weights as safetensors, the rest as JSON (both atomic)."""
     from safetensors.torch import save_file
@@ -100,8 +84,8 @@ def save_checkpoint(path: str, net, opt, best_state, state: dict):
                 t[f"adam.{i}.{name}"] = st[name].detach().cpu().contiguous()
         if "step" in st:
             state.setdefault("adam_steps", {})[str(i)] = float(st["step"])
-    _atomic_write(path + ".safetensors", lambda p: save_file(t, p))
-    _atomic_write(path + ".json", lambda p: open(p, "w").write(json.dumps(state)))
+    atomic_write(path + ".safetensors", lambda p: save_file(t, p))
+    atomic_write_text(path + ".json", json.dumps(state))
 
 
 def load_checkpoint(path: str, net, opt, torch):
@@ -554,7 +538,7 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
                 dom = Domain.from_dict(json.load(open(dom_path)))
             else:
                 dom = plan.backward_domain(lens, pid, z_rear, z_front, np.random.default_rng(cfg.seed))
-                _atomic_write(dom_path, lambda q: open(q, "w").write(json.dumps(dom.to_dict())))
+                atomic_write_text(dom_path, json.dumps(dom.to_dict()))
             todo.append((pid, "backward", z_rear, z_front, dom))
         elif p == "ghosts":
             rk_path = os.path.join(workdir, "ghost_ranking.json")
@@ -563,7 +547,7 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
             else:
                 ranking = plan.rank_ghosts(lens, z_front, fwd_domain, lens.surfaces[-1].thickness,
                                            cfg.film_half_diagonal_mm, cfg.ghost_rank_rays, cfg.seed)
-                _atomic_write(rk_path, lambda q: open(q, "w").write(json.dumps(ranking)))
+                atomic_write_text(rk_path, json.dumps(ranking))
             keep = plan.select_ghosts(ranking, cfg.ghost_energy_fraction, cfg.max_ghosts)
             model.extra["ghost_ranking"] = ranking
             model.extra["ghosts_selected"] = [g["path_id"] for g in keep]

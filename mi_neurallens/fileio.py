@@ -1,0 +1,37 @@
+"""Writing files so that nothing is ever left half-written: the one helper every writer uses."""
+from __future__ import annotations
+
+import os
+import tempfile
+
+
+def atomic_write(path, write_fn) -> str:
+    """Call ``write_fn(tmp_path)`` for a temporary file next to ``path`` (same extension, so writers
+    that pick the format from the name work), give it the usual permissions (``mkstemp`` creates
+    0600) and rename it over ``path``.  On any error the temporary file is removed and ``path`` is
+    untouched.  Returns ``path``."""
+    path = os.path.abspath(os.fspath(path))
+    d, base = os.path.split(path)
+    os.makedirs(d or ".", exist_ok=True)
+    ext = os.path.splitext(base)[1]
+    fd, tmp = tempfile.mkstemp(prefix=f".{base}.", suffix=f".tmp{ext}", dir=d or ".")
+    os.close(fd)
+    try:
+        write_fn(tmp)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def atomic_write_text(path, text: str) -> str:
+    """:func:`atomic_write` of a UTF-8 text file."""
+    def w(tmp):
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text)
+    return atomic_write(path, w)
