@@ -161,6 +161,66 @@ def loss_weights(mode: str, oscale, y) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- regressor
+def _fit(torch, net, opt, nc: NetConfig, state: dict, best: dict, *, n_pool: int, batch_loss, refresh,
+         validate, ckpt, bar, dev):
+    """The optimisation loop both networks share: Adam steps on random batches of a sample pool that is
+    partly refreshed every ``nc.refresh_every`` steps, validation every ``nc.eval_every`` steps with the
+    best weights kept, early stop after ``nc.patience`` evaluations without progress, a wall-clock
+    budget (``nc.max_minutes``, resumed time included) and periodic checkpoints.
+
+    ``batch_loss(idx)`` → loss tensor of pool rows ``idx``; ``refresh(k)`` replaces ``k`` random pool
+    rows; ``validate(step, loss, seconds)`` → (score, postfix dict) — lower score is better (it also
+    logs).  Returns ``(best, stop_reason)``; ``state`` is updated in place.
+    """
+    t0 = time.perf_counter() - state["seconds"]
+    last_ckpt = time.perf_counter()
+    step = state["step"]
+    stop_reason = "max_steps"
+    loss = None
+
+    def evaluate_now():
+        nonlocal best
+        score, postfix = validate(step, loss, time.perf_counter() - t0)
+        bar.set_postfix(**postfix)
+        if score < state["best_val"]:
+            state.update(best_val=score, best_step=step, evals_since_best=0)
+            best = {k: v.detach().clone() for k, v in net.state_dict().items()}
+        else:
+            state["evals_since_best"] += 1
+        return state["evals_since_best"] >= nc.patience
+
+    while step < nc.max_steps:
+        if step > 0 and step % nc.refresh_every == 0:
+            refresh(int(nc.pool * nc.refresh_fraction))
+        for g in opt.param_groups:
+            g["lr"] = lr_at(step, nc, time.perf_counter() - t0)
+        loss = batch_loss(torch.randint(0, n_pool, (nc.batch,), device=dev))
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        step += 1
+        state["samples"] += nc.batch
+        bar.update(1)
+        if step % nc.eval_every == 0 or step == nc.max_steps:
+            if evaluate_now():
+                stop_reason = "early_stop"
+                break
+        state["step"] = step
+        state["seconds"] = time.perf_counter() - t0
+        if state["seconds"] > nc.max_minutes * 60.0:
+            stop_reason = "time_budget"
+            break
+        if ckpt and time.perf_counter() - last_ckpt > CHECKPOINT_SECONDS:
+            save_checkpoint(ckpt, net, opt, best, state)
+            last_ckpt = time.perf_counter()
+    state["step"] = step
+    if not state["history"] or state["history"][-1]["step"] != step:
+        evaluate_now()                           # the budget ended between evaluations
+    bar.close()
+    state.update(step=step, seconds=time.perf_counter() - t0, done=True, stop_reason=stop_reason)
+    return best, stop_reason
+
+
 def train_regressor(stream: RegressorStream, val, nc: NetConfig, *, heading: int, center, scale_in, seed: int,
                     ckpt: str | None, threads: int = 2, device: str = "auto", progress: bool = True,
                     desc: str = "regressor", log=None) -> dict:
@@ -225,14 +285,8 @@ def train_regressor(stream: RegressorStream, val, nc: NetConfig, *, heading: int
 
     bar = _progress(nc.max_steps, desc, progress)
     bar.update(state["step"])
-    last_ckpt = time.perf_counter()
-    t0 = time.perf_counter() - state["seconds"]
-    step = state["step"]
-    stop_reason = "max_steps"
-    loss = None
-    def evaluate_now(loss):
-        """Validate, keep the best weights; True when early stopping is due."""
-        nonlocal best
+
+    def validate(step, loss, seconds):
         with torch.no_grad():
             pv = net(Xv)
             vl = float(((pv - Yv) ** 2).mean())
@@ -240,56 +294,26 @@ def train_regressor(stream: RegressorStream, val, nc: NetConfig, *, heading: int
         from .evaluate import regression_errors
         m = regression_errors(yp, yv, heading)
         rec = {"step": step, "loss": loss.item() if loss is not None else math.nan, "val_mse": vl,
-               "seconds": time.perf_counter() - t0,
+               "seconds": seconds,
                "pos_um_med": m["position_um_median"], "pos_um_p99": m["position_um_p99"],
                "dir_as_med": m["direction_arcsec_median"], "dir_as_p99": m["direction_arcsec_p99"],
                "T_rel_med": m["throughput_rel_median"]}
         state["history"].append(rec)
-        bar.set_postfix(val=f"{vl:.2e}", pos=f"{m['position_um_median']:.2f}µm", dir=f"{m['direction_arcsec_median']:.2f}\"")
         if log:
             log(desc, rec)
-        if vl < state["best_val"]:
-            state.update(best_val=vl, best_step=step, evals_since_best=0)
-            best = {k: v.detach().clone() for k, v in net.state_dict().items()}
-        else:
-            state["evals_since_best"] += 1
-        return state["evals_since_best"] >= nc.patience
+        return vl, dict(val=f"{vl:.2e}", pos=f"{m['position_um_median']:.2f}µm",
+                        dir=f"{m['direction_arcsec_median']:.2f}\"")
 
-    while step < nc.max_steps:
-        if step > 0 and step % nc.refresh_every == 0:
-            k = int(nc.pool * nc.refresh_fraction)
-            _, xr, yr = stream.sample(k)
-            xrn = (xr - center) / scale_in
-            idx = torch.as_tensor(rng.choice(len(X), k, replace=False), device=dev)
-            X[idx], Y[idx], Yraw[idx] = f32(xrn), f32(targets(xrn, yr)), f32(yr)
-        for g in opt.param_groups:
-            g["lr"] = lr_at(step, nc, time.perf_counter() - t0)
-        bi = torch.randint(0, len(X), (nc.batch,), device=dev)
-        loss = loss_fn(X[bi], Y[bi], Yraw[bi])
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        step += 1
-        state["samples"] += nc.batch
-        bar.update(1)
-        if step % nc.eval_every == 0 or step == nc.max_steps:
-            if evaluate_now(loss):
-                stop_reason = "early_stop"
-                break
-        state["step"] = step
-        state["seconds"] = time.perf_counter() - t0
-        if state["seconds"] > nc.max_minutes * 60.0:
-            stop_reason = "time_budget"
-            break
-        if ckpt and time.perf_counter() - last_ckpt > CHECKPOINT_SECONDS:
-            save_checkpoint(ckpt, net, opt, best, state)
-            last_ckpt = time.perf_counter()
-    state["step"] = step
-    if not state["history"] or state["history"][-1]["step"] != step:
-        evaluate_now(loss)                       # the budget ended between evaluations
-    bar.close()
-    state.update(step=step, seconds=time.perf_counter() - t0, done=True, stop_reason=stop_reason,
-                 wall_seconds_total=time.perf_counter() - t_start)
+    def refresh(k):
+        _, xr, yr = stream.sample(k)
+        xrn = (xr - center) / scale_in
+        idx = torch.as_tensor(rng.choice(len(X), k, replace=False), device=dev)
+        X[idx], Y[idx], Yraw[idx] = f32(xrn), f32(targets(xrn, yr)), f32(yr)
+
+    best, _ = _fit(torch, net, opt, nc, state, best, n_pool=len(X),
+                   batch_loss=lambda bi: loss_fn(X[bi], Y[bi], Yraw[bi]), refresh=refresh,
+                   validate=validate, ckpt=ckpt, bar=bar, dev=dev)
+    state["wall_seconds_total"] = time.perf_counter() - t_start
     net.load_state_dict(best)
     if ckpt:
         save_checkpoint(ckpt, net, opt, best, state)
@@ -335,64 +359,27 @@ def train_classifier(ps: PathSampler, valid_u_source, val, nc: NetConfig, *, cen
     bce = torch.nn.BCEWithLogitsLoss()
     bar = _progress(nc.max_steps, desc, progress)
     bar.update(state["step"])
-    last_ckpt = time.perf_counter()
-    t0 = time.perf_counter() - state["seconds"]
-    step = state["step"]
-    stop_reason = "max_steps"
-    loss = None
 
-    def evaluate_now(loss):
-        nonlocal best
+    def validate(step, loss, seconds):
         with torch.no_grad():
             lg = net(Xv)[:, 0]
             err = float(((lg > 0) != Lv).float().mean())
             vb = float(bce(lg, Lv.float()))
         rec = {"step": step, "loss": loss.item() if loss is not None else math.nan, "val_bce": vb,
-               "val_misclass": err, "seconds": time.perf_counter() - t0}
+               "val_misclass": err, "seconds": seconds}
         state["history"].append(rec)
-        bar.set_postfix(miscls=f"{100 * err:.3f}%")
         if log:
             log(desc, rec)
-        score = err + 0.01 * vb
-        if score < state["best_val"]:
-            state.update(best_val=score, best_step=step, evals_since_best=0)
-            best = {k: v.detach().clone() for k, v in net.state_dict().items()}
-        else:
-            state["evals_since_best"] += 1
-        return state["evals_since_best"] >= nc.patience
+        return err + 0.01 * vb, dict(miscls=f"{100 * err:.3f}%")
 
-    while step < nc.max_steps:
-        if step > 0 and step % nc.refresh_every == 0:
-            k = int(nc.pool * nc.refresh_fraction)
-            xr, lr_ = pool(k)
-            idx = torch.as_tensor(rng.choice(len(X), k, replace=False), device=dev)
-            X[idx], L[idx] = xr, lr_
-        for g in opt.param_groups:
-            g["lr"] = lr_at(step, nc, time.perf_counter() - t0)
-        bi = torch.randint(0, len(X), (nc.batch,), device=dev)
-        loss = bce(net(X[bi])[:, 0], L[bi])
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        step += 1
-        state["samples"] += nc.batch
-        bar.update(1)
-        if step % nc.eval_every == 0 or step == nc.max_steps:
-            if evaluate_now(loss):
-                stop_reason = "early_stop"
-                break
-        state["step"] = step
-        state["seconds"] = time.perf_counter() - t0
-        if state["seconds"] > nc.max_minutes * 60.0:
-            stop_reason = "time_budget"
-            break
-        if ckpt and time.perf_counter() - last_ckpt > CHECKPOINT_SECONDS:
-            save_checkpoint(ckpt, net, opt, best, state)
-            last_ckpt = time.perf_counter()
-    if not state["history"] or state["history"][-1]["step"] != step:
-        evaluate_now(loss)                       # the budget ended between evaluations
-    bar.close()
-    state.update(step=step, seconds=time.perf_counter() - t0, done=True, stop_reason=stop_reason)
+    def refresh(k):
+        xr, lr_ = pool(k)
+        idx = torch.as_tensor(rng.choice(len(X), k, replace=False), device=dev)
+        X[idx], L[idx] = xr, lr_
+
+    best, _ = _fit(torch, net, opt, nc, state, best, n_pool=len(X),
+                   batch_loss=lambda bi: bce(net(X[bi])[:, 0], L[bi]), refresh=refresh,
+                   validate=validate, ckpt=ckpt, bar=bar, dev=dev)
     net.load_state_dict(best)
     if ckpt:
         save_checkpoint(ckpt, net, opt, best, state)
