@@ -86,6 +86,38 @@ def test_mcmc_samples_valid_and_cover_valid_region():
     assert 0.5 * np.abs(hm / hm.sum() - hr / hr.sum()).sum() < 0.08
 
 
+def test_bounded_rejection_is_uniform_over_the_valid_region_and_wastes_fewer_rays():
+    """Pilot-traced bounds (training/bounds.py) must not change the sampled distribution: every valid
+    ray of an independent pilot lies inside the boxes, and the marginals match plain rejection."""
+    lens = Lens.load("wide-22mm")
+    s0, _ = plan.sensor_distance_range(lens, 300.0)
+    z_front, z_rear = plan.planes(lens, s0)
+    dom = plan.backward_domain(lens, 0, z_rear, z_front, np.random.default_rng(0), n=1 << 20)
+    ps = data.PathSampler(lens, 0, "backward", z_rear, z_front, dom)
+    b = ps.build_bounds(np.random.default_rng(1), n_pilot=1 << 21)
+    assert b is not None and b.missed == 0.0
+    assert b.volume_fraction(dom) < 0.4                      # a real reduction of the sampled volume
+    ur, yr = ps.random_valid(1 << 21, 11, bounds=False)
+    ub, yb = ps.random_valid(1 << 21, 12, bounds=True)
+    assert len(ub) > 3 * len(ur)                             # acceptance 12 % -> ~58 %
+    # the returned u addresses its own sample, and the sample is valid in float64 too
+    ps64 = data.PathSampler(lens, 0, "backward", z_rear, z_front, dom, precision="float64")
+    v64, y64 = ps64.trace_u(ub[:20000])
+    assert v64.mean() > 0.999
+    np.testing.assert_allclose(y64[v64, :2], yb[:20000][v64, :2], atol=2e-3)
+    for k in range(4):
+        hr, _ = np.histogram(ur[:, k], np.linspace(0, 1, 21))
+        hb, _ = np.histogram(ub[:, k], np.linspace(0, 1, 21))
+        assert 0.5 * np.abs(hr / hr.sum() - hb / hb.sum()).sum() < 0.015, k
+    hr, _, _ = np.histogram2d(ur[:, 0], ur[:, 1], 8, [[0, 1], [0, 1]])
+    hb, _, _ = np.histogram2d(ub[:, 0], ub[:, 1], 8, [[0, 1], [0, 1]])
+    assert 0.5 * np.abs(hr / hr.sum() - hb / hb.sum()).sum() < 0.02
+    # a bounds that cut the valid region would be caught by `missed`
+    from mi_neurallens.training.bounds import ValidBounds
+    cut = ValidBounds(b.r_edges, b.wx_lo, 0.5 * (b.wx_lo + b.wx_hi), b.wy_lo, b.wy_hi)
+    assert not cut.contains(dom.u_to_x(ur)).all()
+
+
 def test_classifier_samples_are_balanced_with_boundary_points():
     lens = thick_lens()
     ps = data.PathSampler(lens, 0, "backward", 52.0, -1.0, data.Domain(12.0, 0.4))

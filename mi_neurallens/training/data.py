@@ -17,7 +17,7 @@ exit direction (dx, dy) (dz follows from the heading), Fresnel throughput T.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 import math
 import os
 import time
@@ -124,6 +124,8 @@ class PathSampler:
         self.np_dtype = np.float32 if precision == "float32" else np.float64
         self.tracer = LensTracer(lens, fresnel=fresnel)
         self.rays_traced = 0
+        #: optional :class:`~mi_neurallens.training.bounds.ValidBounds` used by :meth:`random_valid`
+        self.bounds = None
 
     # -- Dr.Jit core ---------------------------------------------------------------------------
     def u_to_x_dr(self, u):
@@ -175,9 +177,14 @@ class PathSampler:
     def valid_u(self, u: np.ndarray) -> np.ndarray:
         return self.trace_u(u)[0]
 
-    def random_valid(self, n_rays: int, seed: int):
-        """Trace ``n_rays`` uniform unit-cube samples drawn with Dr.Jit's PCG32 (stream ``seed``) and
-        return only the valid ones, compacted inside Dr.Jit: (u (K, 4) float32, y (K, 5) float32)."""
+    def random_valid(self, n_rays: int, seed: int, bounds: bool = True):
+        """Trace ``n_rays`` random samples drawn with Dr.Jit's PCG32 (stream ``seed``) and return only
+        the valid ones, compacted inside Dr.Jit: (u (K, 4), y (K, 5)), float64 arrays.
+
+        Uniform over the unit cube, or, when :attr:`bounds` (a
+        :class:`~mi_neurallens.training.bounds.ValidBounds`) is set and ``bounds`` is true, uniform
+        over its boxes: both are uniform over the valid region, the second wastes fewer rays.  ``u``
+        is always the unit-cube address of the sample (:meth:`Domain.u_to_x` maps it to inputs)."""
         import drjit as dr
         from ..trace.api import float_type
         be = __import__(type(self.F(0)).__module__, fromlist=["PCG32"])
@@ -186,13 +193,32 @@ class PathSampler:
             u = [rng.next_float64() for _ in range(4)]
         else:
             u = [rng.next_float32() for _ in range(4)]
-        valid, outs = self.trace_dr(*self.u_to_x_dr(u))
+        if bounds and self.bounds is not None:
+            d = self.domain
+            r, wx, wy = self.bounds.sample_dr(self.F, u)
+            lam, _ = sample_cie_wavelength(u[3])
+            s2 = dr.fma(wx, wx, wy * wy)
+            valid, outs = self.trace_dr(r, wx, wy, lam)
+            valid &= s2 <= d.s_max * d.s_max
+            u = [r / d.r_max, s2 / (d.s_max * d.s_max), dr.atan2(wy, wx) / math.pi, u[3]]
+        else:
+            valid, outs = self.trace_dr(*self.u_to_x_dr(u))
+        # one kernel for the trace, then one for the compaction: compress() alone would evaluate only
+        # ``valid`` and the gathers would re-trace every ray to get the outputs
+        dr.eval(valid, u, outs)
         idx = dr.compress(valid)
         cols = [dr.gather(type(u[0]), a, idx) for a in u + outs]
         dr.eval(cols)
         self.rays_traced += n_rays
-        arr = np.stack([c.numpy() for c in cols], 1)
-        return arr[:, :4].astype(np.float64), arr[:, 4:].astype(np.float64)
+        arr = np.stack([c.numpy() for c in cols], 1).astype(np.float64)
+        return arr[:, :4], arr[:, 4:]
+
+    def build_bounds(self, rng: np.random.Generator, n_pilot: int = 1 << 22):
+        """Pilot-trace :attr:`bounds` (see :mod:`mi_neurallens.training.bounds`); returns them (or
+        ``None`` when the valid region is too rare for a pilot to bound)."""
+        from .bounds import ValidBounds
+        self.bounds = ValidBounds.build(self, rng, n_pilot)
+        return self.bounds
 
 
 # ----------------------------------------------------------------------------- samplers
@@ -288,16 +314,19 @@ def valid_fraction(ps: PathSampler, rng: np.random.Generator, n: int = 1 << 20) 
 
 class RegressorStream:
     """Valid (x, y) training samples of one map: rejection sampling when the valid fraction is at
-    least ``mcmc_threshold``, the Metropolis sampler otherwise."""
+    least ``mcmc_threshold`` (inside pilot-traced :mod:`~mi_neurallens.training.bounds` when
+    ``bounded``), the Metropolis sampler otherwise."""
 
     def __init__(self, ps: PathSampler, seed: int, mcmc_threshold: float = 0.02, n_chains: int = 1 << 16,
-                 p_large: float = 0.3, sigma: float = 0.02):
+                 p_large: float = 0.3, sigma: float = 0.02, bounded: bool = True):
         self.ps = ps
         self.rng = np.random.default_rng(seed)
         self.fraction = valid_fraction(ps, self.rng)
         self.mcmc = None
         if self.fraction < mcmc_threshold:
             self.mcmc = MCMCSampler(ps, self.rng, n_chains=n_chains, p_large=p_large, sigma=sigma)
+        elif bounded:
+            ps.build_bounds(self.rng)
 
     def sample(self, n: int):
         if self.mcmc is not None:
@@ -308,7 +337,9 @@ class RegressorStream:
 
     @property
     def method(self):
-        return "mcmc" if self.mcmc is not None else "rejection"
+        if self.mcmc is not None:
+            return "mcmc"
+        return "rejection (bounded)" if self.ps.bounds is not None else "rejection"
 
 
 def classifier_samples(ps: PathSampler, valid_u: np.ndarray, n: int, rng: np.random.Generator,
