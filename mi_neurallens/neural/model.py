@@ -26,9 +26,12 @@ Tensors of map ``K`` (float32): ``K.classifier.{i}.weight`` (out, in), ``K.class
 
 Evaluation of one map on reduced inputs x = (r, ωx, ωy, λ) (see :mod:`mi_neurallens.trace.symmetry`):
 ``xn = (x − center)/scale``; valid iff ``classifier(xn) > 0`` (a logit) and x lies in the domain;
-``y = out_shift + out_scale · regressor(xn) + skip · xn`` = (x, y) exit position on ``z_out``,
+``y = M · (out_shift + out_scale · regressor(xn) + skip · xn)`` = (x, y) exit position on ``z_out``,
 (dx, dy) exit direction (dz = ±√(1 − dx² − dy²), + forward, − backward), Fresnel throughput — all in
-the reduced frame, undone to lens space by :func:`~mi_neurallens.trace.symmetry.undo`.
+the reduced frame, undone to lens space by :func:`~mi_neurallens.trace.symmetry.undo`.  ``M`` is 1,
+except for maps whose regressor metadata says ``"odd_y": true``: there the y and dy outputs are
+multiplied by ωy / s_max, which makes them exactly odd under the mirror reduction ωy → −ωy (y = dy = 0
+on the mirror plane, as the exact tracer gives), so the undo leaves no seam across that plane.
 """
 from __future__ import annotations
 
@@ -67,6 +70,7 @@ class TransportMap:
     out_shift: np.ndarray
     classifier_activation: str = "tanh"
     regressor_activation: str = "tanh"
+    odd_y: bool = False            # y, dy outputs multiplied by ωy / s_max (see the module docstring)
     training: dict = field(default_factory=dict)
     metrics: dict = field(default_factory=dict)
 
@@ -104,6 +108,10 @@ class TransportMap:
         xn = self.normalise_np(x)
         logit = mlp_np(xn, self.classifier, self.classifier_activation)[:, 0]
         y = mlp_np(xn, self._folded(), self.regressor_activation) + xn @ np.asarray(self.skip, np.float64).T
+        if self.odd_y:
+            m = np.asarray(x, np.float64)[:, 2] / float(self.domain["s_max"])
+            y[:, 1] *= m
+            y[:, 3] *= m
         return logit, y
 
     def eval_reduced_dr(self, x, mlp: str = "fused"):
@@ -129,6 +137,9 @@ class TransportMap:
             for i in range(len(xn)):
                 if A[j, i] != 0.0:
                     y[j] = dr.fma(xn[i], float(A[j, i]), y[j])
+        if self.odd_y:
+            m = x[2] * (1.0 / float(self.domain["s_max"]))
+            y[1], y[3] = y[1] * m, y[3] * m
         return logit, y
 
     # ------------------------------------------------------------------ lens-space evaluation
@@ -198,7 +209,7 @@ class TransportMap:
                                "scale": [float(v) for v in self.input_scale]},
                 "classifier": {"layers": _widths(self.classifier), "activation": self.classifier_activation},
                 "regressor": {"layers": _widths(self.regressor), "activation": self.regressor_activation,
-                              "outputs": list(OUTPUTS)},
+                              "outputs": list(OUTPUTS), "odd_y": bool(self.odd_y)},
                 "training": self.training, "metrics": self.metrics}
 
     def _tensors(self) -> dict:
@@ -385,6 +396,7 @@ def load_model(path, lens=None) -> NeuralLensModel:
                 out_scale=get(f"{key}.regressor.out_scale", (len(OUTPUTS),)),
                 out_shift=get(f"{key}.regressor.out_shift", (len(OUTPUTS),)),
                 classifier_activation=ac, regressor_activation=ar,
+                odd_y=bool(mm["regressor"].get("odd_y", False)),
                 training=mm.get("training", {}), metrics=mm.get("metrics", {}))
             if tm.direction not in ("forward", "backward") or tm.key != key:
                 raise ModelError(f"{path}: map {key}: inconsistent key/direction/path id")

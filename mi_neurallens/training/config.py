@@ -36,6 +36,7 @@ class NetConfig:
     direction_loss: str = "mse+cosine"  # or "cosine" (paper)
     cosine_weight: float = 1.0
     loss_weights: str = "goals"         # regressor: per-output MSE weights ∝ (output std / accuracy goal), floored; or "uniform"
+    odd_y: bool = True                  # regressor: y, dy = (ωy / s_max) × network: exactly odd in ωy, no mirror-plane seam
     pool: int = 2_000_000               # samples held in memory; refreshed from the tracer
     refresh_every: int = 2000           # steps between pool refreshes (fresh tracer data)
     refresh_fraction: float = 0.25
@@ -51,7 +52,7 @@ def classifier_defaults() -> NetConfig:
 
 
 PAPER = dict(schedule="paper", lr=1e-4, decay=0.95, decay_every=10000, batch=8192, warmup_steps=0,
-             residual="none", direction_loss="cosine", loss_weights="uniform")
+             residual="none", direction_loss="cosine", loss_weights="uniform", odd_y=False)
 
 
 @dataclass

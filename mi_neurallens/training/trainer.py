@@ -122,21 +122,41 @@ def _progress(total, desc, enabled):
 
 
 # ----------------------------------------------------------------------------- output standardisation
-def fit_output_transform(xn: np.ndarray, y: np.ndarray, residual: str):
-    """(skip (5, 4), out_shift (5,), out_scale (5,)) so that the network target
-    ``(y − shift − skip·xn) / scale`` has zero mean and unit variance per column."""
-    if residual == "linear":
-        A = np.concatenate([xn, np.ones((len(xn), 1))], 1)
-        coef, *_ = np.linalg.lstsq(A, y, rcond=None)
-        skip, c = coef[:-1].T, coef[-1]
-        res = y - A @ coef
-        shift = c + res.mean(0)
-        scale = res.std(0)
-    elif residual == "none":
-        skip = np.zeros((y.shape[1], xn.shape[1]))
-        shift, scale = y.mean(0), y.std(0)
-    else:
+#: output columns that are odd under the mirror reduction ωy → −ωy (y and dy of the reduced frame)
+ODD_COLUMNS = (1, 3)
+
+
+def odd_factor(x_wy: np.ndarray, s_max: float | None, n_out: int = 5) -> np.ndarray:
+    """(N, n_out) multiplier ``M`` of the odd-output parametrisation: ωy / s_max in the odd columns
+    (:data:`ODD_COLUMNS`), 1 elsewhere; all ones when ``s_max`` is None (plain outputs).  ``x_wy``: ωy
+    (direction cosine, ≥ 0 in the reduced domain)."""
+    M = np.ones((len(x_wy), n_out))
+    if s_max is not None:
+        for j in ODD_COLUMNS:
+            M[:, j] = np.asarray(x_wy, np.float64) / float(s_max)
+    return M
+
+
+def fit_output_transform(xn: np.ndarray, y: np.ndarray, residual: str, M: np.ndarray | None = None):
+    """(skip (5, 4), out_shift (5,), out_scale (5,)) of the regressor's output transform
+    ``y = M · (shift + skip·xn + scale·network)`` (``M`` from :func:`odd_factor`; None = ones): the
+    linear part is the least-squares fit of y (``residual = "linear"``) or the mean (``"none"``), and
+    ``scale`` the spread of what is left, so the network's target has about unit variance."""
+    M = np.ones_like(y) if M is None else M
+    n, k = xn.shape
+    skip, shift, scale = np.zeros((y.shape[1], k)), np.zeros(y.shape[1]), np.zeros(y.shape[1])
+    if residual not in ("linear", "none"):
         raise NeuralLensError(f"unknown residual mode {residual!r}: use 'linear' or 'none'")
+    for j in range(y.shape[1]):
+        A = np.concatenate([xn, np.ones((n, 1))], 1) if residual == "linear" else np.ones((n, 1))
+        A = A * M[:, j:j + 1]
+        coef, *_ = np.linalg.lstsq(A, y[:, j], rcond=None)
+        res = y[:, j] - A @ coef
+        if residual == "linear":
+            skip[j], shift[j] = coef[:-1], coef[-1]
+        else:
+            shift[j] = coef[0]
+        scale[j] = res.std()
     scale = np.where(scale > 1e-9, scale, 1e-9)
     return skip, shift, scale
 
@@ -223,16 +243,22 @@ def _fit(torch, net, opt, nc: NetConfig, state: dict, best: dict, *, n_pool: int
 
 def train_regressor(stream: RegressorStream, val, nc: NetConfig, *, heading: int, center, scale_in, seed: int,
                     ckpt: str | None, threads: int = 2, device: str = "auto", progress: bool = True,
-                    desc: str = "regressor", log=None) -> dict:
-    """Train one regressor.  ``val``: (x, y) float64 held-out (valid) samples for validation."""
+                    desc: str = "regressor", log=None, s_max: float | None = None) -> dict:
+    """Train one regressor.  ``val``: (x, y) float64 held-out (valid) samples for validation.
+    ``s_max`` (the domain's) is needed when ``nc.odd_y`` (see :func:`odd_factor`)."""
     torch = _torch(threads)
     dev = pick_device(torch, device)
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     t_start = time.perf_counter()
+    odd_s = None
+    if nc.odd_y:
+        if s_max is None:
+            raise NeuralLensError("train_regressor: odd_y needs the domain's s_max")
+        odd_s = float(s_max)
     _, x0, y0 = stream.sample(nc.pool)
     xn0 = (x0 - center) / scale_in
-    skip, shift, oscale = fit_output_transform(xn0, y0, nc.residual)
+    skip, shift, oscale = fit_output_transform(xn0, y0, nc.residual, odd_factor(x0[:, 2], odd_s))
     net = make_net(torch, 4, 5, nc.hidden, nc.width, nc.activation).to(dev)
     opt = torch.optim.Adam(net.parameters(), lr=nc.lr)
     state = {"step": 0, "best_val": math.inf, "best_step": 0, "history": [], "evals_since_best": 0,
@@ -243,41 +269,61 @@ def train_regressor(stream: RegressorStream, val, nc: NetConfig, *, heading: int
         if got is not None:
             state, best = got
             skip, shift, oscale = (np.asarray(state["skip"]), np.asarray(state["shift"]), np.asarray(state["oscale"]))
+            if bool(state.get("odd_y", False)) != (odd_s is not None):
+                raise NeuralLensError(f"{ckpt}: checkpoint was trained with odd_y={state.get('odd_y', False)}; "
+                                      "use another work directory or the same setting")
             if state.get("done"):
                 net.load_state_dict(best)
                 return _reg_result(net, skip, shift, oscale, state)
             stream.rng = np.random.default_rng([seed, state["step"]])
             _, x0, y0 = stream.sample(nc.pool)
             xn0 = (x0 - center) / scale_in
-    state.update(skip=skip.tolist(), shift=shift.tolist(), oscale=oscale.tolist())
+    state.update(odd_y=odd_s is not None, skip=skip.tolist(), shift=shift.tolist(), oscale=oscale.tolist())
     f32 = lambda a: torch.as_tensor(np.ascontiguousarray(a, dtype=np.float32), device=dev)
     T_skip, T_shift, T_scale = f32(skip), f32(shift), f32(oscale)
     sig_d2 = float(np.mean(oscale[2:4] ** 2))
     W = f32(loss_weights(nc.loss_weights, oscale, y0))
 
-    def targets(xn, y):
-        return (y - shift - xn @ skip.T) / oscale
+    def targets(x, xn, y):
+        """What the network's output times M should equal: (y − M·(shift + skip·xn)) / scale."""
+        return (y - odd_factor(x[:, 2], odd_s) * (shift + xn @ skip.T)) / oscale
+
+    # M of a batch from its normalised inputs (ωy = center + scale·xn)
+    wy_c, wy_s = float(center[2]), float(scale_in[2])
+
+    def M_of(xb):
+        M = torch.ones((xb.shape[0], 5), device=dev)
+        if odd_s is not None:
+            m = (wy_c + wy_s * xb[:, 2]) / odd_s
+            for j in ODD_COLUMNS:
+                M[:, j] = m
+        return M
 
     X = f32(xn0)
-    Y = f32(targets(xn0, y0))
+    Y = f32(targets(x0, xn0, y0))
     Yraw = f32(y0)
     xv, yv = val
     xvn = (xv - center) / scale_in
-    Xv, Yv = f32(xvn), f32(targets(xvn, yv))
+    Xv, Yv = f32(xvn), f32(targets(xv, xvn, yv))
 
     def dir3(dxy):
         dz = heading * torch.sqrt(torch.clamp(1.0 - (dxy * dxy).sum(1, keepdim=True), min=0.0))
         v = torch.cat([dxy, dz], 1)
         return v / v.norm(dim=1, keepdim=True)
 
+    def predict(xb):
+        """Network output times M (compared with the targets) and M."""
+        M = M_of(xb)
+        return net(xb) * M, M
+
     def loss_fn(xb, tb, yb_raw):
-        p = net(xb)
+        p, M = predict(xb)
         if nc.direction_loss == "cosine":
             l = (((p - tb) ** 2) * W)[:, [0, 1, 4]].mean() * 3.0 / 5.0
         else:
             l = (((p - tb) ** 2) * W).mean()
         if nc.direction_loss in ("cosine", "mse+cosine"):
-            d_pred = T_shift[2:4] + T_scale[2:4] * p[:, 2:4] + xb @ T_skip[2:4].T
+            d_pred = M[:, 2:4] * (T_shift[2:4] + xb @ T_skip[2:4].T) + T_scale[2:4] * p[:, 2:4]
             # 1 − cos(a, b) = |â − b̂|²/2 for unit vectors (the stable form in float32)
             cos_term = ((dir3(d_pred) - dir3(yb_raw[:, 2:4])) ** 2).sum(1).mean() / (2.0 * sig_d2)
             l = l + nc.cosine_weight * cos_term * (2.0 / 5.0)
@@ -288,9 +334,9 @@ def train_regressor(stream: RegressorStream, val, nc: NetConfig, *, heading: int
 
     def validate(step, loss, seconds):
         with torch.no_grad():
-            pv = net(Xv)
+            pv, _ = predict(Xv)
             vl = float(((pv - Yv) ** 2).mean())
-            yp = (pv.double().cpu().numpy() * oscale + shift + xvn @ skip.T)
+            yp = pv.double().cpu().numpy() * oscale + odd_factor(xv[:, 2], odd_s) * (shift + xvn @ skip.T)
         from .evaluate import regression_errors
         m = regression_errors(yp, yv, heading)
         rec = {"step": step, "loss": loss.item() if loss is not None else math.nan, "val_mse": vl,
@@ -308,7 +354,7 @@ def train_regressor(stream: RegressorStream, val, nc: NetConfig, *, heading: int
         _, xr, yr = stream.sample(k)
         xrn = (xr - center) / scale_in
         idx = torch.as_tensor(rng.choice(len(X), k, replace=False), device=dev)
-        X[idx], Y[idx], Yraw[idx] = f32(xrn), f32(targets(xrn, yr)), f32(yr)
+        X[idx], Y[idx], Yraw[idx] = f32(xrn), f32(targets(xr, xrn, yr)), f32(yr)
 
     best, _ = _fit(torch, net, opt, nc, state, best, n_pool=len(X),
                    batch_loss=lambda bi: loss_fn(X[bi], Y[bi], Yraw[bi]), refresh=refresh,
@@ -322,7 +368,7 @@ def train_regressor(stream: RegressorStream, val, nc: NetConfig, *, heading: int
 
 def _reg_result(net, skip, shift, oscale, state):
     return {"layers": net_layers(net), "skip": np.asarray(skip), "out_shift": np.asarray(shift),
-            "out_scale": np.asarray(oscale), "state": state}
+            "out_scale": np.asarray(oscale), "odd_y": bool(state.get("odd_y", False)), "state": state}
 
 
 # ----------------------------------------------------------------------------- classifier
@@ -434,7 +480,8 @@ def train_map(lens, path_id: int, direction: str, z_in: float, z_out: float, dom
     t0 = time.perf_counter()
     reg = train_regressor(stream, val, rc, heading=1 if direction == "forward" else -1, center=center,
                           scale_in=scale_in, seed=seed, ckpt=ck("regressor"), threads=cfg.threads,
-                          device=cfg.device, progress=progress, desc=f"{key} regressor", log=log)
+                          device=cfg.device, progress=progress, desc=f"{key} regressor", log=log,
+                          s_max=domain.s_max)
     t1 = time.perf_counter()
     # classifier validation: the natural mix (uniform over the domain), float64 labels
     vrng = np.random.default_rng(seed + 11)
@@ -459,7 +506,7 @@ def train_map(lens, path_id: int, direction: str, z_in: float, z_out: float, dom
     tm = TransportMap(path_id=int(path_id), direction=direction, z_in=float(z_in), z_out=float(z_out),
                       domain=domain.to_dict(), input_center=center, input_scale=scale_in,
                       classifier=cls["layers"], regressor=reg["layers"], skip=reg["skip"],
-                      out_scale=reg["out_scale"], out_shift=reg["out_shift"],
+                      out_scale=reg["out_scale"], out_shift=reg["out_shift"], odd_y=reg["odd_y"],
                       classifier_activation=cc.activation, regressor_activation=rc.activation,
                       training=training)
     calibrate_classifier(lens, tm, min(cfg.heldout, 200_000), seed + 13, cfg.fresnel)
