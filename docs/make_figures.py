@@ -10,6 +10,9 @@
    → docs/images/neural_focus_sweep.png.
 4. ``--methods``: the depth-of-field render of every transport method (exact, neural, ABCD, Taylor 3/5,
    fitted polynomials) → docs/images/methods_dof_wide-22mm.png and out/figures/methods.json.
+5. ``--night``: scenes/night.xml with its flare, ``realistic_lens`` (exact ghosts) beside ``neural_lens``
+   (learned ghosts), the ghosts the model has maps for → docs/images/flare_night_<lens>.png and
+   out/figures/night.json.
 """
 from __future__ import annotations
 
@@ -131,6 +134,41 @@ def methods(spp, res, lens="wide-22mm"):
     return rows
 
 
+def night(spp, lens="ood-59mm", res="480x320", flare_samples=1 << 24):
+    """The night scene through ``realistic_lens`` (exact ghosts) and ``neural_lens`` (learned ghosts):
+    the same ghosts (those with maps), same seeds; plus the flare-only images and their MAPE."""
+    import time
+    import mitsuba as mi
+    from mi_neurallens.commands.render import load_scene, render_passes
+    from mi_neurallens.metrics import mape, mape_masked
+    from mi_neurallens.neural.model import bundled_model_path, load_model
+    ghosts = " ".join(str(g) for g in load_model(bundled_model_path(lens)).ghost_ids)
+    w, h = (int(v) for v in res.split("x"))
+    imgs, flares, secs = {}, {}, {}
+    for st, mode in (("realistic_lens", "exact"), ("neural_lens", "neural")):
+        scene = load_scene(os.path.join(ROOT, "scenes", "night.xml"), variant="llvm_ad_rgb", lens=lens,
+                           resolution=(w, h), spp=spp, sensor_type=st,
+                           sets=[f"model={lens}"] if st == "neural_lens" else [],
+                           params=[f"mode={mode}", f"ghosts={ghosts}", f"flare_samples={flare_samples}"])
+        t0 = time.perf_counter()
+        imgs[st], _ = render_passes(scene, spp, max(1, spp // 64), show_progress=False)
+        secs[st] = time.perf_counter() - t0
+        flares[st] = np.asarray(scene.integrator().last_result.total)
+    out = {"lens": lens, "spp": spp, "resolution": res, "flare_samples_per_light": flare_samples,
+           "ghosts": ghosts.split(), "seconds": secs,
+           "mape_full_image": mape(imgs["neural_lens"], imgs["realistic_lens"]),
+           "mape_flare_only": mape_masked(flares["neural_lens"], flares["realistic_lens"])}
+    diff = np.abs(imgs["neural_lens"] - imgs["realistic_lens"]) * 10.0
+    grid([imgs["realistic_lens"], imgs["neural_lens"], diff],
+         [f"realistic_lens, exact ghosts ({secs['realistic_lens']:.0f} s)",
+          f"neural_lens, learned ghosts ({secs['neural_lens']:.0f} s)",
+          f"|difference| × 10 (MAPE {out['mape_full_image']:.3f}; flare only {out['mape_flare_only']:.3f})"],
+         os.path.join(IMG, f"flare_night_{lens}.png"),
+         f"scenes/night.xml, {lens}, {spp} spp, {len(out['ghosts'])} ghosts with learned maps, "
+         f"{flare_samples / 2**20:.0f} M flare samples per light", 3)
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--spp", type=int, default=64)
@@ -138,6 +176,7 @@ def main(argv=None):
     ap.add_argument("--resolution", default="320x240")
     ap.add_argument("--skip-compare", action="store_true")
     ap.add_argument("--methods", action="store_true", help="only the per-method depth-of-field figure")
+    ap.add_argument("--night", default="", help="only the night-scene flare figure for these lenses (comma list)")
     a = ap.parse_args(argv)
     os.makedirs(OUT, exist_ok=True)
     import mitsuba as mi
@@ -145,6 +184,13 @@ def main(argv=None):
     import mi_neurallens
     mi_neurallens.register()
     res = {}
+    if a.night:
+        for lens in a.night.split(","):
+            res[lens] = night(a.spp, lens)
+            print(json.dumps(res[lens], indent=1, default=float))
+        with open(os.path.join(OUT, "night.json"), "w") as f:
+            json.dump(res, f, indent=2, default=float)
+        return
     if a.methods:
         res["methods"] = methods(a.spp, a.resolution)
         with open(os.path.join(OUT, "methods.json"), "w") as f:

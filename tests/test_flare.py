@@ -274,3 +274,11 @@ def test_neural_matches_exact_and_shuffled_fails():
     sh = render_flare(scene, 0, ghosts=[pid], samples=1 << 20, mode="neural", model=bad, seed=1).total
     e_ok, e_bad = mape(ne, ex), mape(sh, ex)
     assert e_ok < 0.25 and e_bad > 2 * e_ok, (e_ok, e_bad)
+    # common random numbers: planned by the tracer, at the exact render's seed, the neural render uses
+    # the exact render's samples, so only the map's error is left between them (no Monte Carlo noise)
+    paired = render_flare(scene, 0, ghosts=[pid], samples=1 << 20, mode="neural", model=m, seed=0,
+                          pilot_with="exact").total
+    e_pair = mape(paired, ex)
+    assert e_pair < 0.5 * e_ok, (e_pair, e_ok)
+    with pytest.raises(NeuralLensError, match="pilot_with"):
+        render_flare(scene, 0, ghosts=[pid], mode="neural", model=m, pilot_with="tracer")

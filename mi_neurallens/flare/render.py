@@ -37,6 +37,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import math
 import time
+import zlib
 
 import numpy as np
 
@@ -72,6 +73,11 @@ class FlareOptions:
     pilot_grid: int = 64
     pilot_spp: int = 4
     bounds: str = "pilot"              #: pilot | none
+    #: who plans the sampling (pilot cells and per-ghost budgets): "self" (the render's own evaluator)
+    #: or "exact" (the tracer, whatever the mode).  Random numbers depend on the seed and the path only,
+    #: so with "exact" renders of different modes at one seed use identical samples (common random
+    #: numbers): their difference is the maps' error alone, without Monte Carlo noise between them.
+    pilot_with: str = "self"
     coating: str = "lens"              #: lens (as the sensor's lens) | none | quarter_wave
     coating_index: float = 1.38
     coating_wavelength: float = 550.0
@@ -91,6 +97,8 @@ class FlareOptions:
                              f"got {self.mode!r}")
         if self.coating not in COATINGS:
             raise FlareError(f"lens_flare: 'coating' must be one of {', '.join(COATINGS)}, got {self.coating!r}")
+        if self.pilot_with not in ("self", "exact"):
+            raise FlareError(f"lens_flare: 'pilot_with' must be 'self' or 'exact', got {self.pilot_with!r}")
         if self.bounds not in BOUNDS:
             raise FlareError(f"lens_flare: 'bounds' must be one of {', '.join(BOUNDS)}, got {self.bounds!r}")
         if not self.samples > 0:
@@ -520,7 +528,7 @@ class FlareRenderer:
         import mitsuba as mi
         import drjit as dr
         idx = dr.arange(mi.UInt32, n)
-        rng = np.random.default_rng([seed, ev_hash(ev), hash(light.name) & 0xFFFF])
+        rng = np.random.default_rng([seed, ev_hash(ev), zlib.crc32(light.name.encode()) & 0xFFFF])
         shift = [dr.opaque(mi.UInt32, int(v)) for v in rng.integers(0, 2 ** 32, 6, dtype=np.uint64)]
         u = [_u32_to_unit(mi, dr, idx * a + s) for a, s in zip(_ALPHA, shift)]
         c_, R_ = c, R
@@ -568,7 +576,8 @@ class FlareRenderer:
             for pid in ids:
                 t0 = time.perf_counter()
                 ev = self.evaluator(pid)
-                cells, c, R, n_in, n_hit, energy = self.pilot(light, ev, seed * 1000 + li)
+                ev_plan = ev if opts.pilot_with == "self" or ev.kind == "exact" else ExactGhost(self.tracer, pid)
+                cells, c, R, n_in, n_hit, energy = self.pilot(light, ev_plan, seed * 1000 + li)
                 st = GhostStats(pid, ghost_surfaces(pid) if pid else (), light.name, ev.kind,
                                 pilot_samples=n_in, pilot_hits=n_hit, cells=len(cells),
                                 cells_total=int(round(math.pi * R * R / (c * c))), energy=energy,
@@ -604,8 +613,9 @@ class FlareRenderer:
 
 
 def ev_hash(ev):
-    return (int(ev.pid if hasattr(ev, "pid") else ev.map.path_id) * 2654435761 + (0 if ev.kind == "exact" else 1)) \
-        & 0xFFFFFFFF
+    """Random-stream id of an evaluator: its path only (not exact/neural), so that modes can share
+    samples (see ``FlareOptions.pilot_with``)."""
+    return (int(ev.pid if hasattr(ev, "pid") else ev.map.path_id) * 2654435761) & 0xFFFFFFFF
 
 
 def render_flare(scene, sensor=0, *, seed=0, per_ghost=False, **options):

@@ -61,12 +61,17 @@ with the same radiometric normalisation as the backward image.  The sensor must 
    - |int|, |int|, |string|
    - Pilot pass resolution (64) and samples per cell (4); ``bounds=none`` samples the whole
      entrance disk (for comparisons).
+ * - pilot_with
+   - |string|
+   - Who plans the sampling (pilot cells, per-ghost budgets): ``self`` (default: the render's own
+     evaluator) or ``exact`` (the tracer in every mode, so exact and neural renders at one seed
+     use identical samples and differ by the maps' error only; for comparisons).
 """
 
 _INT_PROPS = ("max_ghosts", "flare_samples", "min_samples", "pilot_grid", "pilot_spp", "small_emitters",
               "blades")
 _FLOAT_PROPS = ("energy_fraction", "coating_index", "coating_wavelength", "blade_rotation", "small_emitter_size")
-_STR_PROPS = ("mode", "model", "ghosts", "exclude_ghosts", "coating", "coating_surfaces", "bounds")
+_STR_PROPS = ("mode", "model", "ghosts", "exclude_ghosts", "coating", "coating_surfaces", "bounds", "pilot_with")
 _BOOL_PROPS = ("visibility", "include_transmit", "transmit_only")
 
 
