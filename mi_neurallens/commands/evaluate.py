@@ -30,7 +30,7 @@ def run(args):
     from ..optics.prescription import Lens
     from ..trace.paths import ghost_surfaces, resolve_path
     from ..training.evaluate import GOALS, evaluate_map, markdown_table, meets_goals
-    from ..training.trainer import _atomic_write
+    from ..fileio import atomic_write_text
     path = args.model if os.path.exists(args.model) else bundled_model_path(args.model)
     probe = load_model(path)
     lens = Lens.load(args.lens or probe.lens_name)
@@ -53,8 +53,8 @@ def run(args):
          f"`mi-neurallens evaluate {args.model} -n {args.n} --seed {args.seed}`\n\n" + markdown_table(model, rows)
     jp = args.json or path + ".eval.json"
     mp = args.markdown or path + ".eval.md"
-    _atomic_write(jp, lambda p: open(p, "w").write(json.dumps(out, indent=1)))
-    _atomic_write(mp, lambda p: open(p, "w").write(md))
+    atomic_write_text(jp, json.dumps(out, indent=1))
+    atomic_write_text(mp, md)
     print(md)
     print(f"wrote {jp} and {mp}")
     return 0
