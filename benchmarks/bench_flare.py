@@ -71,12 +71,21 @@ def main(argv=None):
                 continue
             print(f"{row['path_id']:>8} {k:>14} {v['samples_per_s'] / 1e6:10.2f} {v['fraction_before']:7.3f} "
                   f"{v['fraction_after']:7.3f} {v['mape_vs_ref']:7.4f}")
-    # equal-time MAPE (exact vs neural) where both exist
+    # equal-time MAPE: the neural render gets the wall time the exact one took for a.samples
     for row in rows:
         if "neural_pilot" in row and "exact_pilot" in row and row["neural_pilot"]["samples_per_s"] > 0:
             e, n = row["exact_pilot"], row["neural_pilot"]
-            row["equal_time_note"] = ("at equal time exact gets "
-                                      f"{e['samples_per_s'] / n['samples_per_s']:.2f}x the samples of neural")
+            pid = row["path_id"]
+            n_eq = max(int(a.samples * n["samples_per_s"] / e["samples_per_s"]) // 256 * 256, 256)
+            ref = FlareRenderer(scene, 0, FlareOptions(mode="exact", ghosts=[pid], samples=a.ref_samples)).render(seed=99)
+            fr = FlareRenderer(scene, 0, FlareOptions(mode="neural", ghosts=[pid], samples=n_eq, model=model))
+            fr.render(seed=0)
+            t0 = time.perf_counter(); r = fr.render(seed=1); dr.sync_thread()
+            row["neural_equal_time"] = {"samples": n_eq, "seconds": time.perf_counter() - t0,
+                                        "exact_seconds": e["seconds"], "mape_vs_ref": mape(r.total, ref.total),
+                                        "exact_mape_vs_ref": e["mape_vs_ref"]}
+            print(f"{pid:>8} equal time ({e['seconds']:.3f} s): exact {a.samples} samples MAPE {e['mape_vs_ref']:.4f}, "
+                  f"neural {n_eq} samples MAPE {row['neural_equal_time']['mape_vs_ref']:.4f}")
     out = {"machine": platform.processor() or platform.machine(), "threads": dr.thread_count(),
            "lens": a.lens, "samples": a.samples, "ref_samples": a.ref_samples, "model": model, "rows": rows}
     os.makedirs(os.path.dirname(a.out), exist_ok=True)

@@ -167,7 +167,7 @@ def train_log_peak_rss():
 
 
 # ----------------------------------------------------------------------------- ablations
-def _budget_regressor(stream, val, heading, center, scale, seconds, **over):
+def _budget_regressor(stream, val, heading, center, scale, seconds, s_max=None, **over):
     from mi_neurallens.training.config import NetConfig, PAPER
     from mi_neurallens.training.trainer import train_regressor
     d = dict(max_minutes=seconds / 60.0, max_steps=10 ** 7, eval_every=100, patience=10 ** 6, pool=500_000)
@@ -178,14 +178,17 @@ def _budget_regressor(stream, val, heading, center, scale, seconds, **over):
     d.update(over)
     nc = NetConfig(**d)
     res = train_regressor(stream, val, nc, heading=heading, center=center, scale_in=scale, seed=7, ckpt=None,
-                          progress=False)
+                          progress=False, s_max=s_max)
+    res["s_max"] = s_max
     return res, nc
 
 
 def _eval_reduced(res, x, center, scale, activation="tanh"):
     from mi_neurallens.neural.mlp import mlp_np
+    from mi_neurallens.training.trainer import odd_factor
     xn = (x - center) / scale
-    return mlp_np(xn, res["layers"], activation) * res["out_scale"] + res["out_shift"] + xn @ res["skip"].T
+    M = odd_factor(x[:, 2], res["s_max"] if res.get("odd_y") else None)
+    return M * (mlp_np(xn, res["layers"], activation) * res["out_scale"] + res["out_shift"] + xn @ res["skip"].T)
 
 
 def ablations(lens, zf, zr, seconds=75.0, figdir=None):
@@ -203,7 +206,7 @@ def ablations(lens, zf, zr, seconds=75.0, figdir=None):
     val = heldout_valid(lens, (gid, "forward", zf, zr), fdom, 20000, 5)
     res = {}
     for act in ("tanh", "relu"):
-        r, _ = _budget_regressor(stream, val, 1, c, s, seconds, activation=act)
+        r, _ = _budget_regressor(stream, val, 1, c, s, seconds, s_max=fdom.s_max, activation=act)
         test = heldout_valid(lens, (gid, "forward", zf, zr), fdom, 100000, 6)
         e = regression_errors(_eval_reduced(r, test[0], c, s, act), test[1], 1)
         res[act] = r
@@ -222,7 +225,7 @@ def ablations(lens, zf, zr, seconds=75.0, figdir=None):
     test = heldout_valid(lens, (0, "backward", zr, zf), bdom, 100000, 9)
     for name, over in (("fast (default)", {}), ("paper schedule", {"schedule": "paper"}),
                        ("fast, no linear residual", {"residual": "none"})):
-        r, _ = _budget_regressor(stream, val, -1, c, s, seconds, **over)
+        r, _ = _budget_regressor(stream, val, -1, c, s, seconds, s_max=bdom.s_max, **over)
         e = regression_errors(_eval_reduced(r, test[0], c, s), test[1], -1)
         out[f"backward transmit, {name}"] = {k: e[k] for k in ("position_um_median", "position_um_p99",
                                                                "direction_arcsec_median", "direction_arcsec_p99",

@@ -12,6 +12,8 @@ from mi_neurallens.neural import NeuralLensModel, TransportMap, bundled_model_pa
 from mi_neurallens.neural.mlp import mlp_dr, mlp_np, tanh_eigen
 from mi_neurallens.trace.api import float_type
 
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
 
 def _layers(rng, widths, scale=0.6):
     return [(rng.normal(0, scale, (o, i)), rng.normal(0, 0.2, o)) for i, o in zip(widths[:-1], widths[1:])]
@@ -229,3 +231,27 @@ def test_bundled_22mm_backward_map_matches_tracer():
     err_um = np.hypot(*(nn["position"][both, :2] - ex.position[both, :2]).T) * 1000
     assert np.median(err_um) < 10.0 and np.percentile(err_um, 99) < 60.0
     np.testing.assert_allclose(nn["throughput"][both], ex.throughput[both], rtol=0.01)
+
+
+def test_merge_maps_script(tmp_path):
+    """training/merge_maps.py: copies maps between model files of one lens, keeps the ghost list in
+    ranking order, refuses another lens's model."""
+    import importlib.util
+    from mi_neurallens.errors import ModelError
+    from mi_neurallens.neural.model import bundled_model_path, load_model
+    spec = importlib.util.spec_from_file_location("merge_maps", os.path.join(ROOT, "training", "merge_maps.py"))
+    mm = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mm)
+    src = bundled_model_path("wide-22mm")
+    dst = load_model(src)
+    dst.maps = {k: v for k, v in dst.maps.items() if k == "backward.0"}
+    dst_path = str(tmp_path / "dst.model.safetensors")
+    dst.save(dst_path)
+    assert mm.merge(src, dst_path, ["forward.10240", "forward.2560"]) == ["forward.10240", "forward.2560"]
+    out = load_model(dst_path)
+    assert sorted(out.maps) == ["backward.0", "forward.10240", "forward.2560"]
+    assert out.extra["ghosts_trained"] == [2560, 10240]          # ranking order, not argument order
+    with pytest.raises(ModelError, match="no map"):
+        mm.merge(src, dst_path, ["forward.7"])
+    with pytest.raises(ModelError, match="lens"):
+        mm.merge(bundled_model_path("ood-59mm"), dst_path)

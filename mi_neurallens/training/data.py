@@ -210,8 +210,11 @@ class PathSampler:
         cols = [dr.gather(type(u[0]), a, idx) for a in u + outs]
         dr.eval(cols)
         self.rays_traced += n_rays
-        arr = np.stack([c.numpy() for c in cols], 1).astype(np.float64)
-        return arr[:, :4], arr[:, 4:]
+        k = dr.width(cols[0])
+        uo, yo = np.empty((k, 4)), np.empty((k, len(outs)))
+        for i, c in enumerate(cols):          # column by column: one float32 -> float64 pass, no temporaries
+            (uo[:, i] if i < 4 else yo[:, i - 4])[:] = c.numpy()
+        return uo, yo
 
     def build_bounds(self, rng: np.random.Generator, n_pilot: int = 1 << 22):
         """Pilot-trace :attr:`bounds` (see :mod:`mi_neurallens.training.bounds`); returns them (or
