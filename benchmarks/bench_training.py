@@ -388,10 +388,11 @@ def main():
     t0 = time.perf_counter()
     res = {"info": {"machine": f"{platform.machine()}, {os.cpu_count()} cores", "drjit_threads": dr.thread_count(),
                     "lens": LENS, "python": platform.python_version(),
-                    "note": "CPU shared with other jobs while measured; rates are lower bounds"}}
+                    "load_average_at_start": os.getloadavg()[0]}}
     if args.only_ablations:
-        res = json.load(open(args.out))
-        res["ablations"] = ablations(lens, zf, zr, args.ablation_seconds, os.path.join(ROOT, "docs", "training"))
+        abl = ablations(lens, zf, zr, args.ablation_seconds, os.path.join(ROOT, "docs", "training"))
+        res = json.load(open(args.out)) if os.path.exists(args.out) else res   # read last: keep others' updates
+        res["ablations"] = abl
         res["ablations_peak_rss_mb"] = peak_rss_mb()
         with open(args.out + ".tmp", "w") as f:
             json.dump(res, f, indent=1, default=float)
@@ -405,6 +406,11 @@ def main():
     res["training_runs"] = train_log_peak_rss()
     if args.ablations:
         res["ablations"] = ablations(lens, zf, zr, args.ablation_seconds, os.path.join(ROOT, "docs", "training"))
+    elif os.path.exists(args.out):                      # keep the ablations of an earlier run
+        old = json.load(open(args.out))
+        for k in ("ablations", "ablations_peak_rss_mb"):
+            if k in old:
+                res[k] = old[k]
     res["peak_rss_mb_this_process"] = peak_rss_mb()
     res["seconds"] = time.perf_counter() - t0
     os.makedirs(os.path.dirname(args.out), exist_ok=True)

@@ -13,7 +13,8 @@ so after rejecting the invalid rays the samples are still **uniform over the val
 distribution the regressor is trained on), provided the valid region lies inside the union.  That
 is checked, not assumed: :meth:`ValidBounds.build` re-traces an independent uniform pilot and
 reports the fraction of its valid rays that fall outside (``missed``; 0 in every bundled map), and
-the bounds fall back to the whole domain when the pilot finds too few valid rays to trust.
+sampling falls back to the whole domain when that fraction exceeds 10⁻⁴ or the pilot finds too few
+valid rays to trust.
 
 Units: r in mm on the input plane, ω as direction cosines (unitless), λ untouched (CIE-sampled).
 """
@@ -79,17 +80,20 @@ class ValidBounds:
                            np.clip(lo2[:, 1], 0.0, s), np.clip(hi2[:, 1], 0.0, s))
 
     @staticmethod
-    def build(ps, rng: np.random.Generator, n_pilot: int = 1 << 22, min_valid: int = 20_000, **kw):
+    def build(ps, rng: np.random.Generator, n_pilot: int = 1 << 22, min_valid: int = 20_000,
+              max_missed: float = 1e-4, **kw):
         """Bounds for the :class:`~mi_neurallens.training.data.PathSampler` ``ps`` from a uniform pilot
-        of ``n_pilot`` rays, checked on a second independent pilot.  Returns ``None`` when the pilot
-        finds fewer than ``min_valid`` valid rays (the bounds would not be trustworthy)."""
+        of ``n_pilot`` rays, checked on a second independent pilot.  Returns ``None`` (sample the whole
+        domain) when the pilot finds fewer than ``min_valid`` valid rays, or when more than
+        ``max_missed`` of the second pilot's valid rays fall outside the boxes (the bounds would bias
+        the training distribution)."""
         u1, _ = ps.random_valid(n_pilot, int(rng.integers(0, 2**47)), bounds=False)
         if len(u1) < min_valid:
             return None
         b = ValidBounds.from_valid(ps.domain.u_to_x(u1), ps.domain, **kw)
         u2, _ = ps.random_valid(n_pilot, int(rng.integers(0, 2**47)), bounds=False)
         b.missed = float(1.0 - b.contains(ps.domain.u_to_x(u2)).mean()) if len(u2) else 0.0
-        return b
+        return b if b.missed <= max_missed else None
 
     # -- Dr.Jit sampling ------------------------------------------------------------------------
     def sample_dr(self, F, u):
