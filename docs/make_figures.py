@@ -137,34 +137,41 @@ def methods(spp, res, lens="wide-22mm"):
 def night(spp, lens="ood-59mm", res="480x320", flare_samples=1 << 24):
     """The night scene through ``realistic_lens`` (exact ghosts) and ``neural_lens`` (learned ghosts),
     each planning its own flare sampling as a user's render does; the same ghosts (those with maps) and
-    seeds.  Top row: the renders; bottom row: their flare images alone (same exposure).  Times are of a
-    second render (the first compiles one kernel per light and ghost)."""
+    seeds.  Top row: the renders; bottom row: their flare images alone (same exposure).  Times: best of two
+    renders after a first one that compiles one kernel per light and ghost.  MAPE: the ghosts alone
+    (without the lights' direct images), two independent renders of ``flare_samples`` per light."""
     import time
     from mi_neurallens.commands.render import load_scene, render_passes
     from mi_neurallens.metrics import mape_masked
     from mi_neurallens.neural.model import bundled_model_path, load_model
     ghosts = " ".join(str(g) for g in load_model(bundled_model_path(lens)).ghost_ids)
     w, h = (int(v) for v in res.split("x"))
-    imgs, flares, secs = {}, {}, {}
+    from mi_neurallens.flare.render import render_flare
+    imgs, flares, secs, ghost_only = {}, {}, {}, {}
     for st, mode in (("realistic_lens", "exact"), ("neural_lens", "neural")):
         scene = load_scene(os.path.join(ROOT, "scenes", "night.xml"), variant="llvm_ad_rgb", lens=lens,
                            resolution=(w, h), spp=spp, sensor_type=st,
                            sets=[f"model={lens}"] if st == "neural_lens" else [],
                            params=[f"mode={mode}", f"ghosts={ghosts}", f"flare_samples={flare_samples}"])
         render_passes(scene, spp, max(1, spp // 64), show_progress=False)          # compile
-        t0 = time.perf_counter()
-        imgs[st], _ = render_passes(scene, spp, max(1, spp // 64), show_progress=False)
-        secs[st] = time.perf_counter() - t0
+        secs[st] = 1e9
+        for _ in range(2):                                                        # best of two
+            t0 = time.perf_counter()
+            imgs[st], _ = render_passes(scene, spp, max(1, spp // 64), show_progress=False)
+            secs[st] = min(secs[st], time.perf_counter() - t0)
         flares[st] = np.asarray(scene.integrator().last_result.total)
+        # the ghosts alone (without the lights' own, far brighter images) for the MAPE
+        ghost_only[st] = render_flare(scene, mode=mode, ghosts=[int(g) for g in ghosts.split()],
+                                      samples=flare_samples).total
     out = {"lens": lens, "spp": spp, "resolution": res, "flare_samples_per_light": flare_samples,
-           "ghosts": ghosts.split(), "seconds_second_render": secs,
-           "flare_mape_neural_vs_exact": mape_masked(flares["neural_lens"], flares["realistic_lens"])}
+           "ghosts": ghosts.split(), "seconds_best_of_two": secs,
+           "ghost_mape_neural_vs_exact": mape_masked(ghost_only["neural_lens"], ghost_only["realistic_lens"])}
     k = 1.0 / max(float(np.percentile(flares["realistic_lens"], 99.5)), 1e-12)
     grid([imgs["realistic_lens"], imgs["neural_lens"], flares["realistic_lens"] * k, flares["neural_lens"] * k],
          [f"realistic_lens + exact ghosts ({secs['realistic_lens']:.1f} s)",
           f"neural_lens + learned ghosts ({secs['neural_lens']:.1f} s)",
           "flare alone, exact",
-          f"flare alone, learned (MAPE {out['flare_mape_neural_vs_exact']:.3f} vs exact)"],
+          f"flare alone, learned (ghosts: MAPE {out['ghost_mape_neural_vs_exact']:.3f} vs exact)"],
          os.path.join(IMG, f"flare_night_{lens}.png"),
          f"scenes/night.xml, {lens}, {spp} spp, the {len(out['ghosts'])} ghosts with learned maps, "
          f"{flare_samples / 2**20:.0f} M flare samples per light", 2)

@@ -29,7 +29,9 @@ A pilot pass traces ``pilot_grid²`` cells × ``pilot_spp`` jittered samples ove
 disk that can hit the front element (per light and ghost), keeps the cells where a sample reached
 the film, dilates them by one cell and the main pass samples uniformly inside the kept cells (a
 cell is picked uniformly, then a point in it).  The pilot also estimates each ghost's flux, which
-sets the per-ghost sample budget (∝ energy, with a floor).  With ``bounds='none'`` the main pass
+sets the per-ghost sample budget (∝ energy, with a floor ``min_samples``).  With ``include_transmit``
+the light's own image gets one equal share of the budget (1 / number of paths) and the ghosts split
+the rest by energy: the direct image is far brighter but only a few pixels wide.  With ``bounds='none'`` the main pass
 samples the whole disk (the "before" pass fraction).
 """
 from __future__ import annotations
@@ -585,11 +587,20 @@ class FlareRenderer:
                 stats.append(st)
                 if n_hit > 0:
                     plan.append((pid, ev, cells, c, R, st))
-            etot = sum(max(p[5].energy, 0.0) for p in plan)
+            # ghosts share the budget in proportion to their energy; the transmit path (include_transmit:
+            # the light's own, sharp image, ~100x brighter than all ghosts together but only a few pixels
+            # wide) gets one equal share instead, or it would take nearly every sample
+            ghosts_in_plan = [p for p in plan if p[0] != 0]
+            etot = sum(max(p[5].energy, 0.0) for p in ghosts_in_plan)
+            n_ghost_budget = N * len(ghosts_in_plan) // len(plan) if ghosts_in_plan else 0
             for pid, ev, cells, c, R, st in plan:
                 t0 = time.perf_counter()
-                share = max(st.energy, 0.0) / etot if etot > 0 else 1.0 / len(plan)
-                n = max(int(N * share), opts.min_samples)
+                if pid == 0:
+                    n = N // len(plan)
+                else:
+                    share = max(st.energy, 0.0) / etot if etot > 0 else 1.0 / len(ghosts_in_plan)
+                    n = int(n_ghost_budget * share)
+                n = max(n, opts.min_samples)
                 n = (n + 255) // 256 * 256
                 blk = total
                 if per_ghost:
