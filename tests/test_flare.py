@@ -282,3 +282,17 @@ def test_neural_matches_exact_and_shuffled_fails():
     assert e_pair < 0.5 * e_ok, (e_pair, e_ok)
     with pytest.raises(NeuralLensError, match="pilot_with"):
         render_flare(scene, 0, ghosts=[pid], mode="neural", model=m, pilot_with="tracer")
+
+
+def test_direct_image_gets_one_share_of_the_budget():
+    """With include_transmit the light's own (bright, tiny) image must not eat the ghosts' samples:
+    it gets N / paths, the ghosts split the rest by energy."""
+    scene = make_scene(point([0.3, 0.2, 4.0], 100.0))
+    N = 1 << 18
+    r = render_flare(scene, 0, ghosts=[2560, 10240, 4608], samples=N, mode="exact", include_transmit=True)
+    by = {s.path_id: s.samples for s in r.stats}
+    assert set(by) == {0, 2560, 10240, 4608}
+    assert abs(by[0] - N // 4) <= 256
+    ghosts = sum(v for k, v in by.items() if k != 0)
+    assert 0.7 * N < ghosts <= 0.76 * N + 3 * 256
+    assert min(v for k, v in by.items() if k != 0) > N // 10
