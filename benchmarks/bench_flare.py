@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import argparse, json, os, platform, time
 
-import numpy as np
-
 
 def main(argv=None):
     p = argparse.ArgumentParser()

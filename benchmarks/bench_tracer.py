@@ -129,8 +129,8 @@ def main(argv=None):
             "drjit_threads": dr.thread_count(), "rays": n, "optiland_rays": nref,
             "precision": "float32", "fresnel": True, "wavelength": "per ray, uniform 400-700 nm"}
     print()
-    print(f"| lens | optical surfaces | path | ours (Mrays/s) | valid | optiland (Mrays/s) | speed-up |")
-    print(f"|---|---|---|---|---|---|---|")
+    print("| lens | optical surfaces | path | ours (Mrays/s) | valid | optiland (Mrays/s) | speed-up |")
+    print("|---|---|---|---|---|---|---|")
     for r in rows:
         ol = f"{r['optiland_mrays_per_s']:.3f}" if "optiland_mrays_per_s" in r else "n/a (no ghosts)"
         sp = f"{r['speedup']:.0f}×" if "speedup" in r else ""

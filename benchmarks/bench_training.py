@@ -241,7 +241,6 @@ def symmetry_ablation(lens, zf, zr, dom, seconds):
     from mi_neurallens.trace import symmetry
     from mi_neurallens.training.trainer import fit_output_transform, make_net
     torch.set_num_threads(2)
-    F = data.PathSampler(lens, 0, "backward", zr, zf, dom)
     rng = np.random.default_rng(11)
 
     def full_rays(n):

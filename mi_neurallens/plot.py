@@ -534,7 +534,7 @@ def plot_lens(lens, path_or_ax, fields_deg=None, wavelengths_nm=(486.13, 587.56,
         ax = path_or_ax
         fig = None
 
-    outer = _draw_lens(ax, lens)
+    _draw_lens(ax, lens)
     for z, y, c, ls in polylines:
         ax.plot(z, y, color=c, ls=ls, lw=0.75 if ls == "-" else 0.7, alpha=0.9 if ls == "-" else 0.75,
                 zorder=3, solid_capstyle="round")

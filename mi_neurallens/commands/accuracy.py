@@ -55,7 +55,6 @@ def _paths(lens, spec, k, model):
 
 
 def run(args):
-    import numpy as np
     from ..baselines.accuracy import PAPER_MAPE, evaluate_path, flare_images, save_flare_figure
     from ..baselines.common import bundled_model
     from ..optics.prescription import Lens

@@ -411,8 +411,6 @@ class FlareRenderer:
     def _region_radius(self, light):
         """Radius of the conservative input disk for ``light`` (lens space, mm)."""
         import mitsuba as mi
-        import drjit as dr
-        st = self.setup
         # direction from the light toward the lens centre, via a sample from the axis point
         tmax = 0.0
         for r in (0.0,):
@@ -564,7 +562,6 @@ class FlareRenderer:
 
     def render(self, seed=0, per_ghost=False, samples=None):
         """Render the flare; returns a :class:`FlareResult` (numpy images)."""
-        import mitsuba as mi
         import drjit as dr
         opts = self.opts
         N = int(samples or opts.samples)

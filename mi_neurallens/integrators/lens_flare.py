@@ -115,7 +115,6 @@ def options_from_props(props, nested_names=()):
 
 def make_lens_flare():
     """Define the ``lens_flare`` class for the CURRENT Mitsuba variant."""
-    import drjit as dr
     import mitsuba as mi
 
     class LensFlare(mi.SamplingIntegrator):

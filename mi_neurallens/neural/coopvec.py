@@ -45,7 +45,6 @@ class CoopVecMLP:
         self.n_out = int(np.asarray(layers[-1][1]).shape[0])
 
     def __call__(self, xs):
-        import drjit as dr
         import drjit.nn as nn
         import mitsuba as mi
         if self.cuda:

@@ -24,7 +24,6 @@ from dataclasses import dataclass, field
 import hashlib
 import json
 import math
-from typing import Sequence
 
 import numpy as np
 

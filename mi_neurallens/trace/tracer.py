@@ -19,7 +19,7 @@ import math
 import drjit as dr
 
 from .interactions import coated_reflectance, fresnel_reflectance, reflect, refract
-from .paths import BACKWARD, FORWARD, PathSpec, resolve_path
+from .paths import FORWARD, PathSpec, resolve_path
 from .surfaces import SurfaceGeometry
 
 
