@@ -10,13 +10,14 @@ Writes benchmarks/results/bench_baselines.json and prints a table.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
 import time
 
 import numpy as np
+
+from mi_neurallens.fileio import atomic_write_json
 
 
 def main(argv=None):
@@ -62,11 +63,7 @@ def main(argv=None):
            "machine": f"{platform.machine()} {platform.processor() or ''} {os.cpu_count()} CPUs".strip(),
            "created": time.strftime("%Y-%m-%d %H:%M:%S"), "command": "python benchmarks/bench_baselines.py "
            + " ".join(argv if argv is not None else sys.argv[1:]), "rows": rows}
-    os.makedirs(os.path.dirname(args.out), exist_ok=True)
-    tmp = args.out + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(doc, f, indent=1)
-    os.replace(tmp, args.out)
+    atomic_write_json(args.out, doc, indent=1)
     print("\n| path | method | Mrays/s | × exact | FLOPs/ray |\n|---|---|---|---|---|")
     for r in rows:
         fl = "—" if r["flops_per_ray"] is None else str(r["flops_per_ray"])

@@ -8,7 +8,9 @@ Prints a table and writes benchmarks/results/bench_flare.json.  MAPE as in `mi-n
 """
 from __future__ import annotations
 
-import argparse, json, os, platform, time
+import argparse, os, platform, time
+
+from mi_neurallens.fileio import atomic_write_json
 
 
 def main(argv=None):
@@ -86,11 +88,7 @@ def main(argv=None):
                   f"neural {n_eq} samples MAPE {row['neural_equal_time']['mape_vs_ref']:.4f}")
     out = {"machine": platform.processor() or platform.machine(), "threads": dr.thread_count(),
            "lens": a.lens, "samples": a.samples, "ref_samples": a.ref_samples, "model": model, "rows": rows}
-    os.makedirs(os.path.dirname(a.out), exist_ok=True)
-    tmp = a.out + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(out, f, indent=1)
-    os.replace(tmp, a.out)
+    atomic_write_json(a.out, out, indent=1)
     print("wrote", a.out)
 
 

@@ -10,12 +10,13 @@ Prints a markdown table and writes benchmarks/results/bench_mlp.json.  The bar (
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import time
 
 import numpy as np
+
+from mi_neurallens.fileio import atomic_write_json
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -95,11 +96,7 @@ def main(argv=None):
     print(f"cooperative vectors vs fused: max |diff| = {rows['neural, cooperative vectors']['max_abs_diff_vs_fused']:.2e}")
     res = {"lens": a.lens, "rays": n, "threads": dr.thread_count(), "machine": platform.processor() or platform.machine(),
            "cpus": os.cpu_count(), "rows": rows}
-    os.makedirs(os.path.dirname(a.out), exist_ok=True)
-    tmp = a.out + ".tmp"
-    with open(tmp, "w") as fh:
-        json.dump(res, fh, indent=2)
-    os.replace(tmp, a.out)
+    atomic_write_json(a.out, res, indent=2)
     print(f"wrote {a.out}")
 
 

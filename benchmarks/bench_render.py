@@ -13,13 +13,14 @@ exit-pupil vs rear-element pass fractions of every bundled lens; ``--furnace`` a
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import platform
 import sys
 import time
 import xml.etree.ElementTree as ET
+
+from mi_neurallens.fileio import atomic_write_json
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -197,11 +198,7 @@ def main(argv=None):
         res["pupil_pass_fractions"] = pupil_table()
     if args.furnace:
         res["furnace_wide22"] = furnace_table(mi)
-    os.makedirs(os.path.dirname(args.out), exist_ok=True)
-    tmp = args.out + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(res, f, indent=2)
-    os.replace(tmp, args.out)
+    atomic_write_json(args.out, res, indent=2)
     print(f"wrote {args.out}")
     return 0
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
 import platform
 import sys
@@ -27,6 +26,7 @@ from mi_neurallens.optics.glass import model_glass  # noqa: E402
 from mi_neurallens.trace.api import float_type  # noqa: E402
 from mi_neurallens.trace.paths import ghost_id  # noqa: E402
 from mi_neurallens.trace.tracer import LensTracer  # noqa: E402
+from mi_neurallens.fileio import atomic_write_json  # noqa: E402
 
 
 def object_rays(lens, n, rng, lam_range=(400.0, 700.0)):
@@ -136,11 +136,7 @@ def main(argv=None):
         sp = f"{r['speedup']:.0f}×" if "speedup" in r else ""
         print(f"| {r['lens']} | {r['surfaces']} | {r['path']} | {r['mrays_per_s']:.1f} | "
               f"{r['valid_fraction']:.2f} | {ol} | {sp} |")
-    os.makedirs(os.path.dirname(a.out), exist_ok=True)
-    tmp = a.out + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump({"info": info, "rows": rows}, f, indent=2)
-    os.replace(tmp, a.out)
+    atomic_write_json(a.out, {"info": info, "rows": rows}, indent=2)
     print(f"\nwrote {a.out}")
 
 

@@ -25,6 +25,7 @@ sys.path.insert(0, ROOT)
 from mi_neurallens import Lens  # noqa: E402
 from mi_neurallens.training import data, plan  # noqa: E402
 from mi_neurallens.training.evaluate import GOALS, regression_errors  # noqa: E402
+from mi_neurallens.fileio import atomic_write_json  # noqa: E402
 
 LENS = "wide-22mm"
 STEPS = 0          # --ablation-steps: equal step budgets instead of equal wall-clock budgets
@@ -393,9 +394,7 @@ def main():
         res = json.load(open(args.out)) if os.path.exists(args.out) else res   # read last: keep others' updates
         res["ablations"] = abl
         res["ablations_peak_rss_mb"] = peak_rss_mb()
-        with open(args.out + ".tmp", "w") as f:
-            json.dump(res, f, indent=1, default=float)
-        os.replace(args.out + ".tmp", args.out)
+        atomic_write_json(args.out, res, indent=1)
         for k, v in res["ablations"].items():
             print(k, v)
         return
@@ -412,11 +411,7 @@ def main():
                 res[k] = old[k]
     res["peak_rss_mb_this_process"] = peak_rss_mb()
     res["seconds"] = time.perf_counter() - t0
-    os.makedirs(os.path.dirname(args.out), exist_ok=True)
-    tmp = args.out + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(res, f, indent=1, default=float)
-    os.replace(tmp, args.out)
+    atomic_write_json(args.out, res, indent=1)
     g = res["generation"]
     print(f"\n{'measure':<46} {'value':>14}")
     for k in ("backward transmit (plain)", "backward transmit", "forward transmit (plain)", "forward transmit"):

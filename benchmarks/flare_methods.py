@@ -22,9 +22,10 @@ Writes benchmarks/results/flare_methods.json and prints markdown tables.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
+
+from mi_neurallens.fileio import atomic_write_json
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 METHODS = ("exact", "neural", "fitted", "taylor5", "taylor3", "abcd")
@@ -90,10 +91,7 @@ def main(argv=None):
             doc["rows"].setdefault(lens, {})[f"fresnel_{fres}"] = res
     doc["seconds"] = time.perf_counter() - t_all
     print_tables(doc)
-    os.makedirs(os.path.dirname(a.out), exist_ok=True)
-    with open(a.out + ".tmp", "w") as f:
-        json.dump(doc, f, indent=1)
-    os.replace(a.out + ".tmp", a.out)
+    atomic_write_json(a.out, doc, indent=1)
 
 
 def print_tables(doc):

@@ -35,3 +35,9 @@ def atomic_write_text(path, text: str) -> str:
         with open(tmp, "w", encoding="utf-8") as f:
             f.write(text)
     return atomic_write(path, w)
+
+
+def atomic_write_json(path, obj, indent: int = 1) -> str:
+    """:func:`atomic_write_text` of ``obj`` as JSON (numpy scalars written as floats)."""
+    import json
+    return atomic_write_text(path, json.dumps(obj, indent=indent, default=float))

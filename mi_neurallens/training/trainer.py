@@ -241,6 +241,20 @@ def _fit(torch, net, opt, nc: NetConfig, state: dict, best: dict, *, n_pool: int
     return best, stop_reason
 
 
+def _start(torch, dev, nc: NetConfig, n_out: int, ckpt: str | None):
+    """A fresh network, its Adam optimiser, training state and best weights, or all of them resumed
+    from ``ckpt``.  Returns (net, opt, state, best, resumed)."""
+    net = make_net(torch, 4, n_out, nc.hidden, nc.width, nc.activation).to(dev)
+    opt = torch.optim.Adam(net.parameters(), lr=nc.lr)
+    state = {"step": 0, "best_val": math.inf, "best_step": 0, "history": [], "evals_since_best": 0,
+             "seconds": 0.0, "samples": 0}
+    best = {k: v.detach().clone() for k, v in net.state_dict().items()}
+    got = load_checkpoint(ckpt, net, opt, torch) if ckpt else None
+    if got is not None:
+        state, best = got
+    return net, opt, state, best, got is not None
+
+
 def train_regressor(stream: RegressorStream, val, nc: NetConfig, *, heading: int, center, scale_in, seed: int,
                     ckpt: str | None, threads: int = 2, device: str = "auto", progress: bool = True,
                     desc: str = "regressor", log=None, s_max: float | None = None) -> dict:
@@ -259,25 +273,18 @@ def train_regressor(stream: RegressorStream, val, nc: NetConfig, *, heading: int
     _, x0, y0 = stream.sample(nc.pool)
     xn0 = (x0 - center) / scale_in
     skip, shift, oscale = fit_output_transform(xn0, y0, nc.residual, odd_factor(x0[:, 2], odd_s))
-    net = make_net(torch, 4, 5, nc.hidden, nc.width, nc.activation).to(dev)
-    opt = torch.optim.Adam(net.parameters(), lr=nc.lr)
-    state = {"step": 0, "best_val": math.inf, "best_step": 0, "history": [], "evals_since_best": 0,
-             "seconds": 0.0, "samples": 0}
-    best = {k: v.detach().clone() for k, v in net.state_dict().items()}
-    if ckpt:
-        got = load_checkpoint(ckpt, net, opt, torch)
-        if got is not None:
-            state, best = got
-            skip, shift, oscale = (np.asarray(state["skip"]), np.asarray(state["shift"]), np.asarray(state["oscale"]))
-            if bool(state.get("odd_y", False)) != (odd_s is not None):
-                raise NeuralLensError(f"{ckpt}: checkpoint was trained with odd_y={state.get('odd_y', False)}; "
-                                      "use another work directory or the same setting")
-            if state.get("done"):
-                net.load_state_dict(best)
-                return _reg_result(net, skip, shift, oscale, state)
-            stream.rng = np.random.default_rng([seed, state["step"]])
-            _, x0, y0 = stream.sample(nc.pool)
-            xn0 = (x0 - center) / scale_in
+    net, opt, state, best, resumed = _start(torch, dev, nc, 5, ckpt)
+    if resumed:
+        skip, shift, oscale = (np.asarray(state["skip"]), np.asarray(state["shift"]), np.asarray(state["oscale"]))
+        if bool(state.get("odd_y", False)) != (odd_s is not None):
+            raise NeuralLensError(f"{ckpt}: checkpoint was trained with odd_y={state.get('odd_y', False)}; "
+                                  "use another work directory or the same setting")
+        if state.get("done"):
+            net.load_state_dict(best)
+            return _reg_result(net, skip, shift, oscale, state)
+        stream.rng = np.random.default_rng([seed, state["step"]])
+        _, x0, y0 = stream.sample(nc.pool)
+        xn0 = (x0 - center) / scale_in
     state.update(odd_y=odd_s is not None, skip=skip.tolist(), shift=shift.tolist(), oscale=oscale.tolist())
     f32 = lambda a: torch.as_tensor(np.ascontiguousarray(a, dtype=np.float32), device=dev)
     T_skip, T_shift, T_scale = f32(skip), f32(shift), f32(oscale)
@@ -380,19 +387,12 @@ def train_classifier(ps: PathSampler, valid_u_source, val, nc: NetConfig, *, cen
     dev = pick_device(torch, device)
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
-    net = make_net(torch, 4, 1, nc.hidden, nc.width, nc.activation).to(dev)
-    opt = torch.optim.Adam(net.parameters(), lr=nc.lr)
-    state = {"step": 0, "best_val": math.inf, "best_step": 0, "history": [], "evals_since_best": 0,
-             "seconds": 0.0, "samples": 0}
-    best = {k: v.detach().clone() for k, v in net.state_dict().items()}
-    if ckpt:
-        got = load_checkpoint(ckpt, net, opt, torch)
-        if got is not None:
-            state, best = got
-            if state.get("done"):
-                net.load_state_dict(best)
-                return {"layers": net_layers(net), "state": state}
-            rng = np.random.default_rng([seed, state["step"]])
+    net, opt, state, best, resumed = _start(torch, dev, nc, 1, ckpt)
+    if resumed:
+        if state.get("done"):
+            net.load_state_dict(best)
+            return {"layers": net_layers(net), "state": state}
+        rng = np.random.default_rng([seed, state["step"]])
     f32 = lambda a: torch.as_tensor(np.ascontiguousarray(a, dtype=np.float32), device=dev)
 
     def pool(n):
