@@ -128,15 +128,60 @@ def test_classifier_samples_are_balanced_with_boundary_points():
     assert st["acceptance"] < 0.6          # the natural mix is mostly blocked, the training mix is not
 
 
+@pytest.mark.parametrize("blades", [0, 6])
+@pytest.mark.parametrize("path", [0, "ghost"])
+def test_aperture_margin_is_the_validity_boundary(blades, path):
+    """The tracer's aperture margin (the classifier's ``margin`` target) is ≥ 0 exactly on the valid
+    rays that no non-aperture failure stopped, and it is a smooth function of the inputs: a step of
+    1e-6 in the unit cube moves it by O(1e-6) near the boundary (|margin| < 0.5, the band the classifier
+    regresses), never across a jump."""
+    from mi_neurallens.trace.paths import all_ghosts
+    lens = thick_lens().with_stop_radius(4.0)
+    if blades:
+        lens = lens.with_surface(lens.stop_index, blades=blades)
+    pid = all_ghosts(lens)[0][0] if path == "ghost" else 0
+    ps = data.PathSampler(lens, pid, "backward", 52.0, -1.0, data.Domain(12.0, 0.4), precision="float64")
+    rng = np.random.default_rng(3)
+    u = rng.random((60000, 4))
+    valid, m, hard = ps.margin_u(u)
+    np.testing.assert_array_equal(valid, ps.valid_u(u))
+    np.testing.assert_array_equal(valid, ~hard & (m >= 0.0))
+    assert valid.any() and (~hard & (m < 0.0)).any()            # both sides of an aperture boundary occur
+    v2, m2, hard2 = ps.margin_u(np.clip(u + 1e-6, 0.0, 1.0 - 1e-9))
+    band = ~hard & ~hard2 & (np.abs(m) < 0.5)
+    assert band.sum() > 1000 and np.max(np.abs(m2 - m)[band]) < 1e-3
+
+
 # ----------------------------------------------------------------------------- config
 def test_config_rejects_unknown_keys(tmp_path):
     p = tmp_path / "c.toml"
     p.write_text("seed = 3\n[regressor]\nmax_stepz = 10\n")
     with pytest.raises(NeuralLensError, match="max_stepz"):
         load_config(str(p))
+    p.write_text("seed = 3\n[classifier]\ntarget = 'sdf'\n")
+    with pytest.raises(NeuralLensError, match="target = 'sdf'; choose one of \\['margin', 'label'\\]"):
+        load_config(str(p))
     p.write_text("seed = 3\n[regressor]\nschedule = 'paper'\n")
     c = load_config(str(p))
     assert c.regressor.lr == 1e-4 and c.regressor.decay == 0.95 and c.regressor.batch == 8192
+    # an override of one key of a table keeps the recipe's other keys of that table
+    p.write_text("[regressor]\nmax_steps = 7\n[forward_classifier]\nhidden = 3\nmax_minutes = 2.0\n")
+    c = load_config(str(p), overrides={"regressor": {"patience": 5}, "forward_classifier": {"max_minutes": 6.0}})
+    assert (c.regressor.max_steps, c.regressor.patience) == (7, 5)
+    assert c.forward_classifier == {"hidden": 3, "max_minutes": 6.0}
+
+
+def test_bundled_recipes_load():
+    """Every recipe in training/ parses (tomllib refuses a repeated key) and names a bundled lens."""
+    import glob
+    import os
+    from mi_neurallens.optics.formats import bundled_lenses
+    root = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "training")
+    recipes = sorted(glob.glob(os.path.join(root, "*.toml")))
+    assert len(recipes) >= 3
+    for r in recipes:
+        load_config(r)
+        assert os.path.basename(r)[:-len(".toml")] in bundled_lenses()
 
 
 # ----------------------------------------------------------------------------- a tiny training run
@@ -154,7 +199,8 @@ def test_tiny_training_run_learns(tmp_path):
     small = dict(hidden=3, width=16, batch=1024, pool=40000, refresh_every=200, eval_every=100,
                  max_minutes=1.0, warmup_steps=20, residual="none", patience=100, loss_weights="uniform")
     cfg = load_config(overrides={"regressor": dict(small, max_steps=600, lr=1e-2),
-                                 "classifier": dict(small, hidden=2, width=32, max_steps=1000, lr=1e-2),
+                                 "classifier": dict(small, hidden=2, width=32, max_steps=1000, lr=1e-2,
+                                                    target="label"),
                                  "heldout": 20000, "threads": 1})
     tm = train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, str(tmp_path), progress=False, eval_n=20000)
     m = tm.metrics
@@ -169,6 +215,16 @@ def test_tiny_training_run_learns(tmp_path):
     assert m["regressor"]["position_um_median"] < 300.0
     assert m["classifier"]["misclassification"] < 0.06
     assert m["classifier"]["misclassification"] < 0.3 * min(m["classifier"]["valid_fraction"], 1 - m["classifier"]["valid_fraction"])
+    # the default margin target (interval regression of the aperture margin) learns a classifier too
+    cfgm = load_config(overrides={"regressor": dict(small, max_steps=600, lr=1e-2),
+                                  "classifier": dict(small, hidden=2, width=32, max_steps=1000, lr=1e-2,
+                                                     target="margin"),
+                                  "heldout": 20000, "threads": 1})
+    tmm = train_map(lens, 0, "backward", z_rear, z_front, dom, cfgm, str(tmp_path / "margin"), progress=False,
+                    eval_n=20000)
+    mm = tmm.metrics["classifier"]
+    assert tmm.training["classifier"]["target"] == "margin"
+    assert mm["misclassification"] < 0.3 * min(mm["valid_fraction"], 1 - mm["valid_fraction"])
     # checkpoints exist and a rerun resumes (finished networks are not retrained)
     tm2 = train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, str(tmp_path), progress=False,
                     evaluate=False)

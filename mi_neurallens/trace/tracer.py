@@ -34,6 +34,16 @@ class TraceResult:
     points: list | None = None
     #: with ``record``: per point, whether the ray was still alive when it reached that point
     alive: list | None = None
+    #: with ``margin``: the smallest aperture margin along the path, min over every clear aperture,
+    #: housing and the stop of 1 − r²/R² (a polygonal stop: 2·(1 − p/R), p the distance along the
+    #: blade's normal), dimensionless, ≥ 0 where all apertures are passed.  Smooth in the ray's
+    #: inputs wherever one aperture is the closest, so its zero set is the aperture part of the
+    #: validity boundary; used as a classifier training target.
+    margin: object = None
+    #: with ``margin``: True where the ray fails for a reason other than an aperture (misses a
+    #: surface, total internal reflection, turns back) before any aperture blocks it;
+    #: ``valid == ~hard_fail & (margin >= 0)``.
+    hard_fail: object = None
 
 
 class LensTracer:
@@ -91,15 +101,30 @@ class LensTracer:
             ok = inside if ok is None else ok & inside
         return ok
 
+    def _stop_margin(self, x, y):
+        """The stop's aperture margin (see :attr:`TraceResult.margin`)."""
+        stop = self.lens.stop
+        r = stop.semi_diameter
+        if not stop.blades:
+            return 1.0 - dr.fma(x, x, y * y) / (r * r)
+        m = None
+        for k in range(stop.blades):
+            a = math.radians(stop.blade_rotation_deg) + 2.0 * math.pi * k / stop.blades
+            mk = 2.0 * (1.0 - dr.fma(x, math.cos(a), y * math.sin(a)) / r)
+            m = mk if m is None else dr.minimum(m, mk)
+        return m
+
     # ------------------------------------------------------------------------------ trace
     def trace(self, o, d, lam_nm, path="transmit", direction: str = FORWARD, *,
-              z_out: float | None = None, record: bool = False, active=True) -> TraceResult:
+              z_out: float | None = None, record: bool = False, margin: bool = False,
+              active=True) -> TraceResult:
         """Trace rays along one path type.
 
         ``o``, ``d``: (x, y, z) tuples of Dr.Jit float arrays, lens space, mm; ``d`` unit length.
         ``lam_nm``: wavelength per ray (nm), same float type (or a Python float).
         ``z_out``: output plane (default :meth:`default_output_z`).  Returns the ray where it
-        crosses the output plane.
+        crosses the output plane.  ``margin``: also return :attr:`TraceResult.margin` and
+        :attr:`TraceResult.hard_fail`.
         """
         spec = self.path(path, direction)
         lens = self.lens
@@ -118,6 +143,21 @@ class LensTracer:
         T = None
         pts = [(x, y, z)] if record else None
         alive = [valid] if record else None
+        # margin mode: `soft` = alive as far as non-aperture failures go; `m` = smallest aperture
+        # margin met while soft (later values of a failed ray are meaningless and ignored); `hard` =
+        # failed for a non-aperture reason while every aperture so far was passed
+        soft = valid if margin else None
+        m = dr.full(type(x), 1e3, dr.width(x)) if margin else None
+        hard = ~valid if margin else None
+
+        def note(mi):
+            nonlocal m
+            m = dr.select(soft, dr.minimum(m, mi), m)
+
+        def fail(ok):
+            nonlocal soft, hard
+            hard = hard | (soft & ~ok & (m >= 0.0))
+            soft = soft & ok
 
         for si, step in enumerate(spec.steps):
             g = self.geom[step.surface]
@@ -125,15 +165,21 @@ class LensTracer:
             valid = valid & ok
             if si > 0:
                 valid = valid & (t > 0.0)
+            if margin:
+                fail(ok & (t > 0.0) if si > 0 else ok)
             x, y, z = dr.fma(t, dx, x), dr.fma(t, dy, y), dr.fma(t, dz, z)
             if record:
                 pts.append((x, y, z))
                 alive.append(valid)
             if step.kind == "stop":
                 valid = valid & (self._stop_ok(x, y))
+                if margin:
+                    note(self._stop_margin(x, y))
                 continue
             rad = self._aperture_radius(step)
             valid = valid & (dr.fma(x, x, y * y) <= rad * rad)
+            if margin:
+                note(1.0 - dr.fma(x, x, y * y) / (rad * rad))
 
             h = step.heading
             nx, ny, nz = g.normal((x, y, z))
@@ -141,6 +187,8 @@ class LensTracer:
                 nx, ny, nz = -nx, -ny, -nz
             cos_i = -(dx * nx + dy * ny + dz * nz)
             valid = valid & (cos_i > 0.0)
+            if margin:
+                fail(cos_i > 0.0)
 
             surf = lens.surfaces[step.surface]
             m_before, m_after = lens.medium_before(step.surface), surf.medium
@@ -154,6 +202,8 @@ class LensTracer:
                 eta = n1 * inv_n2
                 (dx, dy, dz), cos_t, tir = refract((dx, dy, dz), (nx, ny, nz), cos_i, eta)
                 valid = valid & ~tir
+                if margin:
+                    fail(~tir)
                 if self.fresnel:
                     R = self._reflectance(surf, n1, n2, cos_i, cos_t, lam_nm)
                     T = (1.0 - R) if T is None else T * (1.0 - R)
@@ -171,6 +221,8 @@ class LensTracer:
         # continue to the output plane
         zo = self.default_output_z(direction) if z_out is None else float(z_out)
         valid = valid & ((dz > 0.0) if direction == FORWARD else (dz < 0.0))
+        if margin:
+            fail((dz > 0.0) if direction == FORWARD else (dz < 0.0))
         t = (zo - z) / dz
         x, y = dr.fma(t, dx, x), dr.fma(t, dy, y)
         z = x * 0.0 + zo
@@ -179,6 +231,8 @@ class LensTracer:
             alive.append(valid)
         if T is None:
             T = x * 0.0 + 1.0
+        if margin:
+            return TraceResult((x, y, z), (dx, dy, dz), T, valid, pts, alive, m, hard)
         return TraceResult((x, y, z), (dx, dy, dz), T, valid, pts, alive)
 
     @staticmethod

@@ -37,6 +37,11 @@ class NetConfig:
     cosine_weight: float = 1.0
     loss_weights: str = "goals"         # regressor: per-output MSE weights ∝ (output std / accuracy goal), floored; or "uniform"
     odd_y: bool = True                  # regressor: y, dy = (ωy / s_max) × network: exactly odd in ωy, no mirror-plane seam
+    target: str = "margin"              # classifier: "margin" (regress scale·(aperture margin) inside ±clip, one-sided
+                                        # beyond: a sharper boundary) or "label" (BCE on blocked/passed, the paper's)
+    margin_scale: float = 40.0          # classifier "margin" target: logit slope per unit margin at the boundary
+    margin_clip: float = 3.0            # classifier "margin" target: |logit| it saturates at
+    boundary_sigma: tuple = (1e-3, 5e-2)  # classifier: log-uniform width range of the boundary perturbations (unit cube)
     pool: int = 2_000_000               # samples held in memory; refreshed from the tracer
     refresh_every: int = 2000           # steps between pool refreshes (fresh tracer data)
     refresh_fraction: float = 0.25
@@ -52,7 +57,7 @@ def classifier_defaults() -> NetConfig:
 
 
 PAPER = dict(schedule="paper", lr=1e-4, decay=0.95, decay_every=10000, batch=8192, warmup_steps=0,
-             residual="none", direction_loss="cosine", loss_weights="uniform", odd_y=False)
+             residual="none", direction_loss="cosine", loss_weights="uniform", odd_y=False, target="label")
 
 
 @dataclass
@@ -93,6 +98,11 @@ class TrainConfig:
         return _apply(base, over, f"forward_{kind}") if direction == "forward" and over else base
 
 
+#: the allowed values of NetConfig's string options
+CHOICES = {"schedule": ("fast", "paper"), "target": ("margin", "label"), "residual": ("linear", "none"),
+           "loss_weights": ("goals", "uniform")}
+
+
 def _apply(nc: NetConfig, d: dict, where: str) -> NetConfig:
     d = dict(d)
     if d.get("schedule") == "paper":
@@ -101,6 +111,9 @@ def _apply(nc: NetConfig, d: dict, where: str) -> NetConfig:
     bad = sorted(set(d) - names)
     if bad:
         raise NeuralLensError(f"training config [{where}]: unknown key(s) {bad}; known: {sorted(names)}")
+    for k, allowed in CHOICES.items():
+        if k in d and d[k] not in allowed:
+            raise NeuralLensError(f"training config [{where}]: {k} = {d[k]!r}; choose one of {list(allowed)}")
     return replace(nc, **d)
 
 
@@ -116,7 +129,11 @@ def load_config(path: str | None = None, lens: str | None = None, overrides: dic
             raise NeuralLensError(f"training config {path}: file not found") from None
         except tomllib.TOMLDecodeError as e:
             raise NeuralLensError(f"training config {path}: {e}") from None
-    data.update(overrides or {})
+    for k, v in (overrides or {}).items():       # a table is merged key by key: --set regressor.x=1 keeps the
+        if isinstance(v, dict) and isinstance(data.get(k), dict):   # recipe's other [regressor] keys
+            data[k] = {**data[k], **v}
+        else:
+            data[k] = v
     cfg = TrainConfig()
     names = {f.name for f in fields(TrainConfig)}
     bad = sorted(set(data) - names)

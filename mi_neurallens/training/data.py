@@ -137,13 +137,18 @@ class PathSampler:
         lam, _ = sample_cie_wavelength(u[3])
         return d.r_max * u[0], rho * c, rho * s, lam
 
-    def trace_dr(self, r, wx, wy, lam):
-        """Reduced inputs (Dr.Jit) → (valid, [x, y, dx, dy, T]) (Dr.Jit, reduced frame)."""
+    def _trace(self, r, wx, wy, lam, margin: bool = False):
+        """Reduced inputs (Dr.Jit) → the tracer's :class:`~mi_neurallens.trace.tracer.TraceResult`."""
         import drjit as dr
         dz = self.heading * dr.sqrt(dr.maximum(1.0 - dr.fma(wx, wx, wy * wy), 0.0))
         zero = r * 0.0
-        res = self.tracer.trace((r, zero, zero + self.z_in), (wx, wy, dz), lam, self.path_id, self.direction,
-                                z_out=self.z_out)
+        return self.tracer.trace((r, zero, zero + self.z_in), (wx, wy, dz), lam, self.path_id, self.direction,
+                                 z_out=self.z_out, margin=margin)
+
+    def trace_dr(self, r, wx, wy, lam):
+        """Reduced inputs (Dr.Jit) → (valid, [x, y, dx, dy, T]) (Dr.Jit, reduced frame)."""
+        import drjit as dr
+        res = self._trace(r, wx, wy, lam)
         outs = [res.position[0], res.position[1], res.direction[0], res.direction[1], res.throughput]
         valid = res.valid
         for o in outs:
@@ -176,6 +181,22 @@ class PathSampler:
 
     def valid_u(self, u: np.ndarray) -> np.ndarray:
         return self.trace_u(u)[0]
+
+    def margin_u(self, u: np.ndarray):
+        """Unit-cube samples (N, 4) → (valid (N,), margin (N,) float64, hard_fail (N,)): the tracer's
+        aperture margin (:attr:`~mi_neurallens.trace.tracer.TraceResult.margin`) and where the ray fails
+        for another reason (then the margin says nothing).  ``valid == ~hard_fail & (margin >= 0)``."""
+        import drjit as dr
+        F, dt = self.F, self.np_dtype
+        u = np.asarray(u)
+        res = self._trace(*self.u_to_x_dr([F(np.ascontiguousarray(u[:, i], dtype=dt)) for i in range(4)]),
+                          margin=True)
+        hard = res.hard_fail | ~dr.isfinite(res.position[0]) | ~dr.isfinite(res.throughput)
+        dr.eval(res.valid, res.margin, hard)
+        self.rays_traced += len(u)
+        hard = hard.numpy().astype(bool)
+        valid = res.valid.numpy().astype(bool) & ~hard
+        return valid, res.margin.numpy().astype(np.float64), hard
 
     def random_valid(self, n_rays: int, seed: int, bounds: bool = True):
         """Trace ``n_rays`` random samples drawn with Dr.Jit's PCG32 (stream ``seed``) and return only
@@ -346,22 +367,27 @@ class RegressorStream:
 
 
 def classifier_samples(ps: PathSampler, valid_u: np.ndarray, n: int, rng: np.random.Generator,
-                       sigma_range=(1e-3, 5e-2)):
+                       sigma_range=(1e-3, 5e-2), margin: bool = False):
     """A labelled set for the classifier: ⅓ uniform over the domain (natural labels), ⅓ valid samples
     (``valid_u``, e.g. from :class:`RegressorStream`) and ⅓ boundary samples: valid points perturbed by
     a Gaussian of log-uniform width in ``sigma_range`` (unit-cube units), labelled by the tracer.
-    Returns (x (N, 4), label (N,) float32)."""
+    Returns (x (N, 4), label (N,) float32); with ``margin`` also the tracer's aperture margin (N,) and
+    hard-failure mask (N,) of every sample (:meth:`PathSampler.margin_u`)."""
     k = n // 3
     u_uni = rng.random((k, 4))
     pick = valid_u[rng.integers(0, len(valid_u), n - 2 * k)]
     u_val = valid_u[rng.integers(0, len(valid_u), k)]
     sig = np.exp(rng.uniform(math.log(sigma_range[0]), math.log(sigma_range[1]), (len(pick), 1)))
     u_per = np.clip(pick + sig * rng.standard_normal(pick.shape), 0.0, 1.0 - 1e-7)
+    perm = rng.permutation(n)
+    if margin:
+        u = np.concatenate([u_uni, u_per, u_val])[perm]
+        lab, m, hard = ps.margin_u(u)
+        return ps.domain.u_to_x(u), lab.astype(np.float32), m, hard
     u_lab = np.concatenate([u_uni, u_per])
     lab = ps.valid_u(u_lab)
     u = np.concatenate([u_lab, u_val])
     label = np.concatenate([lab, np.ones(len(u_val), dtype=bool)]).astype(np.float32)
-    perm = rng.permutation(len(u))
     return ps.domain.u_to_x(u[perm]), label[perm]
 
 
