@@ -150,9 +150,9 @@ class LensTracer:
         m = dr.full(type(x), 1e3, dr.width(x)) if margin else None
         hard = ~valid if margin else None
 
-        def note(mi):
+        def note(m_k):
             nonlocal m
-            m = dr.select(soft, dr.minimum(m, mi), m)
+            m = dr.select(soft, dr.minimum(m, m_k), m)
 
         def fail(ok):
             nonlocal soft, hard
