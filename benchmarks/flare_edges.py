@@ -43,7 +43,7 @@ def main(argv=None):
     from mi_neurallens.commands.render import load_scene
     from mi_neurallens.fileio import atomic_write_json
     from mi_neurallens.flare.render import render_flare
-    from mi_neurallens.metrics import FLARE_EPS_REL, FLARE_MASK_REL, LUMINANCE, mape_masked
+    from mi_neurallens.metrics import LUMINANCE, flare_error_map, mape_masked
     from mi_neurallens.neural.model import bundled_model_path, load_model
     model = a.model or bundled_model_path(a.lens)
     ghosts = load_model(model).ghost_ids if a.ghosts == ["all"] else [int(g) for g in a.ghosts]
@@ -54,10 +54,8 @@ def main(argv=None):
     for g in ghosts:
         ex = render_flare(scene, seed=1, ghosts=[g], samples=n, mode="exact").total
         ne = render_flare(scene, seed=1, ghosts=[g], samples=n, mode="neural", pilot_with="exact").total
+        rel, mask = flare_error_map(ne, ex)
         yn, ye = ne[..., :3] @ LUMINANCE, ex[..., :3] @ LUMINANCE
-        mx = float(ye.max())
-        mask = ye > FLARE_MASK_REL * mx
-        rel = np.abs(yn - ye) / (np.abs(ye) + FLARE_EPS_REL * mx)
         inner = binary_erosion(mask, iterations=2) & mask
         edge = mask & ~inner
         row = dict(ghost=g, log2_samples=a.samples, mape=float(rel[mask].mean()), pixels=int(mask.sum()),

@@ -53,12 +53,18 @@ LUMINANCE = np.array([0.2126, 0.7152, 0.0722], np.float64)
 FLARE_MASK_REL, FLARE_EPS_REL = 1e-2, 1e-3
 
 
-def mape_masked(a, b, mask_rel: float = FLARE_MASK_REL, eps_rel: float = FLARE_EPS_REL) -> float:
-    """Luminance MAPE over the pixels where the reference is non-negligible (see module docstring)."""
+def flare_error_map(a, b, mask_rel: float = FLARE_MASK_REL, eps_rel: float = FLARE_EPS_REL):
+    """The per-pixel terms of :func:`mape_masked`: (relative luminance error (H×W), mask (H×W)); the mask
+    is empty when the reference is black."""
     ya = np.asarray(a, np.float64)[..., :3] @ LUMINANCE
     yb = np.asarray(b, np.float64)[..., :3] @ LUMINANCE
     mx = float(yb.max()) if yb.size else 0.0
     if not mx > 0:
-        return float("nan")
-    m = yb > mask_rel * mx
-    return float(np.mean(np.abs(ya[m] - yb[m]) / (np.abs(yb[m]) + eps_rel * mx)))
+        return np.zeros(yb.shape), np.zeros(yb.shape, bool)
+    return np.abs(ya - yb) / (np.abs(yb) + eps_rel * mx), yb > mask_rel * mx
+
+
+def mape_masked(a, b, mask_rel: float = FLARE_MASK_REL, eps_rel: float = FLARE_EPS_REL) -> float:
+    """Luminance MAPE over the pixels where the reference is non-negligible (see module docstring)."""
+    rel, m = flare_error_map(a, b, mask_rel, eps_rel)
+    return float(np.mean(rel[m])) if m.any() else float("nan")

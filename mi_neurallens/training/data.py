@@ -164,20 +164,19 @@ class PathSampler:
         y[~v] = np.nan
         return v, y
 
+    def _columns(self, a: np.ndarray) -> list:
+        """(N, 4) numpy → 4 Dr.Jit arrays of this sampler's precision."""
+        a = np.asarray(a)
+        return [self.F(np.ascontiguousarray(a[:, i], dtype=self.np_dtype)) for i in range(4)]
+
     def trace_x(self, x: np.ndarray):
         """Reduced inputs (N, 4) → (valid (N,), outputs (N, 5) float64, NaN where invalid)."""
-        F, dt = self.F, self.np_dtype
-        x = np.asarray(x)
-        cols = [F(np.ascontiguousarray(x[:, i], dtype=dt)) for i in range(4)]
-        valid, outs = self.trace_dr(*cols)
-        return self._to_np(valid, outs, x.shape[0])
+        valid, outs = self.trace_dr(*self._columns(x))
+        return self._to_np(valid, outs, len(x))
 
     def trace_u(self, u: np.ndarray):
-        F, dt = self.F, self.np_dtype
-        u = np.asarray(u)
-        cols = [F(np.ascontiguousarray(u[:, i], dtype=dt)) for i in range(4)]
-        valid, outs = self.trace_dr(*self.u_to_x_dr(cols))
-        return self._to_np(valid, outs, u.shape[0])
+        valid, outs = self.trace_dr(*self.u_to_x_dr(self._columns(u)))
+        return self._to_np(valid, outs, len(u))
 
     def valid_u(self, u: np.ndarray) -> np.ndarray:
         return self.trace_u(u)[0]
@@ -187,10 +186,7 @@ class PathSampler:
         aperture margin (:attr:`~mi_neurallens.trace.tracer.TraceResult.margin`) and where the ray fails
         for another reason (then the margin says nothing).  ``valid == ~hard_fail & (margin >= 0)``."""
         import drjit as dr
-        F, dt = self.F, self.np_dtype
-        u = np.asarray(u)
-        res = self._trace(*self.u_to_x_dr([F(np.ascontiguousarray(u[:, i], dtype=dt)) for i in range(4)]),
-                          margin=True)
+        res = self._trace(*self.u_to_x_dr(self._columns(u)), margin=True)
         hard = res.hard_fail | ~dr.isfinite(res.position[0]) | ~dr.isfinite(res.throughput)
         dr.eval(res.valid, res.margin, hard)
         self.rays_traced += len(u)

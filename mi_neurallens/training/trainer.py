@@ -400,7 +400,8 @@ def train_classifier(ps: PathSampler, valid_u_source, val, nc: NetConfig, *, cen
     margin = nc.target == "margin"
 
     def pool(n):
-        """(inputs, training target): the 0/1 label, or the squashed aperture margin."""
+        """(inputs, training target): the 0/1 label, or scale·margin clipped to ±clip (−clip on a hard
+        failure)."""
         got = classifier_samples(ps, valid_u_source(max(n // 3, 1024)), n, rng, margin=margin,
                                  sigma_range=tuple(nc.boundary_sigma))
         if not margin:
