@@ -247,3 +247,31 @@ def test_tiny_training_run_learns(tmp_path):
     F = float_type("float32")
     _, yd = tb.eval_reduced_dr([F(np.ascontiguousarray(x[:, i], np.float32)) for i in range(4)])
     np.testing.assert_allclose(np.stack([v.numpy() for v in yd], 1), y, atol=2e-3, rtol=1e-3)
+
+
+def test_edge_weighted_regressor_loss():
+    """``edge_weight`` weights each valid sample by 1 + w·exp(−margin/edge_margin): the rays grazing an
+    aperture (margin → 0) weigh 1 + w, the central ones ≈ 1.  Trained with it, the near-edge error (the
+    log's ``edge_pos_um_med``) drops relative to the overall one: here from ≈ 1.8× the median to ≈ 1×."""
+    pytest.importorskip("torch")
+    from mi_neurallens.training.config import NetConfig
+    from mi_neurallens.training.trainer import edge_weights, train_regressor
+    lens = thick_lens()
+    ps = data.PathSampler(lens, 0, "backward", 52.0, -1.0, data.Domain(12.0, 0.4))
+    u, x, y, _ = data.rejection_sample(ps, 40000, np.random.default_rng(0))
+    _, m, _ = ps.margin_u(u)
+    w = edge_weights(ps, u, NetConfig(edge_weight=9.0, edge_margin=0.02))
+    np.testing.assert_allclose(w, 1.0 + 9.0 * np.exp(-m / 0.02), rtol=1e-6)
+    assert w.min() >= 1.0 and w.max() <= 10.0
+    assert w[m < 0.005].mean() > 8.0 and w[m > 0.3].max() < 1.0 + 1e-5
+    ratio = {}
+    for ew in (0.0, 30.0):
+        nc = NetConfig(hidden=2, width=16, batch=1024, pool=30000, refresh_every=100, eval_every=100,
+                       max_steps=600, max_minutes=1.0, warmup_steps=20, lr=1e-2, patience=100, edge_weight=ew)
+        logged = []
+        res = train_regressor(data.RegressorStream(ps, seed=1, bounded=False), (x[:5000], y[:5000]), nc,
+                              heading=-1, center=x.mean(0), scale_in=x.std(0), seed=0, ckpt=None, threads=1,
+                              progress=False, s_max=0.4, log=lambda d, r: logged.append(r))
+        assert res["state"]["done"] and logged[-1]["pos_um_med"] < 20.0
+        ratio[ew] = logged[-1]["edge_pos_um_med"] / logged[-1]["pos_um_med"]
+    assert ratio[0.0] > 1.3 and ratio[30.0] < 0.75 * ratio[0.0]

@@ -42,6 +42,8 @@ class NetConfig:
     margin_scale: float = 40.0          # classifier "margin" target: logit slope per unit margin at the boundary
     margin_clip: float = 3.0            # classifier "margin" target: |logit| it saturates at
     boundary_sigma: tuple = (1e-3, 5e-2)  # classifier: log-uniform width range of the boundary perturbations (unit cube)
+    edge_weight: float = 0.0            # regressor: extra loss weight of rays near an aperture edge, where a ghost's
+    edge_margin: float = 0.02           # sharp edge lands: w = 1 + edge_weight·exp(−margin / edge_margin) (0: off)
     pool: int = 2_000_000               # samples held in memory; refreshed from the tracer
     refresh_every: int = 2000           # steps between pool refreshes (fresh tracer data)
     refresh_fraction: float = 0.25

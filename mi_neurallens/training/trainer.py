@@ -182,6 +182,15 @@ def loss_weights(mode: str, oscale, y) -> np.ndarray:
     return np.maximum(w, 0.05)
 
 
+def edge_weights(ps, u: np.ndarray, nc: NetConfig) -> np.ndarray:
+    """Per-sample loss weights of valid regressor samples (unit-cube ``u``): ``1 + edge_weight ·
+    exp(−margin / edge_margin)``, with the tracer's aperture margin (1 − r²/R² at the tightest aperture,
+    :attr:`~mi_neurallens.trace.tracer.TraceResult.margin`).  Rays that graze an aperture land on the
+    sharp edge of a ghost, where a few µm of position error is a visible shift of the edge."""
+    _, m, _ = ps.margin_u(u)
+    return 1.0 + nc.edge_weight * np.exp(-np.maximum(m, 0.0) / nc.edge_margin)
+
+
 # ----------------------------------------------------------------------------- regressor
 def _fit(torch, net, opt, nc: NetConfig, state: dict, best: dict, *, n_pool: int, batch_loss, refresh,
          validate, ckpt, bar, dev):
@@ -272,7 +281,7 @@ def train_regressor(stream: RegressorStream, val, nc: NetConfig, *, heading: int
         if s_max is None:
             raise NeuralLensError("train_regressor: odd_y needs the domain's s_max")
         odd_s = float(s_max)
-    _, x0, y0 = stream.sample(nc.pool)
+    u0, x0, y0 = stream.sample(nc.pool)
     xn0 = (x0 - center) / scale_in
     skip, shift, oscale = fit_output_transform(xn0, y0, nc.residual, odd_factor(x0[:, 2], odd_s))
     net, opt, state, best, resumed = _start(torch, dev, nc, 5, ckpt)
@@ -285,7 +294,7 @@ def train_regressor(stream: RegressorStream, val, nc: NetConfig, *, heading: int
             net.load_state_dict(best)
             return _reg_result(net, skip, shift, oscale, state)
         stream.rng = np.random.default_rng([seed, state["step"]])
-        _, x0, y0 = stream.sample(nc.pool)
+        u0, x0, y0 = stream.sample(nc.pool)
         xn0 = (x0 - center) / scale_in
     state.update(odd_y=odd_s is not None, skip=skip.tolist(), shift=shift.tolist(), oscale=oscale.tolist())
     f32 = lambda a: torch.as_tensor(np.ascontiguousarray(a, dtype=np.float32), device=dev)
@@ -311,9 +320,13 @@ def train_regressor(stream: RegressorStream, val, nc: NetConfig, *, heading: int
     X = f32(xn0)
     Y = f32(targets(x0, xn0, y0))
     Yraw = f32(y0)
+    Wedge = f32(edge_weights(stream.ps, u0, nc)) if nc.edge_weight > 0 else None
     xv, yv = val
     xvn = (xv - center) / scale_in
     Xv, Yv = f32(xvn), f32(targets(xv, xvn, yv))
+    # the validation rays within edge_margin of an aperture edge: their error is logged on its own
+    _, mv, _ = stream.ps.margin_u(stream.ps.domain.x_to_u(xv))
+    near_edge = mv < nc.edge_margin
 
     def dir3(dxy):
         dz = heading * torch.sqrt(torch.clamp(1.0 - (dxy * dxy).sum(1, keepdim=True), min=0.0))
@@ -325,16 +338,19 @@ def train_regressor(stream: RegressorStream, val, nc: NetConfig, *, heading: int
         M = M_of(xb)
         return net(xb) * M, M
 
-    def loss_fn(xb, tb, yb_raw):
+    def loss_fn(xb, tb, yb_raw, wb=None):
+        """Per-sample squared errors (and cosine term), averaged with the sample weights ``wb``
+        (edge emphasis; ``None``: uniform)."""
         p, M = predict(xb)
+        mean = (lambda v: v.mean()) if wb is None else (lambda v: (v * wb).mean())
         if nc.direction_loss == "cosine":
-            l = (((p - tb) ** 2) * W)[:, [0, 1, 4]].mean() * 3.0 / 5.0
+            l = mean((((p - tb) ** 2) * W)[:, [0, 1, 4]].mean(1)) * 3.0 / 5.0
         else:
-            l = (((p - tb) ** 2) * W).mean()
+            l = mean((((p - tb) ** 2) * W).mean(1))
         if nc.direction_loss in ("cosine", "mse+cosine"):
             d_pred = M[:, 2:4] * (T_shift[2:4] + xb @ T_skip[2:4].T) + T_scale[2:4] * p[:, 2:4]
             # 1 − cos(a, b) = |â − b̂|²/2 for unit vectors (the stable form in float32)
-            cos_term = ((dir3(d_pred) - dir3(yb_raw[:, 2:4])) ** 2).sum(1).mean() / (2.0 * sig_d2)
+            cos_term = mean(((dir3(d_pred) - dir3(yb_raw[:, 2:4])) ** 2).sum(1)) / (2.0 * sig_d2)
             l = l + nc.cosine_weight * cos_term * (2.0 / 5.0)
         return l
 
@@ -353,6 +369,9 @@ def train_regressor(stream: RegressorStream, val, nc: NetConfig, *, heading: int
                "pos_um_med": m["position_um_median"], "pos_um_p99": m["position_um_p99"],
                "dir_as_med": m["direction_arcsec_median"], "dir_as_p99": m["direction_arcsec_p99"],
                "T_rel_med": m["throughput_rel_median"]}
+        if near_edge.any():
+            e = regression_errors(yp[near_edge], yv[near_edge], heading)
+            rec.update(edge_pos_um_med=e["position_um_median"], edge_pos_um_p99=e["position_um_p99"])
         state["history"].append(rec)
         if log:
             log(desc, rec)
@@ -360,13 +379,16 @@ def train_regressor(stream: RegressorStream, val, nc: NetConfig, *, heading: int
                         dir=f"{m['direction_arcsec_median']:.2f}\"")
 
     def refresh(k):
-        _, xr, yr = stream.sample(k)
+        ur, xr, yr = stream.sample(k)
         xrn = (xr - center) / scale_in
         idx = torch.as_tensor(rng.choice(len(X), k, replace=False), device=dev)
         X[idx], Y[idx], Yraw[idx] = f32(xrn), f32(targets(xr, xrn, yr)), f32(yr)
+        if Wedge is not None:
+            Wedge[idx] = f32(edge_weights(stream.ps, ur, nc))
 
     best, _ = _fit(torch, net, opt, nc, state, best, n_pool=len(X),
-                   batch_loss=lambda bi: loss_fn(X[bi], Y[bi], Yraw[bi]), refresh=refresh,
+                   batch_loss=lambda bi: loss_fn(X[bi], Y[bi], Yraw[bi], None if Wedge is None else Wedge[bi]),
+                   refresh=refresh,
                    validate=validate, ckpt=ckpt, bar=bar, dev=dev)
     state["wall_seconds_total"] = time.perf_counter() - t_start
     net.load_state_dict(best)
