@@ -35,6 +35,9 @@ def main(argv=None):
     ap.add_argument("--samples", type=int, default=24, help="log2 samples")
     ap.add_argument("--reference", type=int, default=0, help="log2 samples of an independent exact reference (0: none)")
     ap.add_argument("--json", help="write the rows here")
+    ap.add_argument("--attribute", action="store_true",
+                    help="also render the two hybrids (exact validity + learned exit rays, learned validity + exact "
+                         "exit rays) that split the error between the regressor and the classifier")
     a = ap.parse_args(argv)
     import mitsuba as mi
     mi.set_variant("llvm_ad_rgb")
@@ -42,9 +45,10 @@ def main(argv=None):
     from scipy.ndimage import binary_erosion
     from mi_neurallens.commands.render import load_scene
     from mi_neurallens.fileio import atomic_write_json
-    from mi_neurallens.flare.render import render_flare
+    from mi_neurallens.flare.render import FlareOptions, render_flare
     from mi_neurallens.metrics import LUMINANCE, flare_error_map, mape_masked
     from mi_neurallens.neural.model import bundled_model_path, load_model
+    HybridFlare = _hybrid_renderer()
     model = a.model or bundled_model_path(a.lens)
     ghosts = load_model(model).ghost_ids if a.ghosts == ["all"] else [int(g) for g in a.ghosts]
     scene = load_scene(os.path.join(ROOT, "scenes", "night_point.xml"), variant="llvm_ad_rgb", lens=a.lens,
@@ -62,12 +66,22 @@ def main(argv=None):
                    interior=float(rel[inner].mean()), interior_pixels=int(inner.sum()),
                    edge=float(rel[edge].mean()), edge_pixels=int(edge.sum()),
                    edge_share=float(rel[edge].sum() / rel[mask].sum()), flux_ratio=float(yn.sum() / ye.sum()))
-        line = ""
+        attribution = ""
+        if a.attribute:
+            for which, label in (("regressor", "learned exit rays"), ("classifier", "learned validity")):
+                hy = HybridFlare(scene, 0, FlareOptions(ghosts=[g], samples=n, mode="neural", pilot_with="exact"),
+                                 learned=which).render(seed=1).total
+                r2, m2 = flare_error_map(hy, ex)
+                row[which] = dict(mape=float(r2[m2].mean()), interior=float(r2[inner & m2].mean()),
+                                  edge=float(r2[edge & m2].mean()))
+                attribution += (f"; {label} only: MAPE {row[which]['mape']:.4f} (interior {row[which]['interior']:.4f}, "
+                                f"edge {row[which]['edge']:.4f})")
+        line = attribution
         if a.reference:
             ref = render_flare(scene, seed=101, ghosts=[g], samples=1 << a.reference, mode="exact").total
             row.update(reference_log2_samples=a.reference, independent=float(mape_masked(ne, ref)),
                        exact_floor=float(mape_masked(ex, ref)))
-            line = (f"; independent vs a 2^{a.reference} exact reference: neural {row['independent']:.4f}, "
+            line += (f"; independent vs a 2^{a.reference} exact reference: neural {row['independent']:.4f}, "
                     f"exact (noise floor) {row['exact_floor']:.4f}")
         rows.append(row)
         print(f"{a.lens} ghost {g}, 2^{a.samples} samples, paired: MAPE {row['mape']:.4f} over {row['pixels']} px; "
@@ -77,6 +91,37 @@ def main(argv=None):
     if a.json:
         atomic_write_json(a.json, dict(lens=a.lens, model=os.path.relpath(model, ROOT), rows=rows,
                                        command="python " + " ".join([os.path.relpath(__file__, ROOT)] + (argv or sys.argv[1:]))))
+
+
+def _hybrid_renderer():
+    """A :class:`FlareRenderer` whose learned evaluators take one half from the tracer (see ``--attribute``)."""
+    import drjit as dr
+    from mi_neurallens.flare.render import ExactGhost, FlareRenderer
+
+    class Hybrid:
+        kind = "neural"
+
+        def __init__(self, exact, learned, keep):
+            self.exact, self.learned, self.keep, self.map = exact, learned, keep, learned.map
+
+        def __call__(self, o, d, lam, active):
+            ve, xe, ye, te = self.exact(o, d, lam, active)
+            vn, xn, yn, tn = self.learned(o, d, lam, active)
+            if self.keep == "regressor":            # the tracer decides validity, the regressor where rays go
+                return ve, xn, yn, tn
+            # the classifier decides validity; where the tracer has an exit ray (valid rays), it is used
+            return vn, dr.select(ve, xe, xn), dr.select(ve, ye, yn), dr.select(ve, te, tn)
+
+    class HybridFlare(FlareRenderer):
+        def __init__(self, scene, sensor, opts, learned):
+            super().__init__(scene, sensor, opts)
+            self.learned = learned
+
+        def evaluator(self, pid):
+            ev = super().evaluator(pid)
+            return Hybrid(ExactGhost(self.tracer, pid), ev, self.learned) if ev.kind == "neural" else ev
+
+    return HybridFlare
 
 
 if __name__ == "__main__":
