@@ -99,15 +99,17 @@ def _hybrid_renderer():
     from mi_neurallens.flare.render import ExactGhost, FlareRenderer
 
     class Hybrid:
+        """A ghost evaluator that keeps one learned ``part`` ("regressor" or "classifier") and takes the
+        other from the tracer, on the same rays."""
         kind = "neural"
 
-        def __init__(self, exact, learned, keep):
-            self.exact, self.learned, self.keep, self.map = exact, learned, keep, learned.map
+        def __init__(self, exact, learned, part):
+            self.exact, self.learned, self.part, self.map = exact, learned, part, learned.map
 
         def __call__(self, o, d, lam, active):
             ve, xe, ye, te = self.exact(o, d, lam, active)
             vn, xn, yn, tn = self.learned(o, d, lam, active)
-            if self.keep == "regressor":            # the tracer decides validity, the regressor where rays go
+            if self.part == "regressor":            # the tracer decides validity, the regressor where rays go
                 return ve, xn, yn, tn
             # the classifier decides validity; where the tracer has an exit ray (valid rays), it is used
             return vn, dr.select(ve, xe, xn), dr.select(ve, ye, yn), dr.select(ve, te, tn)
