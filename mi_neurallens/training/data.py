@@ -363,12 +363,16 @@ class RegressorStream:
 
 
 def classifier_samples(ps: PathSampler, valid_u: np.ndarray, n: int, rng: np.random.Generator,
-                       sigma_range=(1e-3, 5e-2), margin: bool = False):
+                       sigma_range=None, margin: bool = False):
     """A labelled set for the classifier: ⅓ uniform over the domain (natural labels), ⅓ valid samples
     (``valid_u``, e.g. from :class:`RegressorStream`) and ⅓ boundary samples: valid points perturbed by
-    a Gaussian of log-uniform width in ``sigma_range`` (unit-cube units), labelled by the tracer.
+    a Gaussian of log-uniform width in ``sigma_range`` (unit-cube units; default
+    ``NetConfig.boundary_sigma``), labelled by the tracer.
     Returns (x (N, 4), label (N,) float32); with ``margin`` also the tracer's aperture margin (N,) and
     hard-failure mask (N,) of every sample (:meth:`PathSampler.margin_u`)."""
+    if sigma_range is None:
+        from .config import NetConfig
+        sigma_range = NetConfig.boundary_sigma
     k = n // 3
     u_uni = rng.random((k, 4))
     pick = valid_u[rng.integers(0, len(valid_u), n - 2 * k)]
