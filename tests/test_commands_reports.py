@@ -31,3 +31,30 @@ def test_accuracy_command_writes_reports(tmp_path):
     fl = doc["flare"]
     assert fl["all"]["neural"] < fl["all"]["abcd"]
     assert (tmp_path / "accuracy_wide-22mm.md").exists()
+
+
+def test_train_command_keeps_the_bundled_regressor(tmp_path, capsys):
+    """`train --keep regressor`: only the classifier of the selected ghost trains; the regressor comes
+    bit for bit from the bundled model (the way the GPU-trained ghost classifiers were made)."""
+    pytest.importorskip("torch")
+    import numpy as np
+    from mi_neurallens.neural.model import bundled_model_path, load_model
+    assert main(["train", "wide-22mm", "--base", "x.safetensors"]) == 1          # --base needs --keep
+    assert "--keep" in capsys.readouterr().err
+    small = ["--set", "heldout=5000", "--set", "forward_classifier.max_steps=60",
+             "--set", "forward_classifier.pool=60000", "--set", "forward_classifier.batch=2048",
+             "--set", "forward_classifier.eval_every=30"]
+    assert main(["train", "wide-22mm", "--paths", "192", "--keep", "regressor", "--out", str(tmp_path),
+                 "--no-progress", "--quiet"] + small) == 0
+    new = load_model(str(tmp_path / "wide-22mm.model.safetensors")).maps["forward.192"]
+    old = load_model(bundled_model_path("wide-22mm")).maps["forward.192"]
+    for (W, b), (W0, b0) in zip(new.regressor, old.regressor):
+        np.testing.assert_array_equal(W, W0)
+        np.testing.assert_array_equal(b, b0)
+    assert new.training["kept"]["network"] == "regressor" and new.training["classifier_steps"] == 60
+    assert new.metrics["regressor"]["position_um_median"] < 3.0
+    # a base model without the selected map: a clear error naming what it has
+    assert main(["train", "wide-22mm", "--paths", "999", "--keep", "regressor", "--base",
+                 str(tmp_path / "wide-22mm.model.safetensors"), "--out", str(tmp_path / "b"), "--no-progress",
+                 "--quiet"] + small) == 1
+    assert "no map 'forward.999'" in capsys.readouterr().err

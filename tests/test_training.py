@@ -1,6 +1,7 @@
 """Training data and the trainer: CIE wavelengths, MCMC validity and coverage, a tiny training run."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -247,6 +248,43 @@ def test_tiny_training_run_learns(tmp_path):
     F = float_type("float32")
     _, yd = tb.eval_reduced_dr([F(np.ascontiguousarray(x[:, i], np.float32)) for i in range(4)])
     np.testing.assert_allclose(np.stack([v.numpy() for v in yd], 1), y, atol=2e-3, rtol=1e-3)
+    # keep = "regressor": only the classifier trains (here a margin one, in another work directory); the
+    # regressor, its output transform and its training record come unchanged from the base map
+    tk = train_map(lens, 0, "backward", z_rear, z_front, dom, cfgm, str(tmp_path / "keep"), progress=False,
+                   eval_n=20000, keep="regressor", base=tb)
+    for (W, b), (W0, b0) in zip(tk.regressor, tb.regressor):
+        np.testing.assert_array_equal(W, W0)
+        np.testing.assert_array_equal(b, b0)
+    np.testing.assert_array_equal(tk.skip, tb.skip)
+    np.testing.assert_array_equal(tk.out_scale, tb.out_scale)
+    assert tk.odd_y == tb.odd_y
+    assert tk.training["kept"]["network"] == "regressor"
+    assert tk.training["regressor_steps"] == tb.training["regressor_steps"]
+    assert tk.training["classifier"]["target"] == "margin" and tb.training["classifier"]["target"] == "label"
+    assert not np.array_equal(tk.classifier[0][0], tb.classifier[0][0])
+    assert tk.metrics["regressor"]["position_um_median"] == pytest.approx(m["regressor"]["position_um_median"],
+                                                                          rel=0.05)
+    mk = tk.metrics["classifier"]
+    assert mk["misclassification"] < 0.3 * min(mk["valid_fraction"], 1 - mk["valid_fraction"])
+    # keep = "classifier" keeps the classifier bit for bit (its calibration offset included)
+    tc = train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, str(tmp_path / "keepc"), progress=False,
+                   evaluate=False, keep="classifier", base=tk)
+    for (W, b), (W0, b0) in zip(tc.classifier, tk.classifier):
+        np.testing.assert_array_equal(W, W0)
+        np.testing.assert_array_equal(b, b0)
+    # a base map of another path, planes or domain, an unknown network, or no base: clear errors
+    with pytest.raises(NeuralLensError, match="not backward.0"):
+        train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, None, keep="regressor",
+                  base=dataclasses.replace(tb, path_id=3))
+    with pytest.raises(NeuralLensError, match="planes"):
+        train_map(lens, 0, "backward", z_rear + 1.0, z_front, dom, cfg, None, keep="regressor", base=tb)
+    with pytest.raises(NeuralLensError, match="domain"):
+        train_map(lens, 0, "backward", z_rear, z_front, data.Domain(dom.r_max * 2, dom.s_max), cfg, None,
+                  keep="regressor", base=tb)
+    with pytest.raises(NeuralLensError, match="choose one of"):
+        train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, None, keep="both", base=tb)
+    with pytest.raises(NeuralLensError, match="needs the map"):
+        train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, None, keep="regressor")
 
 
 def test_edge_weighted_regressor_loss():

@@ -22,6 +22,10 @@ def add_parser(subparsers):
     p.add_argument("--out", default=None, help="output folder (default: lenses/models)")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config value, e.g. --set seed=3 --set regressor.max_steps=2000 (JSON values)")
+    p.add_argument("--keep", choices=("regressor", "classifier"),
+                   help="train only the other network of each selected map; keep this one from --base")
+    p.add_argument("--base", help="model file the --keep networks come from (default: the output model file "
+                                  "when it exists, else the bundled model of the lens)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--quiet", action="store_true", help="no per-evaluation log lines")
     p.set_defaults(func=run)
@@ -65,7 +69,15 @@ def run(args):
             print(desc + " " + " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                                         for k, v in rec.items()), file=sys.stderr, flush=True)
 
-    model = train_lens(lens, cfg, out, paths=args.paths, progress=not args.no_progress, log=log)
+    base = None
+    if args.keep:
+        base = args.base or (out if os.path.exists(out) else bundled_model_path(lens.name))
+        print(f"keeping the {args.keep}s of {base}", file=sys.stderr)
+    elif args.base:
+        from ..errors import NeuralLensError
+        raise NeuralLensError("--base names where --keep takes its networks from; give --keep too")
+    model = train_lens(lens, cfg, out, paths=args.paths, progress=not args.no_progress, log=log,
+                       keep=args.keep, base_path=base)
     from ..training.evaluate import markdown_table
     print(markdown_table(model, [(k, m.metrics) for k, m in model.maps.items() if m.metrics]))
     print(f"wrote {out}")

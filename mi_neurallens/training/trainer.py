@@ -504,41 +504,96 @@ def calibrate_classifier(lens, tm, n: int = 200_000, seed: int = 0, fresnel: boo
 
 
 # ----------------------------------------------------------------------------- one map
+#: the networks of a map that :func:`train_map` can keep from an earlier map instead of training them
+NETWORKS = ("regressor", "classifier")
+
+
+def _check_keep(keep: str | None, base, path_id: int, direction: str, z_in: float, z_out: float, domain: Domain):
+    """Validate a ``keep``/``base`` pair of :func:`train_map` (the kept network must come from a map of the
+    same path, direction, planes and domain: its inputs and outputs mean the same only then)."""
+    if keep is None:
+        return
+    if keep not in NETWORKS:
+        raise NeuralLensError(f"keep = {keep!r}: choose one of {list(NETWORKS)} (or None to train both)")
+    if base is None:
+        raise NeuralLensError(f"keep = {keep!r} needs the map whose {keep} is kept (base)")
+    want = (int(path_id), direction)
+    if (int(base.path_id), base.direction) != want:
+        raise NeuralLensError(f"keep = {keep!r}: the base map is {base.key}, not {direction}.{path_id}")
+    if abs(base.z_in - z_in) > 1e-9 or abs(base.z_out - z_out) > 1e-9:
+        raise NeuralLensError(f"keep = {keep!r}: the base map {base.key} uses planes z = {base.z_in:g} -> "
+                              f"{base.z_out:g} mm, this training {z_in:g} -> {z_out:g} mm (another close_focus_mm?)")
+    bd = Domain.from_dict(base.domain)
+    if not np.allclose([bd.r_max, bd.s_max, bd.lam_min, bd.lam_max],
+                       [domain.r_max, domain.s_max, domain.lam_min, domain.lam_max], rtol=1e-9, atol=0.0):
+        raise NeuralLensError(f"keep = {keep!r}: the base map {base.key} was trained on another input domain "
+                              f"({base.domain}) than this training ({domain.to_dict()})")
+
+
+def _kept(base, network: str) -> dict:
+    """``network`` ("regressor" or "classifier") of the map ``base`` in the form the trainers return, with
+    the training state and configuration it was trained with (read back from ``base.training``)."""
+    t = base.training
+    state = {"step": t.get(f"{network}_steps", 0), "seconds": t.get(f"{network}_seconds", 0.0),
+             "stop_reason": t.get(f"{network}_stop"), "samples": t.get(f"{network}_samples", 0),
+             "history": t.get(f"{network}_history", [])}
+    out = {"layers": [(np.asarray(W, np.float64), np.asarray(b, np.float64))
+                      for W, b in getattr(base, network)], "state": state, "config": t.get(network, {}),
+           "activation": getattr(base, f"{network}_activation")}
+    if network == "regressor":
+        out.update(skip=np.asarray(base.skip), out_shift=np.asarray(base.out_shift),
+                   out_scale=np.asarray(base.out_scale), odd_y=bool(base.odd_y))
+    return out
+
+
 def train_map(lens, path_id: int, direction: str, z_in: float, z_out: float, domain: Domain, cfg: TrainConfig,
               workdir: str | None = None, progress: bool = True, log=None, evaluate: bool = True,
-              eval_n: int | None = None):
+              eval_n: int | None = None, keep: str | None = None, base=None):
     """Train the classifier and regressor of one map; returns a :class:`TransportMap` with held-out
-    metrics."""
+    metrics.
+
+    ``keep = "regressor"`` (or ``"classifier"``) takes that network unchanged from ``base`` (a
+    :class:`~mi_neurallens.neural.model.TransportMap` of the same path, planes and domain) and trains only
+    the other one: e.g. a longer or wider classifier for a ghost whose flare error sits on its edge,
+    without paying for (or changing) its regressor.  The kept network's training record is carried over
+    under ``training["kept"]``."""
     from ..neural.model import TransportMap
     from .evaluate import evaluate_map, heldout_valid
+    _check_keep(keep, base, path_id, direction, z_in, z_out, domain)
     key = f"{direction}.{path_id}"
     seed = int(cfg.seed) * 1_000_003 + int(path_id) * 2 + (direction == "forward")
     rc, cc = cfg.net("regressor", direction), cfg.net("classifier", direction)
     ps = PathSampler(lens, path_id, direction, z_in, z_out, domain, fresnel=cfg.fresnel)
     stream = RegressorStream(ps, seed, cfg.mcmc_threshold, cfg.mcmc_chains, cfg.mcmc_p_large, cfg.mcmc_sigma)
     center, scale_in = domain.norm_center_scale()
-    nval = min(cfg.heldout, 20_000)
-    val = heldout_valid(lens, (path_id, direction, z_in, z_out), domain, nval, seed + 7, cfg.mcmc_threshold,
-                        cfg.fresnel)
     ck = (lambda n: os.path.join(workdir, f"{key}.{n}.ckpt")) if workdir else (lambda n: None)
     t0 = time.perf_counter()
-    reg = train_regressor(stream, val, rc, heading=1 if direction == "forward" else -1, center=center,
-                          scale_in=scale_in, seed=seed, ckpt=ck("regressor"), threads=cfg.threads,
-                          device=cfg.device, progress=progress, desc=f"{key} regressor", log=log,
-                          s_max=domain.s_max)
+    if keep == "regressor":
+        reg = _kept(base, "regressor")
+    else:
+        val = heldout_valid(lens, (path_id, direction, z_in, z_out), domain, min(cfg.heldout, 20_000), seed + 7,
+                            cfg.mcmc_threshold, cfg.fresnel)
+        reg = train_regressor(stream, val, rc, heading=1 if direction == "forward" else -1, center=center,
+                              scale_in=scale_in, seed=seed, ckpt=ck("regressor"), threads=cfg.threads,
+                              device=cfg.device, progress=progress, desc=f"{key} regressor", log=log,
+                              s_max=domain.s_max)
     t1 = time.perf_counter()
-    # classifier validation: the natural mix (uniform over the domain), float64 labels; large, because
-    # only the few rays near the boundary tell two good classifiers apart (0.02 % of 400 k = 80 errors)
-    vrng = np.random.default_rng(seed + 11)
-    psv = PathSampler(lens, path_id, direction, z_in, z_out, domain, fresnel=cfg.fresnel, precision="float64")
-    xcv = domain.u_to_x(vrng.random((CLASSIFIER_VALIDATION, 4)))
-    lcv, _ = psv.trace_x(xcv)
-    cls = train_classifier(ps, lambda n: stream.sample(n)[0], (xcv, lcv), cc, center=center, scale_in=scale_in,
-                           seed=seed + 1, ckpt=ck("classifier"), threads=cfg.threads, device=cfg.device,
-                           progress=progress, desc=f"{key} classifier", log=log)
+    if keep == "classifier":
+        cls = _kept(base, "classifier")
+    else:
+        # classifier validation: the natural mix (uniform over the domain), float64 labels; large, because
+        # only the few rays near the boundary tell two good classifiers apart (0.02 % of 400 k = 80 errors)
+        vrng = np.random.default_rng(seed + 11)
+        psv = PathSampler(lens, path_id, direction, z_in, z_out, domain, fresnel=cfg.fresnel, precision="float64")
+        xcv = domain.u_to_x(vrng.random((CLASSIFIER_VALIDATION, 4)))
+        lcv, _ = psv.trace_x(xcv)
+        cls = train_classifier(ps, lambda n: stream.sample(n)[0], (xcv, lcv), cc, center=center,
+                               scale_in=scale_in, seed=seed + 1, ckpt=ck("classifier"), threads=cfg.threads,
+                               device=cfg.device, progress=progress, desc=f"{key} classifier", log=log)
     t2 = time.perf_counter()
-    training = {"config_digest": cfg.digest(), "regressor": {k: v for k, v in rc.__dict__.items()},
-                "classifier": {k: v for k, v in cc.__dict__.items()},
+    training = {"config_digest": cfg.digest(),
+                "regressor": reg.get("config", {k: v for k, v in rc.__dict__.items()}),
+                "classifier": cls.get("config", {k: v for k, v in cc.__dict__.items()}),
                 "regressor_steps": reg["state"]["step"], "classifier_steps": cls["state"]["step"],
                 "regressor_seconds": reg["state"]["seconds"], "classifier_seconds": cls["state"]["seconds"],
                 "regressor_stop": reg["state"].get("stop_reason"), "classifier_stop": cls["state"].get("stop_reason"),
@@ -546,15 +601,22 @@ def train_map(lens, path_id: int, direction: str, z_in: float, z_out: float, dom
                 "data_sampler": stream.method, "valid_fraction": stream.fraction,
                 "mcmc": stream.mcmc.stats() if stream.mcmc is not None else None,
                 "wall_seconds_this_run": t2 - t0, "regressor_wall_this_run": t1 - t0,
-                "seed": cfg.seed,
+                "seed": cfg.seed, "device": str(pick_device(_torch(0), cfg.device)),
                 "regressor_history": reg["state"]["history"], "classifier_history": cls["state"]["history"]}
+    if keep is not None:
+        training["kept"] = {"network": keep, "from_config_digest": base.training.get("config_digest")}
+        if keep == "classifier":       # its calibration offset is already folded into its last bias
+            for k in ("classifier_logit_offset", "classifier_calibration"):
+                if k in base.training:
+                    training[k] = base.training[k]
     tm = TransportMap(path_id=int(path_id), direction=direction, z_in=float(z_in), z_out=float(z_out),
                       domain=domain.to_dict(), input_center=center, input_scale=scale_in,
                       classifier=cls["layers"], regressor=reg["layers"], skip=reg["skip"],
                       out_scale=reg["out_scale"], out_shift=reg["out_shift"], odd_y=reg["odd_y"],
-                      classifier_activation=cc.activation, regressor_activation=rc.activation,
-                      training=training)
-    calibrate_classifier(lens, tm, min(cfg.heldout, 200_000), seed + 13, cfg.fresnel)
+                      classifier_activation=cls.get("activation", cc.activation),
+                      regressor_activation=reg.get("activation", rc.activation), training=training)
+    if keep != "classifier":
+        calibrate_classifier(lens, tm, min(cfg.heldout, 200_000), seed + 13, cfg.fresnel)
     if evaluate:
         tm.metrics = evaluate_map(lens, tm, n=eval_n or cfg.heldout, seed=seed + 99,
                                   mcmc_threshold=cfg.mcmc_threshold, fresnel=cfg.fresnel)
@@ -583,12 +645,20 @@ def select_maps(cfg: TrainConfig, paths: str | None):
 
 
 def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, workdir: str | None = None,
-               progress: bool = True, log=None):
+               progress: bool = True, log=None, keep: str | None = None, base_path: str | None = None):
     """Plan, train and save every selected map of ``lens`` to ``out_path`` (re-saved atomically after each
-    map, so an interruption loses at most the map in progress — whose networks resume from checkpoints)."""
+    map, so an interruption loses at most the map in progress — whose networks resume from checkpoints).
+
+    ``keep`` ("regressor" or "classifier"): train only the other network of each selected map and keep
+    this one from the same map of the model file ``base_path`` (see :func:`train_map`)."""
     from ..neural.model import NeuralLensModel, load_model
     from . import plan
     from ..errors import ModelError
+    base_model = None
+    if keep is not None:
+        if not base_path:
+            raise NeuralLensError(f"keep = {keep!r}: name the model file whose {keep}s are kept (base_path)")
+        base_model = load_model(base_path, lens)
     s0, s1 = plan.sensor_distance_range(lens, cfg.close_focus_mm)
     z_front, z_rear = plan.planes(lens, s0)
     workdir = workdir or (out_path + ".work")
@@ -640,7 +710,12 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
         key = f"{d}.{pid}"
         if key in model.maps:
             continue
-        tm = train_map(lens, pid, d, zi, zo, dom, cfg, workdir, progress=progress, log=log)
+        base = None
+        if base_model is not None:
+            if key not in base_model.maps:
+                raise ModelError(f"{base_path}: no map {key!r} to keep the {keep} of; it has {sorted(base_model.maps)}")
+            base = base_model.maps[key]
+        tm = train_map(lens, pid, d, zi, zo, dom, cfg, workdir, progress=progress, log=log, keep=keep, base=base)
         model.maps[key] = tm
         model.save(out_path)
     model.save(out_path)
