@@ -194,9 +194,27 @@ def test_convert_bundled_reproduces_committed_files(tmp_path):
     assert set(written) == set(F.bundled_lenses())
     for name, p in written.items():
         new, old = F.load_lens(p), F.load_lens(name)
-        assert new.fingerprint() == old.fingerprint(), name
+        # the same document, numbers to 1e-9 relative: glass models fitted to catalog data (least squares)
+        # differ in their last bits between numpy/BLAS builds, which would change the exact fingerprint
+        _assert_same_document(PJ.lens_to_dict(new), PJ.lens_to_dict(old), name)
         assert new.metadata["source"] == old.metadata["source"], name
     assert not [p for p in tmp_path.iterdir() if p.suffix != ".json"]  # no temp files left behind
+
+
+def _assert_same_document(a, b, where):
+    """``a == b`` for JSON-like documents, floats compared to 1e-9 relative (1e-15 absolute)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        assert set(a) == set(b), (where, sorted(set(a) ^ set(b)))
+        for k in a:
+            _assert_same_document(a[k], b[k], f"{where}/{k}")
+    elif isinstance(a, list) and isinstance(b, list):
+        assert len(a) == len(b), where
+        for i, (u, v) in enumerate(zip(a, b)):
+            _assert_same_document(u, v, f"{where}[{i}]")
+    elif isinstance(a, float) or isinstance(b, float):
+        assert a == pytest.approx(b, rel=1e-9, abs=1e-15), where
+    else:
+        assert a == b, where
 
 
 def test_lenses_dir_env_override(tmp_path, monkeypatch):
