@@ -30,7 +30,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     import drjit as dr
     from mi_neurallens import Lens
-    from mi_neurallens.baselines import ExactMap
+    from mi_neurallens.transport import ExactMap
     from mi_neurallens.baselines.accuracy import build_method, flops_of, pick_ghosts, rays_from_reduced, time_eval_dr
     from mi_neurallens.baselines.common import bundled_model, default_domain, default_map_planes
     dr.set_thread_count(args.threads)

@@ -96,7 +96,7 @@ def main(argv=None):
 def _hybrid_renderer():
     """A :class:`FlareRenderer` whose learned evaluators take one half from the tracer (see ``--attribute``)."""
     import drjit as dr
-    from mi_neurallens.flare.render import ExactGhost, FlareRenderer
+    from mi_neurallens.flare.render import FlareRenderer, GhostEvaluator
 
     class Hybrid:
         """A ghost evaluator that keeps one learned ``part`` ("regressor" or "classifier") and takes the
@@ -104,7 +104,7 @@ def _hybrid_renderer():
         kind = "neural"
 
         def __init__(self, exact, learned, part):
-            self.exact, self.learned, self.part, self.map = exact, learned, part, learned.map
+            self.exact, self.learned, self.part, self.map, self.pid = exact, learned, part, learned.map, learned.pid
 
         def __call__(self, o, d, lam, active):
             ve, xe, ye, te = self.exact(o, d, lam, active)
@@ -121,7 +121,8 @@ def _hybrid_renderer():
 
         def evaluator(self, pid):
             ev = super().evaluator(pid)
-            return Hybrid(ExactGhost(self.tracer, pid), ev, self.learned) if ev.kind == "neural" else ev
+            exact = GhostEvaluator(self.exact_map(pid), self.z_img, self.fresnel)
+            return Hybrid(exact, ev, self.learned) if ev.kind == "neural" else ev
 
     return HybridFlare
 

@@ -1,5 +1,5 @@
 """Baselines (ABCD, Taylor polynomial optics, fitted sparse polynomials): closed forms, convergence
-orders and the shared TransportMap-like interface."""
+orders and the shared TransportMap interface."""
 from __future__ import annotations
 
 import math
@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from mi_neurallens import Lens
-from mi_neurallens.baselines import ABCDMap, FittedMap, TaylorMap, make_method
+from mi_neurallens.baselines import ABCDMap, FittedMap, TaylorMap
+from mi_neurallens.transport import make_map
 from mi_neurallens.baselines.poly import SparsePoly, TPS, compose, design_matrix, omp, tps_vars
 from mi_neurallens.baselines.taylor import _Ctx, surface_step
 from mi_neurallens.optics.glass import AIR, constant
@@ -167,7 +168,7 @@ def test_taylor_composition_equals_direct_and_converges(wide):
             d /= np.linalg.norm(d, axis=1, keepdims=True)
             ref = wide.trace(o, d, 550.0, z_out=m.z_out, precision="float64")
             r = m.eval_np(o, d, 550.0)
-            errs.append(np.abs(r["position"][ref.valid, :2] - ref.position[ref.valid, :2]).max())
+            errs.append(np.abs(r.position[ref.valid, :2] - ref.position[ref.valid, :2]).max())
         slope = np.polyfit(np.log(scales), np.log(errs), 1)[0]
         assert slope == pytest.approx(deg + 2, abs=0.6), (deg, errs)
 
@@ -181,7 +182,7 @@ def test_taylor_fresnel_series(wide):
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     ref = wide.trace(o, d, 550.0, z_out=m.z_out, precision="float64")
     r = m.eval_np(o, d, 550.0)
-    np.testing.assert_allclose(r["throughput"][ref.valid], ref.throughput[ref.valid], atol=1e-6)
+    np.testing.assert_allclose(r.throughput[ref.valid], ref.throughput[ref.valid], atol=1e-6)
 
 
 def test_taylor_wavelength_modes_dispersive():
@@ -195,10 +196,10 @@ def test_taylor_wavelength_modes_dispersive():
     d /= np.linalg.norm(d)
     ra, rb = a.eval_np(o, d, 550.0), b.eval_np(o, d, 550.0)
     ref = lens.trace(o, d, 550.0, z_out=a.z_out, precision="float64")
-    assert np.abs(ra["position"] - ref.position).max() < 1e-4
-    assert np.abs(rb["position"] - ref.position).max() < 1e-3
+    assert np.abs(ra.position - ref.position).max() < 1e-4
+    assert np.abs(rb.position - ref.position).max() < 1e-3
     # dispersion is there: 450 vs 650 nm land apart, and both modes agree on the sign
-    p4, p6 = a.eval_np(o, d, 450.0)["position"], a.eval_np(o, d, 650.0)["position"]
+    p4, p6 = a.eval_np(o, d, 450.0).position, a.eval_np(o, d, 650.0).position
     r4 = lens.trace(o, d, 450.0, z_out=a.z_out, precision="float64").position
     r6 = lens.trace(o, d, 650.0, z_out=a.z_out, precision="float64").position
     assert np.sign(p4[0, 0] - p6[0, 0]) == np.sign(r4[0, 0] - r6[0, 0])
@@ -235,10 +236,10 @@ def test_fitted_map_reproduces_known_polynomial(wide):
     from mi_neurallens.trace.symmetry import reduced_ray
     (px, py), (dx, dy, dz) = reduced_ray(x[:, 0], x[:, 1], x[:, 2], 1)
     out = f.eval_np(np.c_[px, py, np.full(len(x), -1.0)], np.c_[dx, dy, dz], x[:, 3])
-    np.testing.assert_allclose(out["position"][:, :2], Y[:, :2], atol=1e-10)
-    np.testing.assert_allclose(out["direction"][:, :2], Y[:, 2:4], atol=1e-10)
-    np.testing.assert_allclose(out["throughput"], Y[:, 4], atol=1e-10)
-    assert out["valid"].all()
+    np.testing.assert_allclose(out.position[:, :2], Y[:, :2], atol=1e-10)
+    np.testing.assert_allclose(out.direction[:, :2], Y[:, 2:4], atol=1e-10)
+    np.testing.assert_allclose(out.throughput, Y[:, 4], atol=1e-10)
+    assert out.valid.all()
 
 
 # ------------------------------------------------------------------------------------------ interface
@@ -256,7 +257,8 @@ def _dr_eval(m, o, d, lam):
     F = float_type("float64")
     O = tuple(F(o[:, i]) for i in range(3))
     D = tuple(F(d[:, i]) for i in range(3))
-    v, (p, dd, T) = m.eval_dr(O, D, F(lam))
+    res = m.eval_dr(O, D, F(lam))
+    v, p, dd, T = res.valid, res.position, res.direction, res.throughput
     dr.eval(v, p, dd, T)
     return (v.numpy().astype(bool), np.stack([c.numpy() for c in p], 1), np.stack([c.numpy() for c in dd], 1),
             T.numpy())
@@ -268,31 +270,31 @@ def test_eval_dr_equals_eval_np(wide, method, kw):
     direction = "forward"
     if method == "fitted":
         kw = dict(kw, n_samples=3000, degree=5, terms=12, domain=Domain(r_max=8.0, s_max=0.3))
-    m = make_method(wide, method, "transmit", direction, **kw)
+    m = make_map(wide, method, "transmit", direction, **kw)
     o, d, lam = _rays(m)
     a = m.eval_np(o, d, lam)
     v, p, dd, T = _dr_eval(m, o, d, lam)
-    assert (v == a["valid"]).mean() > 0.999
-    both = v & a["valid"]
+    assert (v == a.valid).mean() > 0.999
+    both = v & a.valid
     assert both.sum() > 100
-    np.testing.assert_allclose(p[both], a["position"][both], atol=1e-8)
-    np.testing.assert_allclose(dd[both], a["direction"][both], atol=1e-10)
-    np.testing.assert_allclose(T[both], a["throughput"][both], atol=1e-10)
+    np.testing.assert_allclose(p[both], a.position[both], atol=1e-8)
+    np.testing.assert_allclose(dd[both], a.direction[both], atol=1e-10)
+    np.testing.assert_allclose(T[both], a.throughput[both], atol=1e-10)
     assert m.flops() > 0
 
 
-def test_make_method_planes_and_errors(wide):
+def test_make_map_planes_and_errors(wide):
     from mi_neurallens.errors import NeuralLensError
     from mi_neurallens.baselines.common import default_map_planes
-    m = make_method(wide, "abcd", "transmit", "backward")
+    m = make_map(wide, "abcd", "transmit", "backward")
     zi, zo = default_map_planes(wide, "backward")
     assert (m.z_in, m.z_out) == (zi, zo) and zi > zo
     with pytest.raises(NeuralLensError, match="unknown method"):
-        make_method(wide, "spline")
-    ex = make_method(wide, "exact", "transmit", "forward")
+        make_map(wide, "spline")
+    ex = make_map(wide, "exact", "transmit", "forward")
     o, d, lam = _rays(ex, n=500)
     r = ex.eval_np(o, d, 550.0)
-    t = make_method(wide, "taylor5", "transmit", "forward")
+    t = make_map(wide, "taylor5", "transmit", "forward")
     rt = t.eval_np(o, d, 550.0)
-    ok = r["valid"]
-    assert ok.sum() > 50 and np.nanmedian(np.abs(rt["position"][ok] - r["position"][ok])) < 0.05
+    ok = r.valid
+    assert ok.sum() > 50 and np.nanmedian(np.abs(rt.position[ok] - r.position[ok])) < 0.05

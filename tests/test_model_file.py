@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from mi_neurallens import Lens, ModelError
-from mi_neurallens.neural import NeuralLensModel, TransportMap, bundled_model_path, load_model
+from mi_neurallens.neural import NeuralLensModel, NeuralMap, bundled_model_path, load_model
 from mi_neurallens.neural.mlp import mlp_dr, mlp_np, tanh_eigen
 from mi_neurallens.trace.api import float_type
 
@@ -20,7 +20,7 @@ def _layers(rng, widths, scale=0.6):
 
 
 def _map(rng, direction="backward", path_id=0, width=8):
-    return TransportMap(
+    return NeuralMap(
         path_id=path_id, direction=direction, z_in=40.0 if direction == "backward" else -1.0,
         z_out=-1.0 if direction == "backward" else 40.0,
         domain={"r_max_mm": 10.0, "s_max": 0.6, "lambda_min_nm": 360.0, "lambda_max_nm": 830.0},
@@ -72,8 +72,8 @@ def test_round_trip(model, lens, tmp_path):
         assert (b.z_in, b.z_out, b.domain, b.training, b.metrics) == (a.z_in, a.z_out, a.domain, a.training, a.metrics)
         o, d, lam = _rays(2000, a.heading)
         ra, rb = a.eval_np(o, d, lam), b.eval_np(o, d, lam)   # b has float32-rounded weights
-        np.testing.assert_array_equal(ra["valid"] | (np.abs(ra["logit"]) < 1e-4), rb["valid"] | (np.abs(ra["logit"]) < 1e-4))
-        np.testing.assert_allclose(ra["position"], rb["position"], atol=1e-4)
+        np.testing.assert_array_equal(ra.valid | (np.abs(ra.logit) < 1e-4), rb.valid | (np.abs(ra.logit) < 1e-4))
+        np.testing.assert_allclose(ra.position, rb.position, atol=1e-4)
     # metadata is plain JSON inside __metadata__
     from safetensors import safe_open
     with safe_open(p, "np") as f:
@@ -175,19 +175,20 @@ def test_transport_map_eval_dr_equals_numpy(direction):
     ref = tm.eval_np(o, d, lam)
     F = float_type("float32")
     col = lambda a, i: F(np.ascontiguousarray(a[:, i], dtype=np.float32))
-    valid, (pos, dirn, thr) = tm.eval_dr(tuple(col(o, i) for i in range(3)), tuple(col(d, i) for i in range(3)),
-                                         F(lam.astype(np.float32)))
+    res = tm.eval_dr(tuple(col(o, i) for i in range(3)), tuple(col(d, i) for i in range(3)),
+                     F(lam.astype(np.float32)))
+    valid, pos, dirn, thr = res.valid, res.position, res.direction, res.throughput
     v = valid.numpy().astype(bool)
-    sure = np.abs(ref["logit"]) > 1e-3            # away from the decision boundary
-    assert 0.05 < ref["valid"].mean() < 0.95
-    np.testing.assert_array_equal(v[sure], ref["valid"][sure])
+    sure = np.abs(ref.logit) > 1e-3            # away from the decision boundary
+    assert 0.05 < ref.valid.mean() < 0.95
+    np.testing.assert_array_equal(v[sure], ref.valid[sure])
     P = np.stack([c.numpy() for c in pos], 1)
     D = np.stack([c.numpy() for c in dirn], 1)
-    scale = np.abs(ref["position"][:, :2]).max()
-    np.testing.assert_allclose(P[:, :2], ref["position"][:, :2], atol=2e-6 * scale + 1e-6)
+    scale = np.abs(ref.position[:, :2]).max()
+    np.testing.assert_allclose(P[:, :2], ref.position[:, :2], atol=2e-6 * scale + 1e-6)
     np.testing.assert_allclose(P[:, 2], tm.z_out)
-    np.testing.assert_allclose(D, ref["direction"], atol=1e-5)  # float32 through 6 layers; 1e-5 rad = 2″, model error ~15″
-    np.testing.assert_allclose(thr.numpy(), ref["throughput"], atol=2e-6 * np.abs(ref["throughput"]).max())
+    np.testing.assert_allclose(D, ref.direction, atol=1e-5)  # float32 through 6 layers; 1e-5 rad = 2″, model error ~15″
+    np.testing.assert_allclose(thr.numpy(), ref.throughput, atol=2e-6 * np.abs(ref.throughput).max())
 
 
 def test_bundled_models_load():
@@ -226,15 +227,15 @@ def test_bundled_22mm_backward_map_matches_tracer():
     ex = lens.trace(o, d, 550.0, direction="backward", z_out=tm.z_out, precision="float64")
     nn = tm.eval_np(o, d, 550.0)
     assert ex.valid.sum() > 1000
-    assert (nn["valid"] == ex.valid).mean() > 0.995
-    both = ex.valid & nn["valid"]
-    err_um = np.hypot(*(nn["position"][both, :2] - ex.position[both, :2]).T) * 1000
+    assert (nn.valid == ex.valid).mean() > 0.995
+    both = ex.valid & nn.valid
+    err_um = np.hypot(*(nn.position[both, :2] - ex.position[both, :2]).T) * 1000
     # the goals for this map (median ≤ 2 µm, p99 ≤ 20 µm; direction ≤ 5″ / 40″), end to end
     assert np.median(err_um) < 2.0 and np.percentile(err_um, 99) < 20.0, (np.median(err_um), np.percentile(err_um, 99))
-    cosang = np.clip(np.sum(nn["direction"][both] * ex.direction[both], 1), -1.0, 1.0)
+    cosang = np.clip(np.sum(nn.direction[both] * ex.direction[both], 1), -1.0, 1.0)
     ang = np.degrees(np.arccos(cosang)) * 3600.0
     assert np.median(ang) < 5.0 and np.percentile(ang, 99) < 40.0, (np.median(ang), np.percentile(ang, 99))
-    np.testing.assert_allclose(nn["throughput"][both], ex.throughput[both], rtol=0.01)
+    np.testing.assert_allclose(nn.throughput[both], ex.throughput[both], rtol=0.01)
 
 
 def test_merge_maps_script(tmp_path):

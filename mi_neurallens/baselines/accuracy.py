@@ -43,31 +43,24 @@ DEFAULT_METHODS = ("abcd", "taylor3", "taylor5", "taylor5-ap", "fitted", "neural
 def build_method(lens, name: str, path_id: int, direction: str, z_in, z_out, domain, model, fitted_opts=None):
     """Method by table name: ``abcd``, ``taylor3``, ``taylor5``, ``taylor5-ap`` (aperture='all'),
     ``fitted``, ``neural``, ``exact``.  Returns None for ``neural`` without a bundled map."""
-    from . import make_method
+    from ..transport import make_map
     if name == "neural":
         if model is None or not model.has(path_id, direction):
             return None
         return model.map(path_id, direction)
     if name == "taylor5-ap":
-        return make_method(lens, "taylor", path_id, direction, z_in, z_out, degree=5, aperture="all")
+        return make_map(lens, "taylor", path_id, direction, z_in, z_out, degree=5, aperture="all")
     if name == "taylor3-ap":
-        return make_method(lens, "taylor", path_id, direction, z_in, z_out, degree=3, aperture="all")
+        return make_map(lens, "taylor", path_id, direction, z_in, z_out, degree=3, aperture="all")
     if name == "fitted":
-        return make_method(lens, "fitted", path_id, direction, z_in, z_out, domain=domain, model=model,
+        return make_map(lens, "fitted", path_id, direction, z_in, z_out, domain=domain, model=model,
                            **(fitted_opts or {}))
-    return make_method(lens, name, path_id, direction, z_in, z_out)
+    return make_map(lens, name, path_id, direction, z_in, z_out)
 
 
 def flops_of(m) -> int | None:
-    if hasattr(m, "flops"):
-        return int(m.flops()) or None
-    if hasattr(m, "classifier"):  # TransportMap
-        f = 0
-        for layers in (m.classifier, m.regressor):
-            for i, (W, _) in enumerate(layers):
-                f += 2 * W.shape[0] * W.shape[1] + (24 * W.shape[0] if i < len(layers) - 1 else 0)
-        return f + 40 + 2 * 5 * 4
-    return None
+    """A map's operations per ray (None where not counted: the tracer)."""
+    return int(m.flops()) or None
 
 
 def _rotate(o, d, phi):
@@ -114,8 +107,8 @@ def time_eval_dr(m, o, d, lam, repeats: int = 3) -> float:
     best = math.inf
     for k in range(repeats + 1):
         t0 = time.perf_counter()
-        v, (p, dd, T) = m.eval_dr(O, D, L)
-        dr.eval(v, p, dd, T)
+        res = m.eval_dr(O, D, L)
+        dr.eval(res.valid, res.position, res.direction, res.throughput)
         dr.sync_thread()
         dt = time.perf_counter() - t0
         if k > 0:
@@ -128,7 +121,7 @@ def evaluate_path(lens, path_id: int, direction: str, methods=DEFAULT_METHODS, n
     """Every metric of every method on one path (see the module docstring)."""
     from ..training.data import PathSampler
     from ..training.evaluate import heldout_valid
-    from . import ExactMap
+    from ..transport import ExactMap
     model = bundled_model(lens) if model is None else model
     z_in, z_out = default_map_planes(lens, direction, model)
     dom = default_domain(lens, path_id, direction, model)
@@ -157,12 +150,12 @@ def evaluate_path(lens, path_id: int, direction: str, methods=DEFAULT_METHODS, n
             continue
         build_s = time.perf_counter() - t0
         r = m.eval_np(o, d, lam)
-        both = r["valid"]
-        e_pos = np.hypot(r["position"][:, 0] - pos_ref[:, 0], r["position"][:, 1] - pos_ref[:, 1]) * 1000.0
-        e_dir = angle_arcsec(r["direction"], dir_ref)
-        e_T = np.abs(r["throughput"] - T_ref) / np.maximum(np.abs(T_ref), 1e-12)
+        both = r.valid
+        e_pos = np.hypot(r.position[:, 0] - pos_ref[:, 0], r.position[:, 1] - pos_ref[:, 1]) * 1000.0
+        e_dir = angle_arcsec(r.direction, dir_ref)
+        e_T = np.abs(r.throughput - T_ref) / np.maximum(np.abs(T_ref), 1e-12)
         ru = m.eval_np(ou, du, lu)
-        pv = ru["valid"]
+        pv = ru.valid
         inter, union = int((pv & vu).sum()), int((pv | vu).sum())
         q = lambda a, p: float(np.percentile(a[both], p)) if both.any() else None
         row = {"build_s": build_s, "n_both": int(both.sum()), "valid_on_valid_set": float(both.mean()),
@@ -226,7 +219,7 @@ def flare_rays(lens, domain, z_in, field_deg: float, n: int, rng):
 
 def splat(res, sensor_z, half_extent, px_res, weights):
     """Box-filtered spot diagram: (H, W) image of the rays' sensor-plane hits."""
-    p, dvec, v = res["position"], res["direction"], res["valid"]
+    p, dvec, v = res.position, res.direction, res.valid
     with np.errstate(all="ignore"):
         t = (sensor_z - p[:, 2]) / dvec[:, 2]
         x = p[:, 0] + t * dvec[:, 0]
@@ -246,7 +239,7 @@ def flare_images(lens, paths, methods=("abcd", "taylor3", "taylor5", "fitted", "
 
     Returns {"images": {path: {method: img}}, "images_geometric": …, "mape": {path: {method: v}},
     "mape_geometric": …, "all": {method: mape of the sum over paths}, "all_geometric": …}."""
-    from . import ExactMap
+    from ..transport import ExactMap
     model = bundled_model(lens) if model is None else model
     zf, zr = default_map_planes(lens, "forward", model)
     dom = default_domain(lens, 0, "forward", model)
@@ -274,7 +267,7 @@ def flare_images(lens, paths, methods=("abcd", "taylor3", "taylor5", "fitted", "
             chans_T, chans_G = [], []
             for lam in wavelengths:
                 r = m.eval_np(o, d, np.full(n, lam))
-                chans_T.append(splat(r, sensor_z, half_extent, px_res, r["throughput"]) / n)
+                chans_T.append(splat(r, sensor_z, half_extent, px_res, r.throughput) / n)
                 chans_G.append(splat(r, sensor_z, half_extent, px_res, np.ones(n)) / n)
             imgs["throughput"][pid][name] = np.stack(chans_T, -1)
             imgs["geometric"][pid][name] = np.stack(chans_G, -1)

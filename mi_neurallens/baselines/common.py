@@ -1,15 +1,9 @@
-"""What every baseline shares: the map planes and domains of the neural maps, the TransportMap-like
-evaluation interface, and normal-incidence Fresnel factors.
+"""What every baseline shares: the map planes and domains of the neural maps, the base of the
+baseline maps, and normal-incidence Fresnel factors.
 
-Every baseline is a map from an input plane ``z_in`` to an output plane ``z_out`` (lens space, mm) for
-one path id and direction, with the interface of :class:`~mi_neurallens.neural.model.TransportMap`:
-
-* ``eval_np(o, d, lam_nm)`` → dict ``valid`` (N,), ``position`` (N, 3) on ``z_out``, ``direction`` (N, 3)
-  unit, ``throughput`` (N,), float64;
-* ``eval_dr(o, d, lam_nm, active=True)`` → ``(valid, (position, direction, throughput))`` with (x, y, z)
-  tuples of the input's Dr.Jit float type; no ``dr.eval``.
-
-``o`` may be any point of the ray before the lens: it is moved to ``z_in`` along ``d``.
+Every baseline is a :class:`~mi_neurallens.transport.base.TransportMap` from an input plane ``z_in`` to
+an output plane ``z_out`` (lens space, mm) for one path id and direction: it provides only its core,
+the base class moves, reduces, checks and undoes (``eval_dr``, ``eval_np``).
 """
 from __future__ import annotations
 
@@ -18,16 +12,10 @@ import os
 
 import numpy as np
 
-from ..errors import NeuralLensError
+from ..transport.base import TransportMap, heading_of
 
 LAM0_NM = 550.0      # expansion / normalisation centre of the wavelength variable
 LAM_SCALE_NM = 100.0  # l = (λ − 550 nm) / 100 nm
-
-
-def heading_of(direction: str) -> int:
-    if direction not in ("forward", "backward"):
-        raise NeuralLensError(f"direction must be 'forward' or 'backward', got {direction!r}")
-    return 1 if direction == "forward" else -1
 
 
 # ----------------------------------------------------------------------------- planes and domains
@@ -99,49 +87,24 @@ def fresnel_normal_R(n1, n2, coating=None, lam_nm=550.0):
     return (r12 * r12 + r23 * r23 + ab2) / (1.0 + r12 * r12 * r23 * r23 + ab2)
 
 
-# ----------------------------------------------------------------------------- shared evaluation
-def move_to_plane_np(o, d, z):
-    o = np.asarray(o, np.float64)
-    d = np.asarray(d, np.float64)
-    t = (z - o[:, 2]) / d[:, 2]
-    return o[:, 0] + t * d[:, 0], o[:, 1] + t * d[:, 1]
-
-
-def move_to_plane_dr(o, d, z):
-    import drjit as dr
-    t = (z - o[2]) / d[2]
-    return dr.fma(t, d[0], o[0]), dr.fma(t, d[1], o[1])
-
-
-class BaselineMap:
-    """Common attributes: ``method``, ``path_id``, ``direction``, ``heading``, ``z_in``, ``z_out``,
-    ``lens``; :meth:`flops` per ray; :meth:`describe`."""
-
-    method = "?"
+# ----------------------------------------------------------------------------- the baseline maps
+class BaselineMap(TransportMap):
+    """A baseline map of ``lens`` for (``path``, ``direction``) from ``z_in`` to ``z_out`` (default: the
+    neural maps' planes, :func:`default_map_planes`); provides only its core (see
+    :class:`~mi_neurallens.transport.base.TransportMap`)."""
 
     def __init__(self, lens, path, direction, z_in, z_out):
         from ..trace.paths import resolve_path
+        heading_of(direction)
         self.lens = lens
         self.spec = resolve_path(lens, path, direction)
         self.path_id = self.spec.id
         self.direction = direction
-        self.heading = heading_of(direction)
         if z_in is None or z_out is None:
             zi, zo = default_map_planes(lens, direction)
             z_in = zi if z_in is None else z_in
             z_out = zo if z_out is None else z_out
         self.z_in, self.z_out = float(z_in), float(z_out)
-
-    @property
-    def key(self) -> str:
-        return f"{self.direction}.{self.path_id}"
-
-    def flops(self) -> int:  # pragma: no cover - overridden
-        return 0
-
-    def describe(self) -> dict:
-        return {"method": self.method, "path_id": self.path_id, "direction": self.direction,
-                "z_in": self.z_in, "z_out": self.z_out, "flops_per_ray": self.flops()}
 
 
 class LensSpacePolyMap(BaselineMap):
@@ -160,51 +123,21 @@ class LensSpacePolyMap(BaselineMap):
     def flops(self) -> int:
         return self.core.flops() + 12 + 3 * len(self.ap_radii)
 
-    def eval_np(self, o, d, lam_nm):
-        o = np.asarray(o, np.float64)
-        d = np.asarray(d, np.float64)
-        n = len(o)
-        lam = np.broadcast_to(np.asarray(lam_nm, np.float64), (n,))
-        px, py = move_to_plane_np(o, d, self.z_in)
-        if self.angles == "cosines":
-            a, b = d[:, 0], d[:, 1]
-        else:
-            a, b = d[:, 0] / d[:, 2], d[:, 1] / d[:, 2]
-        with np.errstate(all="ignore"):
-            y = self.core.eval_np(np.stack([px, py, a, b, lam], 1))
-            valid = d[:, 2] * self.heading > 0
-            for k, R in enumerate(self.ap_radii):
-                ax, ay = y[:, 5 + 2 * k], y[:, 6 + 2 * k]
-                valid &= ax * ax + ay * ay <= R * R
-            h = 1.0 if self.direction == "forward" else -1.0
-            A, B = y[:, 2], y[:, 3]
-            if self.angles == "cosines":
-                s2 = A * A + B * B
-                valid &= s2 < 1.0
-                D = np.stack([A, B, h * np.sqrt(np.maximum(1.0 - s2, 0.0))], 1)
-            else:
-                D = np.stack([A, B, np.ones(n)], 1)
-                D *= h / np.linalg.norm(D, axis=1, keepdims=True)   # d = h·(sx, sy, 1)/‖·‖
-            pos = np.stack([y[:, 0], y[:, 1], np.full(n, self.z_out)], 1)
-            valid &= np.isfinite(pos).all(1) & np.isfinite(D).all(1)
-        return {"valid": valid, "position": pos, "direction": D, "throughput": y[:, 4]}
-
-    def eval_dr(self, o, d, lam_nm, active=True):
+    def core_dr(self, p, d, lam, active):
         import drjit as dr
-        px, py = move_to_plane_dr(o, d, self.z_in)
+        px, py = p
         dx, dy, dz = d
-        lam = lam_nm if not isinstance(lam_nm, (int, float)) else px * 0.0 + float(lam_nm)
         if self.angles == "cosines":
             a, b = dx, dy
         else:
             inv = 1.0 / dz
             a, b = dx * inv, dy * inv
         y = self.core.eval_dr([px, py, a, b, lam])
-        valid = ((dz > 0.0) if self.heading > 0 else (dz < 0.0)) & active
+        valid = active
         for k, R in enumerate(self.ap_radii):
             ax, ay = y[5 + 2 * k], y[6 + 2 * k]
             valid &= dr.fma(ax, ax, ay * ay) <= R * R
-        h = 1.0 if self.direction == "forward" else -1.0
+        h = float(self.heading)
         A, B = y[2], y[3]
         if self.angles == "cosines":
             s2 = dr.fma(A, A, B * B)
@@ -215,4 +148,4 @@ class LensSpacePolyMap(BaselineMap):
             D = (A * inv, B * inv, inv)
         X, Y = y[0], y[1]
         valid &= dr.isfinite(X) & dr.isfinite(Y)
-        return valid, ((X, Y, X * 0.0 + self.z_out), D, y[4])
+        return valid, (X, Y), D, y[4]

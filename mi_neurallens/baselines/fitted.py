@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..trace import symmetry
 from .common import BaselineMap, bundled_model, default_domain
 from .poly import SparsePoly, design_matrix, monomial_template, omp
 
@@ -57,6 +56,7 @@ class FittedMap(BaselineMap):
     """A sparse polynomial fit of one map (see the module docstring)."""
 
     method = "fitted"
+    reduced = True
 
     def __init__(self, lens, path="transmit", direction="forward", z_in=None, z_out=None, *,
                  domain=None, degree: int = 11, terms: int = 28, n_samples: int = 20000,
@@ -150,55 +150,22 @@ class FittedMap(BaselineMap):
             f += sum(2 * W.shape[0] * W.shape[1] + 12 * W.shape[0] for W, _ in self.tm.classifier)
         return f
 
-    def _in_domain(self, r, wx, wy, lam, s2):
-        d = self.domain
-        return (r <= d.r_max) & (s2 <= d.s_max ** 2) & (lam >= d.lam_min) & (lam <= d.lam_max)
-
-    def eval_np(self, o, d, lam_nm):
-        o = np.asarray(o, np.float64)
-        d = np.asarray(d, np.float64)
-        n = len(o)
-        lam = np.broadcast_to(np.asarray(lam_nm, np.float64), (n,))
-        t = (self.z_in - o[:, 2]) / d[:, 2]
-        (r, wx, wy), frame = symmetry.reduce(o[:, 0] + t * d[:, 0], o[:, 1] + t * d[:, 1], d[:, 0], d[:, 1])
-        X = np.stack([r, wx, wy, lam], 1)
-        valid = self._in_domain(r, wx, wy, lam, wx * wx + wy * wy) & (d[:, 2] * self.heading > 0)
-        y = self.core.eval_np(X)
-        for k, R2 in enumerate(self.ap_radii2):
-            valid &= y[:, 5 + k] <= R2
-        if self.tm is not None:
-            logit, _ = self.tm.eval_reduced_np(X)
-            valid &= logit > 0
-        Xo, Yo, DX, DY = symmetry.undo(y[:, 0], y[:, 1], y[:, 2], y[:, 3], frame)
-        s2 = DX * DX + DY * DY
-        valid &= s2 < 1.0
-        dz = self.heading * np.sqrt(np.maximum(1.0 - s2, 0.0))
-        pos = np.stack([Xo, Yo, np.full(n, self.z_out)], 1)
-        return {"valid": valid, "position": pos, "direction": np.stack([DX, DY, dz], 1), "throughput": y[:, 4]}
-
-    def eval_dr(self, o, d, lam_nm, active=True):
+    def core_reduced_dr(self, x, active):
         import drjit as dr
         from ..neural.mlp import mlp_dr
-        ox, oy, oz = o
-        dx, dy, dz = d
-        t = (self.z_in - oz) / dz
-        (r, wx, wy), frame = symmetry.reduce(dr.fma(t, dx, ox), dr.fma(t, dy, oy), dx, dy)
-        lam = lam_nm if not isinstance(lam_nm, (int, float)) else r * 0.0 + float(lam_nm)
-        valid = self._in_domain(r, wx, wy, lam, dr.fma(wx, wx, wy * wy)) & active
-        valid &= (dz > 0.0) if self.heading > 0 else (dz < 0.0)
-        y = self.core.eval_dr([r, wx, wy, lam])
+        y = self.core.eval_dr(list(x))
+        valid = active
         for k, R2 in enumerate(self.ap_radii2):
             valid &= y[5 + k] <= R2
+        logit = None
         if self.tm is not None:
             tm = self.tm
             xn = [dr.fma(v, 1.0 / float(s), -float(c) / float(s))
-                  for v, c, s in zip((r, wx, wy, lam), tm.input_center, tm.input_scale)]
-            valid &= mlp_dr(xn, tm.classifier, tm.classifier_activation)[0] > 0.0
-        X, Y, DX, DY = symmetry.undo(y[0], y[1], y[2], y[3], frame)
-        s2 = dr.fma(DX, DX, DY * DY)
-        valid &= s2 < 1.0
-        DZ = self.heading * dr.sqrt(dr.maximum(1.0 - s2, 0.0))
-        return valid, ((X, Y, X * 0.0 + self.z_out), (DX, DY, DZ), y[4])
+                  for v, c, s in zip(x, tm.input_center, tm.input_scale)]
+            logit = mlp_dr(xn, tm.classifier, tm.classifier_activation)[0]
+            valid &= logit > 0.0
+        valid &= dr.fma(y[2], y[2], y[3] * y[3]) < 1.0     # a unit exit direction (rotation invariant)
+        return valid, y[:5], logit
 
     def describe(self) -> dict:
         return {**super().describe(), "degree": self.degree, "terms_per_output": self.terms,

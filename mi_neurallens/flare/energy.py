@@ -20,6 +20,8 @@ import math
 
 import numpy as np
 
+from ..transport.planning import select_ghosts  # noqa: F401 (the one selection rule, re-exported)
+
 
 #: wavelength range used for ranking (nm); sampled ∝ the CIE Y curve (Gaussian fit)
 RANK_LAMBDA = (380.0, 780.0)
@@ -109,19 +111,3 @@ def _ranking_cached(lens, w, h, fresnel, n_rays, n_angles, seed, ghost_ids):
 
     from ..trace.paths import rank_ghosts_by_energy
     return tuple(rank_ghosts_by_energy(lens, energy, ghost_ids, skip=lambda a, b: trivial_ghost(lens, a, b)))
-
-
-def select_ghosts(ranking, energy_fraction: float = 0.99, max_ghosts: int = 32):
-    """The smallest strongest-first prefix of ``ranking`` carrying ``energy_fraction`` of the ghost
-    energy, at most ``max_ghosts`` long; ghosts with zero energy are never kept."""
-    rk = sorted(ranking, key=lambda dd: -float(dd.get("energy", 0.0)))
-    tot = sum(float(dd.get("energy", 0.0)) for dd in rk) or 1.0
-    keep, c = [], 0.0
-    for dd in rk:
-        if len(keep) >= max_ghosts or float(dd.get("energy", 0.0)) <= 0:
-            break
-        keep.append(int(dd["path_id"]))
-        c += float(dd["energy"]) / tot
-        if c >= energy_fraction - 1e-12:
-            break
-    return keep

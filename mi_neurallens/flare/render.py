@@ -191,35 +191,28 @@ class FlareResult:
 
 
 # ------------------------------------------------------------------------------------ evaluators
-class ExactGhost:
-    """Exact tracer on one path; output on the sensor plane."""
-    kind = "exact"
-
-    def __init__(self, tracer, pid):
-        self.tracer, self.pid = tracer, pid
-
-    def __call__(self, o, d, lam, active):
-        res = self.tracer.trace(o, d, lam, self.pid, "forward", active=active)
-        return res.valid, res.position[0], res.position[1], res.throughput
-
-
-class NeuralGhost:
-    """A transport map on one path — the learned map (classifier, then regressor), or a baseline with
-    the same interface — continued straight to the sensor plane."""
-    kind = "neural"
+class GhostEvaluator:
+    """One path's transport map (exact, learned or a baseline), from the flare's input plane, continued
+    straight to the sensor plane ``z_sensor``: ``(o, d, lam, active)`` → ``(valid, x, y, T)`` on the
+    sensor (lens space, mm).  ``fresnel = False``: T = 1."""
 
     def __init__(self, tmap, z_sensor, fresnel=True):
         self.map, self.z, self.fresnel = tmap, float(z_sensor), fresnel
+        #: ``exact`` for the tracer, ``neural`` for every other map (the learned ones and the baselines)
+        self.kind = "exact" if tmap.method == "exact" else "neural"
+
+    @property
+    def pid(self) -> int:
+        return self.map.path_id
 
     def __call__(self, o, d, lam, active):
         import drjit as dr
-        valid, (p, dd, T) = self.map.eval_dr(o, d, lam, active)
-        t = (self.z - p[2]) / dd[2]
-        x, y = dr.fma(t, dd[0], p[0]), dr.fma(t, dd[1], p[1])
-        valid = valid & (dd[2] > 0.0)
-        if not self.fresnel:
-            T = T * 0.0 + 1.0
-        return valid, x, y, T
+        res = self.map.eval_dr(o, d, lam, active)
+        (px, py, pz), (dx, dy, dz) = res.position, res.direction
+        t = (self.z - pz) / dz
+        x, y = dr.fma(t, dx, px), dr.fma(t, dy, py)
+        T = res.throughput if self.fresnel else res.throughput * 0.0 + 1.0
+        return res.valid & (dz > 0.0), x, y, T
 
 
 # ------------------------------------------------------------------------------------ helpers
@@ -382,16 +375,22 @@ class FlareRenderer:
             ids = [0] + ids
         return ids
 
+    def exact_map(self, pid):
+        """The tracer on path ``pid``, from the flare's input plane to the sensor plane."""
+        from ..transport.exact import ExactMap
+        return ExactMap(self.lens, pid, "forward", self.z_in, self.z_img, tracer=self.tracer)
+
     def evaluator(self, pid):
-        """Exact or neural evaluator for path ``pid`` according to ``mode``."""
+        """The :class:`GhostEvaluator` of path ``pid`` according to ``mode``: the exact map, the learned
+        map, or a baseline."""
         mode = self.opts.mode
-        if mode == "exact" or pid == 0 and mode == "auto":
-            return ExactGhost(self.tracer, pid)
-        if mode in BASELINE_MODES:
-            from ..baselines import make_method
-            return NeuralGhost(make_method(self.lens, mode, pid, "forward"), self.z_img, self.fresnel)
         m = self.model
-        if mode == "neural":
+        if mode == "exact" or pid == 0 and mode == "auto":
+            tmap = self.exact_map(pid)
+        elif mode in BASELINE_MODES:
+            from ..transport import make_map
+            tmap = make_map(self.lens, mode, pid, "forward")
+        elif mode == "neural":
             if m is None:
                 raise ModelError("lens_flare: mode='neural' needs a neural model: use a neural_lens sensor "
                                  "or give the integrator a 'model' file")
@@ -402,10 +401,12 @@ class FlareRenderer:
                 raise ModelError(f"lens_flare: the model {m.path or ''} has no forward map for path {pid}; "
                                  f"it has ghost maps {m.ghost_ids}; use mode='auto' (exact for missing ghosts) "
                                  f"or restrict 'ghosts'")
-            return NeuralGhost(m.map(pid, "forward"), self.z_img, self.fresnel)
-        if m is not None and not self.lens_modified and m.has(pid, "forward"):
-            return NeuralGhost(m.map(pid, "forward"), self.z_img, self.fresnel)
-        return ExactGhost(self.tracer, pid)
+            tmap = m.map(pid, "forward")
+        elif m is not None and not self.lens_modified and m.has(pid, "forward"):
+            tmap = m.map(pid, "forward")
+        else:
+            tmap = self.exact_map(pid)
+        return GhostEvaluator(tmap, self.z_img, self.fresnel)
 
     # -------------------------------------------------------------- sampling core
     def _region_radius(self, light):
@@ -575,7 +576,8 @@ class FlareRenderer:
             for pid in ids:
                 t0 = time.perf_counter()
                 ev = self.evaluator(pid)
-                ev_plan = ev if opts.pilot_with == "self" or ev.kind == "exact" else ExactGhost(self.tracer, pid)
+                ev_plan = ev if opts.pilot_with == "self" or ev.kind == "exact" else \
+                    GhostEvaluator(self.exact_map(pid), self.z_img, self.fresnel)
                 cells, c, R, n_in, n_hit, energy = self.pilot(light, ev_plan, seed * 1000 + li)
                 st = GhostStats(pid, ghost_surfaces(pid) if pid else (), light.name, ev.kind,
                                 pilot_samples=n_in, pilot_hits=n_hit, cells=len(cells),
@@ -623,7 +625,7 @@ class FlareRenderer:
 def ev_hash(ev):
     """Random-stream id of an evaluator: its path only (not exact/neural), so that modes can share
     samples (see ``FlareOptions.pilot_with``)."""
-    return (int(ev.pid if hasattr(ev, "pid") else ev.map.path_id) * 2654435761) & 0xFFFFFFFF
+    return (int(ev.pid) * 2654435761) & 0xFFFFFFFF
 
 
 def render_flare(scene, sensor=0, *, seed=0, per_ghost=False, **options):

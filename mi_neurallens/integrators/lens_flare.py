@@ -9,6 +9,8 @@ from __future__ import annotations
 PLUGIN = "lens_flare"
 
 DOC = r"""
+.. _integrator-lens_flare:
+
 Lens flare (:monosp:`lens_flare`)
 ---------------------------------
 
@@ -16,100 +18,185 @@ Renders the nested integrator, then adds the flare of the scene's point, spot an
 emitters (and, with ``small_emitters``, of the brightest small area emitters): for each light and
 each kept ghost path (two internal reflections), points are sampled on the lens's entrance plane
 over a pilot-found region that reaches the sensor, one wavelength per sample (CIE-weighted, like
-the sensor), the path is evaluated (exactly with ``realistic_lens``; classifier + regressor with
-``neural_lens``), continued to the sensor plane and the Fresnel-weighted flux splatted (box filter)
-with the same radiometric normalisation as the backward image.  The sensor must be
-``realistic_lens`` or ``neural_lens``.
+the sensor), the path's transport map is evaluated (the tracer with ``realistic_lens``; classifier +
+regressor with ``neural_lens``), continued to the sensor plane and the Fresnel-weighted flux splatted
+(box filter) with the same radiometric normalisation as the backward image (docs/flares.md).  The
+sensor must be ``realistic_lens`` or ``neural_lens``.
 
 .. pluginparameters::
 
  * - (nested integrator)
    - |integrator|
    - The integrator that renders the scene (e.g. ``path``).  Without one only the flare is rendered.
+
  * - mode
    - |string|
-   - ``auto`` (neural maps where the sensor/``model`` has them, exact otherwise), ``exact``, ``neural``,
-     or a baseline for comparisons: ``abcd``, ``taylor3``, ``taylor5``, ``fitted`` (docs/baselines.md).
+   - ``auto``: the learned ghost maps where the sensor (or ``model``) has them, the tracer otherwise;
+     ``exact``: the tracer for every path; ``neural``: learned maps only (an error names a missing
+     ghost); or a baseline for comparisons: ``abcd``, ``taylor3``, ``taylor5``, ``fitted``
+     (docs/baselines.md).  (Default: ``auto``)
+
  * - model
    - |string|
-   - Neural model file to use for ghosts (default: the ``neural_lens`` sensor's model).
- * - ghosts / exclude_ghosts
+   - Neural model file whose ghost maps are used.  (Default: the ``neural_lens`` sensor's model)
+
+ * - ghosts
    - |string|
-   - Ghost path ids (or ``a:b`` optical-surface pairs) to render / to leave out, space separated.
- * - max_ghosts, energy_fraction
-   - |int|, |float|
-   - Automatic selection: the strongest ghosts covering ``energy_fraction`` of the ghost energy
-     (default 0.99), at most ``max_ghosts`` (default 32).
+   - Ghost path ids (or ``a:b`` optical-surface pairs: reflect at ``a``, then at ``b < a``) to render,
+     space or comma separated.  (Default: the automatic selection below)
+
+ * - exclude_ghosts
+   - |string|
+   - Ghost ids or pairs to leave out of the selection.  (Default: none)
+
+ * - energy_fraction
+   - |float|
+   - Automatic selection: the strongest ghosts that together carry this share of the ghost energy.
+     (Default: 0.99)
+
+ * - max_ghosts
+   - |int|
+   - Automatic selection: at most this many ghosts.  (Default: 32)
+
  * - flare_samples
    - |int|
-   - Forward samples per light, split over its ghosts in proportion to their energy (default 2^20).
- * - coating, coating_index, coating_wavelength, coating_surfaces
-   - |string|, |float|, |float|, |string|
-   - ``lens`` (as the sensor's lens, default), ``none`` (bare surfaces) or ``quarter_wave``
-     (single layer of index ``coating_index`` (1.38), quarter wave at ``coating_wavelength`` nm
-     (550), on the optical surfaces listed in ``coating_surfaces`` (default all)).  Flare only.
- * - blades, blade_rotation
-   - |int|, |float|
-   - Polygonal aperture for the flare (straight blades, rotation in degrees).  Flare only.
+   - Forward samples per light, split over its ghosts in proportion to their pilot-estimated energy.
+     (Default: 1048576)
+
+ * - min_samples
+   - |int|
+   - Floor of the samples any one ghost gets, however dim.  (Default: 4096)
+
+ * - coating
+   - |string|
+   - ``lens`` (the coatings of the sensor's lens file), ``none`` (bare surfaces) or ``quarter_wave`` (a
+     single layer, see below).  Changes the flare only, not the backward image.  (Default: ``lens``)
+
+ * - coating_index
+   - |float|
+   - Refractive index of the ``quarter_wave`` layer.  (Default: 1.38, MgF₂)
+
+ * - coating_wavelength
+   - |float|
+   - Design wavelength (nm) of the ``quarter_wave`` layer.  (Default: 550)
+
+ * - coating_surfaces
+   - |string|
+   - Optical-surface indices that get the ``quarter_wave`` layer.  (Default: all)
+
+ * - blades
+   - |int|
+   - Polygonal aperture for the flare: the number of straight blades (0: circular).  Needs
+     ``mode = exact`` or ``auto`` (the learned maps were trained with the lens's own stop).
+     (Default: the lens's stop)
+
+ * - blade_rotation
+   - |float|
+   - Rotation of the blades in degrees.  (Default: the lens's)
+
  * - visibility
    - |bool|
-   - Shadow-test each light from the front of the lens (default true).
- * - small_emitters, small_emitter_size
-   - |int|, |float|
-   - Also flare the N brightest area emitters whose bounding box is smaller than the size.
- * - pilot_grid, pilot_spp, bounds
-   - |int|, |int|, |string|
-   - Pilot pass resolution (64) and samples per cell (4); ``bounds=none`` samples the whole
-     entrance disk (for comparisons).
+   - Shadow-test each light from the front of the lens.  (Default: |true|)
+
+ * - small_emitters
+   - |int|
+   - Also flare the N brightest area emitters whose bounding box is smaller than
+     ``small_emitter_size``.  (Default: 0)
+
+ * - small_emitter_size
+   - |float|
+   - "Small": bounding-box diagonal below this (scene units).  (Default: 0.05)
+
+ * - pilot_grid
+   - |int|
+   - Resolution of the pilot pass over the entrance disk (cells per side).  (Default: 64)
+
+ * - pilot_spp
+   - |int|
+   - Pilot samples per cell.  (Default: 4)
+
+ * - bounds
+   - |string|
+   - ``pilot``: sample only the cells the pilot found to reach the film (dilated by one cell);
+     ``none``: the whole entrance disk (for comparisons).  (Default: ``pilot``)
+
  * - pilot_with
    - |string|
-   - Who plans the sampling (pilot cells, per-ghost budgets): ``self`` (default: the render's own
-     evaluator) or ``exact`` (the tracer in every mode, so exact and neural renders at one seed
-     use identical samples and differ by the maps' error only; for comparisons).
+   - Who plans the sampling (pilot cells, per-ghost budgets): ``self`` (the render's own
+     evaluator) or ``exact`` (the tracer in every mode, so exact and neural renders at one seed use
+     identical samples and differ by the maps' error only; for comparisons).  (Default: ``self``)
+
+ * - include_transmit
+   - |bool|
+   - Also splat the transmit path (the lights' own images) forward; it gets one equal share of the
+     budget.  For radiometric checks against the backward render.  (Default: |false|)
+
+ * - transmit_only
+   - |bool|
+   - Splat only the transmit path.  (Default: |false|)
+
+.. tabs::
+
+    .. code-tab:: xml
+
+        <integrator type="lens_flare">
+            <string name="mode" value="auto"/>
+            <integer name="flare_samples" value="4194304"/>
+            <integer name="blades" value="6"/>
+            <integrator type="path">
+                <integer name="max_depth" value="6"/>
+            </integrator>
+        </integrator>
+
+    .. code-tab:: python
+
+        'type': 'lens_flare',
+        'mode': 'auto',
+        'flare_samples': 4194304,
+        'blades': 6,
+        'nested': {'type': 'path', 'max_depth': 6},
 """
 
-_INT_PROPS = ("max_ghosts", "flare_samples", "min_samples", "pilot_grid", "pilot_spp", "small_emitters",
-              "blades")
-_FLOAT_PROPS = ("energy_fraction", "coating_index", "coating_wavelength", "blade_rotation", "small_emitter_size")
-_STR_PROPS = ("mode", "model", "ghosts", "exclude_ghosts", "coating", "coating_surfaces", "bounds", "pilot_with")
-_BOOL_PROPS = ("visibility", "include_transmit", "transmit_only")
+#: property name -> (reader, FlareOptions field)
+_PROPS = {
+    "max_ghosts": ("int", "max_ghosts"), "flare_samples": ("int", "samples"), "min_samples": ("int", "min_samples"),
+    "pilot_grid": ("int", "pilot_grid"), "pilot_spp": ("int", "pilot_spp"),
+    "small_emitters": ("int", "small_emitters"), "blades": ("int", "blades"),
+    "energy_fraction": ("float", "energy_fraction"), "coating_index": ("float", "coating_index"),
+    "coating_wavelength": ("float", "coating_wavelength"), "blade_rotation": ("float", "blade_rotation"),
+    "small_emitter_size": ("float", "small_emitter_size"),
+    "mode": ("string", "mode"), "model": ("string", "model"), "ghosts": ("string", "ghosts"),
+    "exclude_ghosts": ("string", "exclude_ghosts"), "coating": ("string", "coating"),
+    "coating_surfaces": ("string", "coating_surfaces"), "bounds": ("string", "bounds"),
+    "pilot_with": ("string", "pilot_with"),
+    "visibility": ("bool", "visibility"), "include_transmit": ("bool", "include_transmit"),
+    "transmit_only": ("bool", "transmit_only"),
+}
+#: properties read by Mitsuba's SamplingIntegrator base
+_BASE_PROPS = ("samples_per_pass", "timeout", "hide_emitters", "max_depth", "rr_depth")
 
 
 def options_from_props(props, nested_names=()):
-    """Read every lens_flare property into :class:`~mi_neurallens.flare.render.FlareOptions`."""
-    from ..flare.render import FlareError, FlareOptions, parse_id_list
+    """Read every lens_flare property into :class:`~mi_neurallens.flare.render.FlareOptions`, with the
+    sensors' :class:`~mi_neurallens.sensors.common.PropertyReader` (clear errors naming the property)."""
+    from ..flare.render import FlareOptions, parse_id_list
+    from ..sensors.common import PropertyReader
+    rd = PropertyReader(props, PLUGIN)
+    rd.refuse_unknown(tuple(_PROPS), skip=tuple(nested_names) + _BASE_PROPS)
     kw = {}
-    for k in props.keys():
-        if k in nested_names:
+    for k, (kind, field) in _PROPS.items():
+        if not rd.has(k):
             continue
-        v = props.get(k)
-        if k in _INT_PROPS:
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or int(v) != v:
-                raise FlareError(f"lens_flare: property '{k}' must be an integer, got {v!r}")
-            kw[{"flare_samples": "samples"}.get(k, k)] = int(v)
-        elif k in _FLOAT_PROPS:
-            if isinstance(v, bool) or not isinstance(v, (int, float)):
-                raise FlareError(f"lens_flare: property '{k}' must be a number, got {v!r}")
-            kw[k] = float(v)
-        elif k in _BOOL_PROPS:
-            if not isinstance(v, bool):
-                raise FlareError(f"lens_flare: property '{k}' must be a boolean, got {v!r}")
-            kw[k] = v
-        elif k in _STR_PROPS:
-            if not isinstance(v, str):
-                raise FlareError(f"lens_flare: property '{k}' must be a string, got {v!r}")
-            if k in ("ghosts", "exclude_ghosts", "coating_surfaces"):
-                kw[k] = parse_id_list(v, k) if k != "coating_surfaces" else [int(t) for t in
-                                                                            v.replace(",", " ").split()]
-                if k == "exclude_ghosts":
-                    kw[k] = kw[k] or []
-            else:
-                kw[k] = v or None if k == "model" else v
-        elif k in ("samples_per_pass", "timeout", "hide_emitters", "max_depth", "rr_depth"):
-            continue   # consumed by the SamplingIntegrator base
-        else:
-            raise FlareError(f"lens_flare: unknown property '{k}'; known: "
-                             f"{', '.join(_INT_PROPS + _FLOAT_PROPS + _STR_PROPS + _BOOL_PROPS)}")
+        v = rd.bool(k, None) if kind == "bool" else getattr(rd, kind)(k)
+        if k in ("ghosts", "exclude_ghosts"):
+            v = parse_id_list(v, k)
+            if k == "exclude_ghosts":
+                v = v or []
+        elif k == "coating_surfaces":
+            v = [int(t) for t in v.replace(",", " ").split()]
+        elif k == "model":
+            v = v or None
+        kw[field] = v
     return FlareOptions(**kw).validate()
 
 

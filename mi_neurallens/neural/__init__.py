@@ -4,11 +4,11 @@ What a renderer calls::
 
     from mi_neurallens.neural import NeuralLensModel
     model = NeuralLensModel.load(path, lens=lens)      # ModelError on any problem
-    tm = model.map("transmit", "backward")              # or model.map(ghost_id, "forward")
-    valid, (pos, dirn, thr) = tm.eval_dr(o, d, lam)     # Dr.Jit, lens space, fused literals
+    tm = model.map("transmit", "backward")              # a NeuralMap; or model.map(ghost_id, "forward")
+    res = tm.eval_dr(o, d, lam)                         # a MapResult: Dr.Jit, lens space, fused literals
 
 Nothing here imports torch.
 """
-from .model import FORMAT, FORMAT_VERSION, NeuralLensModel, TransportMap, bundled_model_path, load_model
+from .model import FORMAT, FORMAT_VERSION, NeuralLensModel, NeuralMap, bundled_model_path, load_model
 
-__all__ = ["NeuralLensModel", "TransportMap", "load_model", "bundled_model_path", "FORMAT", "FORMAT_VERSION"]
+__all__ = ["NeuralLensModel", "NeuralMap", "load_model", "bundled_model_path", "FORMAT", "FORMAT_VERSION"]

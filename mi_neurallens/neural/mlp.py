@@ -6,7 +6,7 @@ A network is a list of ``(W, b)`` layers, ``W`` of shape (out, in) (PyTorch's ``
 The Dr.Jit evaluation (:func:`mlp_dr`) unrolls every multiply-add with the weights as Python-float
 **literals** (notes §4: the fastest fp32-exact way on the LLVM backend; the kernel is cached per
 weight set) and uses Eigen's 13/6 rational tanh (:func:`tanh_eigen`), clamped to ±7.90531, whose
-maximum error is 2.6e-7.  It is plain Dr.Jit arithmetic on the float type of its inputs, so it runs in
+maximum error is 2.6e-7 (float64 inputs get the exact tanh: that is the maps' numpy reference path).  It is plain Dr.Jit arithmetic on the float type of its inputs, so it runs in
 any Mitsuba variant (``mi.Float``) and on CUDA.
 """
 from __future__ import annotations
@@ -43,6 +43,13 @@ def tanh_eigen(x):
     for c in reversed(_TD[:2]):
         q = dr.fma(x2, q, c)
     return x * p / q
+
+
+def _tanh(x):
+    """tanh for :func:`mlp_dr`: the rational approximation in float32 (exact to float32 rounding, and
+    the fast path), Dr.Jit's own tanh in float64 (the numpy reference path of the maps)."""
+    import drjit as dr
+    return dr.tanh(x) if dr.type_v(x) == dr.VarType.Float64 else tanh_eigen(x)
 
 
 def mlp_np(x: np.ndarray, layers, activation: str = "tanh") -> np.ndarray:
@@ -91,6 +98,6 @@ def mlp_dr(xs, layers, activation: str = "tanh"):
                          for a in range(0, len(parts), 2)]
             out.append(parts[0])
         if li < len(layers) - 1:
-            out = [tanh_eigen(v) for v in out] if activation == "tanh" else [dr.maximum(v, 0.0) for v in out]
+            out = [_tanh(v) for v in out] if activation == "tanh" else [dr.maximum(v, 0.0) for v in out]
         h = out
     return h

@@ -44,8 +44,9 @@ import struct
 import numpy as np
 
 from ..errors import ModelError
-from ..trace import symmetry
-from .mlp import ACTIVATIONS, mlp_dr, mlp_np
+from ..transport.base import TransportMap
+from ..transport.planning import Domain
+from .mlp import ACTIVATIONS, mlp_dr
 
 FORMAT = "mi-neurallens-transport-maps"
 FORMAT_VERSION = 1
@@ -53,14 +54,21 @@ OUTPUTS = ("x", "y", "dx", "dy", "throughput")
 
 
 @dataclass
-class TransportMap:
-    """One learned (path, direction) map.  ``classifier``/``regressor``: lists of (W, b) numpy layers."""
+class NeuralMap(TransportMap):
+    """One learned (path, direction) map: a :class:`~mi_neurallens.transport.base.TransportMap` whose
+    core, in the symmetry-reduced frame, is the classifier (valid iff its logit > 0) then the regressor.
+    ``classifier``/``regressor``: lists of (W, b) numpy layers.
+
+    Render-time options (not stored in the file): ``use_classifier`` (``False``: the paper's ablation,
+    every in-domain ray is valid and the classifier is not evaluated at all) and ``mlp`` (``"fused"``:
+    weights as kernel literals, rational tanh in float32, exact tanh in float64; ``"coopvec"``: Dr.Jit
+    cooperative vectors, :mod:`mi_neurallens.neural.coopvec`)."""
 
     path_id: int
     direction: str
     z_in: float
     z_out: float
-    domain: dict
+    domain: Domain
     input_center: np.ndarray
     input_scale: np.ndarray
     classifier: list
@@ -73,15 +81,14 @@ class TransportMap:
     odd_y: bool = False            # y, dy outputs multiplied by ωy / s_max (see the module docstring)
     training: dict = field(default_factory=dict)
     metrics: dict = field(default_factory=dict)
+    use_classifier: bool = field(default=True, compare=False)
+    mlp: str = field(default="fused", compare=False)
 
-    # ------------------------------------------------------------------ identity
-    @property
-    def key(self) -> str:
-        return f"{self.direction}.{self.path_id}"
+    method = "neural"
+    reduced = True
 
-    @property
-    def heading(self) -> int:
-        return 1 if self.direction == "forward" else -1
+    def __post_init__(self):
+        self.domain = Domain.from_dict(self.domain)
 
     def _folded(self):
         """Regressor layers with out_scale/out_shift folded into the last layer (float64)."""
@@ -93,34 +100,24 @@ class TransportMap:
             self._fold = layers
         return self._fold
 
-    # ------------------------------------------------------------------ reduced-frame evaluation
+    def flops(self) -> int:
+        """Per ray: the multiply-adds of both networks, 24 per tanh (the rational tanh), 40 for the
+        symmetry reduction, domain test and undo, 40 for the skip connection."""
+        f = 0
+        for layers in (self.classifier, self.regressor):
+            for i, (W, _) in enumerate(layers):
+                f += 2 * np.shape(W)[0] * np.shape(W)[1] + (24 * np.shape(W)[0] if i < len(layers) - 1 else 0)
+        return f + 40 + 2 * 5 * 4
+
+    # ------------------------------------------------------------------ reduced-frame core
     def normalise_np(self, x):
         return (np.asarray(x, np.float64) - self.input_center) / self.input_scale
 
-    def in_domain_np(self, x):
-        d = self.domain
-        x = np.asarray(x, np.float64)
-        return ((x[:, 0] <= d["r_max_mm"]) & (x[:, 1] ** 2 + x[:, 2] ** 2 <= d["s_max"] ** 2)
-                & (x[:, 3] >= d["lambda_min_nm"]) & (x[:, 3] <= d["lambda_max_nm"]))
-
-    def eval_reduced_np(self, x):
-        """Reduced inputs (N, 4) → (logit (N,), outputs (N, 5)) in float64."""
-        xn = self.normalise_np(x)
-        logit = mlp_np(xn, self.classifier, self.classifier_activation)[:, 0]
-        y = mlp_np(xn, self._folded(), self.regressor_activation) + xn @ np.asarray(self.skip, np.float64).T
-        if self.odd_y:
-            m = np.asarray(x, np.float64)[:, 2] / float(self.domain["s_max"])
-            y[:, 1] *= m
-            y[:, 3] *= m
-        return logit, y
-
-    def eval_reduced_dr(self, x, mlp: str = "fused"):
+    def eval_reduced_dr(self, x, mlp: str | None = None):
         """Reduced inputs (4 Dr.Jit floats) → (logit, [5 outputs]) fused into one kernel.
-
-        ``mlp``: ``"fused"`` (weights as kernel literals, rational tanh; the default) or
-        ``"coopvec"`` (Dr.Jit cooperative vectors, weights in a packed buffer; see
-        :mod:`mi_neurallens.neural.coopvec`)."""
+        ``mlp``: ``"fused"`` or ``"coopvec"`` (default: :attr:`mlp`)."""
         import drjit as dr
+        mlp = self.mlp if mlp is None else mlp
         xn = [dr.fma(v, 1.0 / float(s), -float(c) / float(s))
               for v, c, s in zip(x, self.input_center, self.input_scale)]
         if mlp == "fused":
@@ -138,31 +135,19 @@ class TransportMap:
                 if A[j, i] != 0.0:
                     y[j] = dr.fma(xn[i], float(A[j, i]), y[j])
         if self.odd_y:
-            m = x[2] * (1.0 / float(self.domain["s_max"]))
+            m = x[2] * (1.0 / float(self.domain.s_max))
             y[1], y[3] = y[1] * m, y[3] * m
         return logit, y
 
-    # ------------------------------------------------------------------ lens-space evaluation
-    def eval_np(self, o, d, lam_nm):
-        """Lens-space rays (numpy (N, 3) points on the ray, unit directions, λ in nm) → dict with
-        ``valid`` (N,), ``position`` (N, 3) on ``z_out``, ``direction`` (N, 3), ``throughput`` (N,);
-        float64 reference.  ``o`` may be any point of the ray in the first medium (it is moved to
-        ``z_in`` along the ray)."""
-        o = np.asarray(o, np.float64)
-        d = np.asarray(d, np.float64)
-        lam = np.broadcast_to(np.asarray(lam_nm, np.float64), (len(o),))
-        t = (self.z_in - o[:, 2]) / d[:, 2]
-        px, py = o[:, 0] + t * d[:, 0], o[:, 1] + t * d[:, 1]
-        (r, wx, wy), frame = symmetry.reduce(px, py, d[:, 0], d[:, 1])
-        x = np.stack([r, wx, wy, lam], 1)
-        ok = self.in_domain_np(x) & (d[:, 2] * self.heading > 0)
-        logit, y = self.eval_reduced_np(x)
-        valid = ok & (logit > 0)
-        X, Y, DX, DY = symmetry.undo(y[:, 0], y[:, 1], y[:, 2], y[:, 3], frame)
-        dz = self.heading * np.sqrt(np.maximum(1.0 - DX * DX - DY * DY, 0.0))
-        pos = np.stack([X, Y, np.full_like(X, self.z_out)], 1)
-        return {"valid": valid, "position": pos, "direction": np.stack([DX, DY, dz], 1),
-                "throughput": y[:, 4], "logit": logit}
+    def core_reduced_dr(self, x, active):
+        logit, y = self.eval_reduced_dr(x)
+        valid = (active & (logit > 0.0)) if self.use_classifier else active
+        return valid, y, logit
+
+    def eval_reduced_np(self, x):
+        """Reduced inputs (N, 4) → (logit (N,), outputs (N, 5)), float64, through the Dr.Jit core."""
+        _, y, logit = self.core_reduced_np(x)
+        return logit, y
 
     def _coopvec(self):
         """Packed cooperative-vector networks for the current Mitsuba variant (built once)."""
@@ -175,36 +160,10 @@ class TransportMap:
                           CoopVecMLP(self._folded(), self.regressor_activation))
         return cache[key]
 
-    def eval_dr(self, o, d, lam_nm, active=True, use_classifier: bool = True, mlp: str = "fused"):
-        """Fused Dr.Jit evaluation for renderers: ``o``, ``d`` (x, y, z) tuples of Dr.Jit floats in lens
-        space (mm; ``o`` any point on the ray before the lens, ``d`` unit), ``lam_nm`` Dr.Jit float or
-        Python float.  Returns ``(valid, (position, direction, throughput))`` with position on
-        ``z_out`` and direction as (x, y, z) tuples.  Symmetry reduction and its undo happen inside;
-        rays outside the trained domain are invalid.  No ``dr.eval`` is called.
-
-        ``use_classifier=False`` (the paper's ablation) treats every in-domain ray as valid; the
-        classifier is then not evaluated at all (Dr.Jit drops the unused code)."""
-        import drjit as dr
-        ox, oy, oz = o
-        dx, dy, dz = d
-        t = (self.z_in - oz) / dz
-        px, py = dr.fma(t, dx, ox), dr.fma(t, dy, oy)
-        (r, wx, wy), frame = symmetry.reduce(px, py, dx, dy)
-        lam = lam_nm if not isinstance(lam_nm, (int, float)) else r * 0.0 + float(lam_nm)
-        dm = self.domain
-        ok = (r <= dm["r_max_mm"]) & (dr.fma(wx, wx, wy * wy) <= dm["s_max"] ** 2)
-        ok &= (lam >= dm["lambda_min_nm"]) & (lam <= dm["lambda_max_nm"])
-        ok &= (dz > 0.0) if self.heading > 0 else (dz < 0.0)
-        logit, y = self.eval_reduced_dr((r, wx, wy, lam), mlp=mlp)
-        valid = (ok & (logit > 0.0) & active) if use_classifier else (ok & active)
-        X, Y, DX, DY = symmetry.undo(y[0], y[1], y[2], y[3], frame)
-        DZ = self.heading * dr.sqrt(dr.maximum(1.0 - dr.fma(DX, DX, DY * DY), 0.0))
-        return valid, ((X, Y, X * 0.0 + self.z_out), (DX, DY, DZ), y[4])
-
     # ------------------------------------------------------------------ (de)serialisation
     def _meta(self) -> dict:
         return {"key": self.key, "path_id": self.path_id, "direction": self.direction,
-                "z_in_mm": self.z_in, "z_out_mm": self.z_out, "domain": self.domain,
+                "z_in_mm": self.z_in, "z_out_mm": self.z_out, "domain": self.domain.to_dict(),
                 "input_norm": {"center": [float(v) for v in self.input_center],
                                "scale": [float(v) for v in self.input_scale]},
                 "classifier": {"layers": _widths(self.classifier), "activation": self.classifier_activation},
@@ -238,12 +197,12 @@ class NeuralLensModel:
     z_rear: float
     z_last_vertex: float
     sensor_distance_range: tuple
-    maps: dict = field(default_factory=dict)          # key -> TransportMap
+    maps: dict = field(default_factory=dict)          # key -> NeuralMap
     extra: dict = field(default_factory=dict)         # ghost_ranking, created, software, ...
     path: str | None = None
 
     # ------------------------------------------------------------------ access
-    def map(self, path="transmit", direction: str = "backward") -> TransportMap:
+    def map(self, path="transmit", direction: str = "backward") -> NeuralMap:
         pid = 0 if path == "transmit" else int(path)
         key = f"{direction}.{pid}"
         if key not in self.maps:
@@ -386,9 +345,9 @@ def load_model(path, lens=None) -> NeuralLensModel:
                    for i in range(len(wc) - 1)]
             reg = [(get(f"{key}.regressor.{i}.weight", (wr[i + 1], wr[i])), get(f"{key}.regressor.{i}.bias", (wr[i + 1],)))
                    for i in range(len(wr) - 1)]
-            tm = TransportMap(
+            tm = NeuralMap(
                 path_id=int(mm["path_id"]), direction=str(mm["direction"]), z_in=float(mm["z_in_mm"]),
-                z_out=float(mm["z_out_mm"]), domain={k: float(v) for k, v in mm["domain"].items()},
+                z_out=float(mm["z_out_mm"]), domain=Domain.from_dict(mm["domain"]),
                 input_center=np.asarray(mm["input_norm"]["center"], np.float64),
                 input_scale=np.asarray(mm["input_norm"]["scale"], np.float64),
                 classifier=cls, regressor=reg,
@@ -416,6 +375,8 @@ def load_model(path, lens=None) -> NeuralLensModel:
 
 
 def bundled_model_path(lens_name: str) -> str:
-    """``lenses/models/<lens>.model.safetensors`` of the repository (or the installed package)."""
-    here = os.path.dirname(os.path.abspath(__file__))
-    return os.path.join(os.path.dirname(os.path.dirname(here)), "lenses", "models", f"{lens_name}.model.safetensors")
+    """``<bundled lenses>/models/<lens>.model.safetensors``: beside the bundled lenses, wherever
+    :func:`mi_neurallens.optics.formats.lenses_dir` finds them (``$MI_NEURALLENS_LENSES`` or the
+    repository's ``lenses/``)."""
+    from ..optics.formats import lenses_dir
+    return os.path.join(lenses_dir(), "models", f"{lens_name}.model.safetensors")

@@ -11,9 +11,9 @@ ray with the radiometric weight ``cos⁴θ · A / Δz² · T / (π NA'²)`` (see
 A subclass provides the transport (sensor → object space) by overriding:
 
 * ``_load_lens(rd)`` → the prescription as loaded (before stop/focus),
-* ``_setup_transport()`` → called once the lens is configured (``self.setup``),
-* ``_transport(o, d, lam, active)`` → ``(position, direction, throughput, valid)`` of the ray leaving
-  the lens, in lens space (position on the plane ``self.z_out``),
+* ``_make_map()`` → the backward transmit :class:`~mi_neurallens.transport.base.TransportMap` of the
+  configured lens (``self.setup``, ``self.pupil``), called once; camera rays start on the film plane
+  and leave on the map's output plane, which becomes ``self.z_out``,
 * ``_describe()`` → extra text for ``to_string``.
 """
 from __future__ import annotations
@@ -80,7 +80,8 @@ def make_lens_sensor_base():
             sag = float(first.sag(first.semi_diameter)) if not first.is_stop else 0.0
             #: lens-space plane where rays leave the lens (in front of the whole first surface)
             self.z_out = min(0.0, sag if math.isfinite(sag) else 0.0)
-            self._setup_transport()
+            self.tmap = self._make_map()
+            self.z_out = self.tmap.z_out
             self.m_needs_sample_3 = True
 
         # ------------------------------------------------------------------ hooks
@@ -93,11 +94,15 @@ def make_lens_sensor_base():
         def _lambda_dependent(self, setup) -> bool:
             return setup.lambda_dependent
 
-        def _setup_transport(self):
+        def _make_map(self):
             raise NotImplementedError
 
         def _transport(self, o, d, lam, active):
-            raise NotImplementedError
+            """Camera rays on the film plane → (position, direction, throughput, valid) of the ray
+            leaving the lens (lens space, position on ``self.z_out``); ``fresnel = false``: T = 1."""
+            res = self.tmap.eval_dr(o, d, lam, active)
+            T = res.throughput if self.setup.fresnel else dr.zeros(type(res.throughput), dr.width(res.throughput)) + 1.0
+            return res.position, res.direction, T, res.valid
 
         def _describe(self) -> str:
             return f"lens={self.setup.lens.name}"

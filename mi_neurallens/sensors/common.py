@@ -72,6 +72,20 @@ class PropertyReader:
             raise self.error(name, f"must be > 0, got {v:g}")
         return v
 
+    def int(self, name: str, default=None):
+        if name not in self.props:
+            return default
+        v = self.props.get(name)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or int(v) != v:
+            raise self.error(name, f"must be an integer, got {v!r}")
+        return int(v)
+
+    def refuse_unknown(self, known, skip=()):
+        """Raise for the first property that is neither in ``known`` nor in ``skip``."""
+        for k in self.props.keys():
+            if k not in known and k not in skip:
+                raise self.error(k, f"unknown property; known: {', '.join(known)}")
+
     def bool(self, name: str, default: bool):
         if name not in self.props:
             return default

@@ -124,7 +124,7 @@ def resolve_model_path(spec: str, plugin: str = PLUGIN) -> str:
 
 def make_neural_lens():
     """Define the ``neural_lens`` class for the CURRENT Mitsuba variant (call after set_variant)."""
-    import drjit as dr
+    import dataclasses
 
     from .base import make_lens_sensor_base
     from .common import FSTOP_TOLERANCE, SensorPropertyError, load_lens
@@ -164,7 +164,7 @@ def make_neural_lens():
         def _lambda_dependent(self, setup):
             return setup.lambda_dependent
 
-        def _setup_transport(self):
+        def _make_map(self):
             st = self.setup
             if st.fnumber > st.max_fnumber * (1 + FSTOP_TOLERANCE):
                 raise SensorPropertyError(
@@ -175,24 +175,14 @@ def make_neural_lens():
             except ModelError as e:
                 which = "sensor_distance" if not (st.focus_distance_mm > 0) else "focus_distance"
                 raise SensorPropertyError(PLUGIN, which, str(e)) from e
-            self.tmap = self.model.map("transmit", "backward")
-            if self.method != "neural":   # a baseline between the same planes (docs/baselines.md)
-                from ..baselines import make_method
-                self.tmap = make_method(st.lens, self.method, "transmit", "backward", z_in=self.tmap.z_in,
-                                        z_out=self.tmap.z_out, **({"fresnel": st.fresnel}
-                                                                  if self.method == "exact" else {}))
-            # the map starts on its input plane: the pupil sample only gives the direction
-            self.z_out = self.tmap.z_out
-
-        def _transport(self, o, d, lam, active):
+            tm = self.model.map("transmit", "backward")
             if self.method == "neural":
-                valid, (pos, dirn, T) = self.tmap.eval_dr(o, d, lam, active, use_classifier=self.use_classifier,
-                                                          mlp=self.mlp)
-            else:
-                valid, (pos, dirn, T) = self.tmap.eval_dr(o, d, lam, active)
-            if not self.setup.fresnel:
-                T = dr.zeros(type(T), dr.width(T)) + 1.0
-            return pos, dirn, T, valid
+                return dataclasses.replace(tm, use_classifier=self.use_classifier, mlp=self.mlp)
+            # a baseline between the same planes (docs/baselines.md); the map starts on its input
+            # plane: the pupil sample only gives the direction
+            from ..transport import make_map
+            return make_map(st.lens, self.method, "transmit", "backward", z_in=tm.z_in, z_out=tm.z_out,
+                            **({"fresnel": st.fresnel} if self.method == "exact" else {}))
 
         def _describe(self):
             return (f"model='{self.model_spec}' ({os.path.basename(self.model_path)}), lens={self.setup.lens.name}, "

@@ -118,7 +118,7 @@ def make_realistic_lens():
     """Define the ``realistic_lens`` class for the CURRENT Mitsuba variant (call after set_variant)."""
     from .base import make_lens_sensor_base
     from .common import load_lens
-    from ..trace.tracer import LensTracer
+    from ..transport.exact import ExactMap
 
     class RealisticLens(make_lens_sensor_base()):
         __doc__ = DOC
@@ -128,12 +128,10 @@ def make_realistic_lens():
             self.lens_spec = rd.string("lens", "wide-22mm")
             return load_lens(self.lens_spec, PLUGIN)
 
-        def _setup_transport(self):
-            self.tracer = LensTracer(self.setup.lens, fresnel=self.setup.fresnel)
-
-        def _transport(self, o, d, lam, active):
-            res = self.tracer.trace(o, d, lam, "transmit", "backward", z_out=self.z_out, active=active)
-            return res.position, res.direction, res.throughput, res.valid
+        def _make_map(self):
+            # from the film plane (where the pupil sample starts the ray) to the front of the lens
+            return ExactMap(self.setup.lens, "transmit", "backward", self.pupil.z_img, self.z_out,
+                            fresnel=self.setup.fresnel)
 
         def _describe(self):
             return f"lens='{self.lens_spec}' ({self.setup.lens.name})"

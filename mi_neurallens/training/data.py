@@ -25,85 +25,12 @@ import time
 import numpy as np
 
 from ..errors import NeuralLensError
+from ..transport.planning import (CIE_MAX_NM, CIE_MIN_NM, Domain, cie_u_of_lambda,  # noqa: F401 (re-exported)
+                                  pdf_cie_wavelength, sample_cie_wavelength)
 
 #: names of the reduced input and output columns
 INPUT_NAMES = ("r", "wx", "wy", "lambda_nm")
 OUTPUT_NAMES = ("x", "y", "dx", "dy", "throughput")
-
-#: Mitsuba's visible-range importance curve (``sample_rgb_spectrum``, CIE 1931 on [360, 830] nm)
-CIE_MIN_NM, CIE_MAX_NM = 360.0, 830.0
-_CIE_A, _CIE_B, _CIE_C, _CIE_K = 0.8569106254698279, 1.8275019724092267, 138.88888888888889, 0.0072
-_CIE_PDF = 0.003939804229326285
-
-
-def sample_cie_wavelength(u):
-    """λ (nm) and 1/pdf for uniform ``u`` ∈ [0, 1): the same closed form as Mitsuba's
-    ``sample_rgb_spectrum`` (pdf ∝ sech²(0.0072 (λ − 538)), a fit to the CIE 1931 ȳ+x̄+z̄ sum on
-    [360, 830] nm).  Works on numpy arrays and on any Dr.Jit float type (variant-generic)."""
-    if isinstance(u, (np.ndarray, float, int)):
-        u = np.asarray(u, dtype=np.float64)
-        lam = 538.0 - np.arctanh(_CIE_A - _CIE_B * u) * _CIE_C
-        return lam, 1.0 / pdf_cie_wavelength(lam)
-    import drjit as dr
-    lam = 538.0 - dr.atanh(_CIE_A - _CIE_B * u) * _CIE_C
-    return lam, dr.rcp(pdf_cie_wavelength(lam))
-
-
-def pdf_cie_wavelength(lam):
-    """Density (1/nm) of :func:`sample_cie_wavelength`."""
-    if isinstance(lam, (np.ndarray, float, int)):
-        lam = np.asarray(lam, dtype=np.float64)
-        t = 1.0 / np.cosh(_CIE_K * (lam - 538.0))
-        return np.where((lam >= CIE_MIN_NM) & (lam <= CIE_MAX_NM), _CIE_PDF * t * t, 0.0)
-    import drjit as dr
-    t = 1.0 / dr.cosh(_CIE_K * (lam - 538.0))
-    return dr.select((lam >= CIE_MIN_NM) & (lam <= CIE_MAX_NM), _CIE_PDF * t * t, 0.0)
-
-
-def cie_u_of_lambda(lam):
-    """Inverse of :func:`sample_cie_wavelength` (numpy): u such that sample(u) = λ."""
-    lam = np.asarray(lam, dtype=np.float64)
-    return (_CIE_A - np.tanh((538.0 - lam) / _CIE_C)) / _CIE_B
-
-
-# ----------------------------------------------------------------------------- domain
-@dataclass
-class Domain:
-    """The sampled reduced input domain of one map (lens space, mm)."""
-
-    r_max: float
-    s_max: float
-    lam_min: float = CIE_MIN_NM
-    lam_max: float = CIE_MAX_NM
-
-    def u_to_x(self, u: np.ndarray) -> np.ndarray:
-        """(N, 4) unit-cube points → (N, 4) reduced inputs (r, ωx, ωy, λ), float64."""
-        u = np.asarray(u, dtype=np.float64)
-        rho = self.s_max * np.sqrt(u[:, 1])
-        th = math.pi * u[:, 2]
-        lam, _ = sample_cie_wavelength(u[:, 3])
-        return np.stack([self.r_max * u[:, 0], rho * np.cos(th), rho * np.sin(th), lam], 1)
-
-    def x_to_u(self, x: np.ndarray) -> np.ndarray:
-        x = np.asarray(x, dtype=np.float64)
-        rho = np.hypot(x[:, 1], x[:, 2])
-        return np.stack([x[:, 0] / self.r_max, (rho / self.s_max) ** 2,
-                         np.arctan2(x[:, 2], x[:, 1]) / math.pi, cie_u_of_lambda(x[:, 3])], 1)
-
-    # input normalisation used by the networks: every column to about [-1, 1]
-    def norm_center_scale(self):
-        c = np.array([0.5 * self.r_max, 0.0, 0.5 * self.s_max, 0.5 * (self.lam_min + self.lam_max)])
-        s = np.array([0.5 * self.r_max, self.s_max, 0.5 * self.s_max, 0.5 * (self.lam_max - self.lam_min)])
-        return c, s
-
-    def to_dict(self):
-        return {"r_max_mm": self.r_max, "s_max": self.s_max, "lambda_min_nm": self.lam_min,
-                "lambda_max_nm": self.lam_max}
-
-    @staticmethod
-    def from_dict(d):
-        return Domain(float(d["r_max_mm"]), float(d["s_max"]), float(d["lambda_min_nm"]), float(d["lambda_max_nm"]))
-
 
 # ----------------------------------------------------------------------------- one path's tracer
 class PathSampler:
@@ -116,13 +43,15 @@ class PathSampler:
     def __init__(self, lens, path_id: int, direction: str, z_in: float, z_out: float, domain: Domain,
                  fresnel: bool = True, precision: str = "float32"):
         from ..trace.api import float_type
-        from ..trace.tracer import LensTracer
+        from ..transport.exact import ExactMap
         self.lens, self.path_id, self.direction = lens, int(path_id), direction
         self.z_in, self.z_out, self.domain = float(z_in), float(z_out), domain
-        self.heading = 1 if direction == "forward" else -1
+        #: the exact map whose reduced-frame core gives the data
+        self.map = ExactMap(lens, self.path_id, direction, self.z_in, self.z_out, fresnel=fresnel, domain=domain)
+        self.tracer = self.map.tracer
+        self.heading = self.map.heading
         self.F = float_type(precision)
         self.np_dtype = np.float32 if precision == "float32" else np.float64
-        self.tracer = LensTracer(lens, fresnel=fresnel)
         self.rays_traced = 0
         #: optional :class:`~mi_neurallens.training.bounds.ValidBounds` used by :meth:`random_valid`
         self.bounds = None
@@ -137,20 +66,11 @@ class PathSampler:
         lam, _ = sample_cie_wavelength(u[3])
         return d.r_max * u[0], rho * c, rho * s, lam
 
-    def _trace(self, r, wx, wy, lam, margin: bool = False):
-        """Reduced inputs (Dr.Jit) → the tracer's :class:`~mi_neurallens.trace.tracer.TraceResult`."""
-        import drjit as dr
-        dz = self.heading * dr.sqrt(dr.maximum(1.0 - dr.fma(wx, wx, wy * wy), 0.0))
-        zero = r * 0.0
-        return self.tracer.trace((r, zero, zero + self.z_in), (wx, wy, dz), lam, self.path_id, self.direction,
-                                 z_out=self.z_out, margin=margin)
-
     def trace_dr(self, r, wx, wy, lam):
-        """Reduced inputs (Dr.Jit) → (valid, [x, y, dx, dy, T]) (Dr.Jit, reduced frame)."""
+        """Reduced inputs (Dr.Jit) → (valid, [x, y, dx, dy, T]) (Dr.Jit, reduced frame): the exact
+        map's reduced core, with rays whose outputs are not finite made invalid."""
         import drjit as dr
-        res = self._trace(r, wx, wy, lam)
-        outs = [res.position[0], res.position[1], res.direction[0], res.direction[1], res.throughput]
-        valid = res.valid
+        valid, outs, _ = self.map.core_reduced_dr((r, wx, wy, lam), True)
         for o in outs:
             valid &= dr.isfinite(o)
         return valid, outs
@@ -186,7 +106,7 @@ class PathSampler:
         aperture margin (:attr:`~mi_neurallens.trace.tracer.TraceResult.margin`) and where the ray fails
         for another reason (then the margin says nothing).  ``valid == ~hard_fail & (margin >= 0)``."""
         import drjit as dr
-        res = self._trace(*self.u_to_x_dr(self._columns(u)), margin=True)
+        res = self.map.trace_reduced(self.u_to_x_dr(self._columns(u)), margin=True)
         hard = res.hard_fail | ~dr.isfinite(res.position[0]) | ~dr.isfinite(res.throughput)
         dr.eval(res.valid, res.margin, hard)
         self.rays_traced += len(u)

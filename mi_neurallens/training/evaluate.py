@@ -88,7 +88,7 @@ def boundary_distance(ps: PathSampler, xn_wrong: np.ndarray, label_true: np.ndar
 
 def evaluate_map(lens, tm, n: int = 200_000, seed: int = 999, mcmc_threshold: float = 0.02,
                  fresnel: bool = True, boundary: bool = True, reg_data=None) -> dict:
-    """Every metric of one :class:`~mi_neurallens.neural.model.TransportMap`."""
+    """Every metric of one :class:`~mi_neurallens.neural.model.NeuralMap`."""
     from .data import Domain
     dom = Domain.from_dict(tm.domain)
     rng = np.random.default_rng(seed)

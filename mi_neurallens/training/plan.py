@@ -105,15 +105,3 @@ def rank_ghosts(lens, z_front: float, domain: Domain, sensor_distance: float, fi
         return float(np.where(hit, y[:, 4], 0.0).sum() / n_rays), float(hit.mean())
 
     return rank_ghosts_by_energy(lens, energy)
-
-
-def select_ghosts(ranking, energy_fraction: float = 0.99, max_ghosts: int = 32):
-    """The smallest top-K that carries ``energy_fraction`` of the ghost energy, at most ``max_ghosts``."""
-    keep = []
-    for d in ranking:
-        if len(keep) >= max_ghosts or d["energy"] <= 0:
-            break
-        keep.append(d)
-        if d["cumulative_share"] >= energy_fraction:
-            break
-    return keep

@@ -549,15 +549,15 @@ def _kept(base, network: str) -> dict:
 def train_map(lens, path_id: int, direction: str, z_in: float, z_out: float, domain: Domain, cfg: TrainConfig,
               workdir: str | None = None, progress: bool = True, log=None, evaluate: bool = True,
               eval_n: int | None = None, keep: str | None = None, base=None):
-    """Train the classifier and regressor of one map; returns a :class:`TransportMap` with held-out
+    """Train the classifier and regressor of one map; returns a :class:`~mi_neurallens.neural.model.NeuralMap` with held-out
     metrics.
 
     ``keep = "regressor"`` (or ``"classifier"``) takes that network unchanged from ``base`` (a
-    :class:`~mi_neurallens.neural.model.TransportMap` of the same path, planes and domain) and trains only
+    :class:`~mi_neurallens.neural.model.NeuralMap` of the same path, planes and domain) and trains only
     the other one: e.g. a longer or wider classifier for a ghost whose flare error sits on its edge,
     without paying for (or changing) its regressor.  The kept network's training record is carried over
     under ``training["kept"]``."""
-    from ..neural.model import TransportMap
+    from ..neural.model import NeuralMap
     from .evaluate import evaluate_map, heldout_valid
     _check_keep(keep, base, path_id, direction, z_in, z_out, domain)
     key = f"{direction}.{path_id}"
@@ -609,7 +609,7 @@ def train_map(lens, path_id: int, direction: str, z_in: float, z_out: float, dom
             for k in ("classifier_logit_offset", "classifier_calibration"):
                 if k in base.training:
                     training[k] = base.training[k]
-    tm = TransportMap(path_id=int(path_id), direction=direction, z_in=float(z_in), z_out=float(z_out),
+    tm = NeuralMap(path_id=int(path_id), direction=direction, z_in=float(z_in), z_out=float(z_out),
                       domain=domain.to_dict(), input_center=center, input_scale=scale_in,
                       classifier=cls["layers"], regressor=reg["layers"], skip=reg["skip"],
                       out_scale=reg["out_scale"], out_shift=reg["out_shift"], odd_y=reg["odd_y"],
@@ -653,6 +653,7 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
     this one from the same map of the model file ``base_path`` (see :func:`train_map`)."""
     from ..neural.model import NeuralLensModel, load_model
     from . import plan
+    from ..transport.planning import select_ghosts
     from ..errors import ModelError
     base_model = None
     if keep is not None:
@@ -697,12 +698,12 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
                 ranking = plan.rank_ghosts(lens, z_front, fwd_domain, lens.surfaces[-1].thickness,
                                            cfg.film_half_diagonal_mm, cfg.ghost_rank_rays, cfg.seed)
                 atomic_write_text(rk_path, json.dumps(ranking))
-            keep = plan.select_ghosts(ranking, cfg.ghost_energy_fraction, cfg.max_ghosts)
+            keep = select_ghosts(ranking, cfg.ghost_energy_fraction, cfg.max_ghosts)
             model.extra["ghost_ranking"] = ranking
-            model.extra["ghosts_selected"] = [g["path_id"] for g in keep]
-            model.extra["ghosts_trained"] = [g["path_id"] for g in keep[:cfg.ship_ghosts]]
-            for g in keep[:cfg.ship_ghosts]:
-                todo.append((g["path_id"], "forward", z_front, z_rear, fwd_domain))
+            model.extra["ghosts_selected"] = keep
+            model.extra["ghosts_trained"] = keep[:cfg.ship_ghosts]
+            for pid in keep[:cfg.ship_ghosts]:
+                todo.append((pid, "forward", z_front, z_rear, fwd_domain))
         else:
             pid = 0 if p == "transmit" else int(p)
             todo.append((pid, "forward", z_front, z_rear, fwd_domain))

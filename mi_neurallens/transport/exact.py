@@ -1,0 +1,58 @@
+"""The exact map: the Dr.Jit tracer behind the transport-map interface.
+
+The ground truth of every other map: ``realistic_lens`` renders with it, the flare renderer traces
+ghosts with it, and the training sampler draws its data from its reduced-frame core.
+"""
+from __future__ import annotations
+
+from ..trace import symmetry
+from .base import TransportMap
+
+
+class ExactMap(TransportMap):
+    """Exact tracing of ``path`` (``"transmit"``, an id or a ghost ``(a, b)``) in ``direction`` from the
+    plane ``z_in`` to ``z_out`` (lens space, mm).  ``fresnel``: Fresnel (and coating) throughput, else 1.
+    ``tracer``: share an existing :class:`~mi_neurallens.trace.tracer.LensTracer` of the same lens.
+
+    The tracer is frame independent, so :meth:`eval_dr` traces in lens space; :meth:`core_reduced_dr`
+    traces the reduced ray (position (r, 0), direction (ωx, ωy)) for samplers that work in the reduced
+    frame.  ``domain``: optional, the reduced domain for :meth:`core_reduced_dr`'s callers.
+    """
+
+    method = "exact"
+
+    def __init__(self, lens, path, direction: str, z_in: float,
+                 z_out: float | None = None, *, fresnel: bool = True, tracer=None, domain=None):
+        from ..trace.tracer import LensTracer
+        self.lens = lens
+        self.tracer = tracer if tracer is not None else LensTracer(lens, fresnel=fresnel)
+        self.spec = self.tracer.path(path, direction)
+        self.path_id = self.spec.id
+        self.direction = direction
+        self.z_in = float(z_in)
+        self.z_out = float(self.tracer.default_output_z(direction) if z_out is None else z_out)
+        self.domain = domain
+
+    @property
+    def fresnel(self) -> bool:
+        return self.tracer.fresnel
+
+    def core_dr(self, p, d, lam, active):
+        px, py = p
+        res = self.tracer.trace((px, py, px * 0.0 + self.z_in), d, lam, self.spec, self.direction,
+                                z_out=self.z_out, active=active)
+        X, Y, _ = res.position
+        return res.valid, (X, Y), res.direction, res.throughput
+
+    def trace_reduced(self, x, margin: bool = False, active=True):
+        """Reduced inputs ``x = (r, ωx, ωy, λ)`` → the tracer's
+        :class:`~mi_neurallens.trace.tracer.TraceResult` (reduced frame; ``margin`` as the tracer's)."""
+        r, wx, wy, lam = x
+        (px, py), d = symmetry.reduced_ray(r, wx, wy, self.heading)
+        return self.tracer.trace((px, py, px * 0.0 + self.z_in), d, lam, self.spec, self.direction,
+                                 z_out=self.z_out, margin=margin, active=active)
+
+    def core_reduced_dr(self, x, active):
+        res = self.trace_reduced(x, active=active)
+        return res.valid, [res.position[0], res.position[1], res.direction[0], res.direction[1],
+                           res.throughput], None

@@ -1,0 +1,119 @@
+"""Runtime planning of the transport maps: the reduced input domain and the wavelength sampler.
+
+Used at render time (the sensors and the flare renderer check a map's domain) and by the training
+sampler alike, so it lives here rather than under ``training/`` (which imports torch lazily and is
+never imported at render time).
+
+The **reduced input domain** (:class:`Domain`, paper §4.1) of a map: ``(r, ωx, ωy, λ)`` with
+0 ≤ r ≤ ``r_max`` on the input plane (mm), (ωx, ωy) in the half disk ωx² + ωy² ≤ ``s_max``², ωy ≥ 0,
+and λ in [``lam_min``, ``lam_max``] nm.  A sample is addressed by a point ``u`` of the unit cube [0, 1)⁴
+(:meth:`Domain.u_to_x`): ``r = r_max·u0``, ``(ωx, ωy) = s_max·√u1·(cos πu2, sin πu2)``, ``λ`` the CIE
+sample of u3 (:func:`sample_cie_wavelength`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+
+import numpy as np
+
+
+#: Mitsuba's visible-range importance curve (``sample_rgb_spectrum``, CIE 1931 on [360, 830] nm)
+CIE_MIN_NM, CIE_MAX_NM = 360.0, 830.0
+_CIE_A, _CIE_B, _CIE_C, _CIE_K = 0.8569106254698279, 1.8275019724092267, 138.88888888888889, 0.0072
+_CIE_PDF = 0.003939804229326285
+
+
+def sample_cie_wavelength(u):
+    """λ (nm) and 1/pdf for uniform ``u`` ∈ [0, 1): the same closed form as Mitsuba's
+    ``sample_rgb_spectrum`` (pdf ∝ sech²(0.0072 (λ − 538)), a fit to the CIE 1931 ȳ+x̄+z̄ sum on
+    [360, 830] nm).  Works on numpy arrays and on any Dr.Jit float type (variant-generic)."""
+    if isinstance(u, (np.ndarray, float, int)):
+        u = np.asarray(u, dtype=np.float64)
+        lam = 538.0 - np.arctanh(_CIE_A - _CIE_B * u) * _CIE_C
+        return lam, 1.0 / pdf_cie_wavelength(lam)
+    import drjit as dr
+    lam = 538.0 - dr.atanh(_CIE_A - _CIE_B * u) * _CIE_C
+    return lam, dr.rcp(pdf_cie_wavelength(lam))
+
+
+def pdf_cie_wavelength(lam):
+    """Density (1/nm) of :func:`sample_cie_wavelength`."""
+    if isinstance(lam, (np.ndarray, float, int)):
+        lam = np.asarray(lam, dtype=np.float64)
+        t = 1.0 / np.cosh(_CIE_K * (lam - 538.0))
+        return np.where((lam >= CIE_MIN_NM) & (lam <= CIE_MAX_NM), _CIE_PDF * t * t, 0.0)
+    import drjit as dr
+    t = 1.0 / dr.cosh(_CIE_K * (lam - 538.0))
+    return dr.select((lam >= CIE_MIN_NM) & (lam <= CIE_MAX_NM), _CIE_PDF * t * t, 0.0)
+
+
+def cie_u_of_lambda(lam):
+    """Inverse of :func:`sample_cie_wavelength` (numpy): u such that sample(u) = λ."""
+    lam = np.asarray(lam, dtype=np.float64)
+    return (_CIE_A - np.tanh((538.0 - lam) / _CIE_C)) / _CIE_B
+
+
+@dataclass
+class Domain:
+    """The sampled reduced input domain of one map (lens space, mm)."""
+
+    r_max: float
+    s_max: float
+    lam_min: float = CIE_MIN_NM
+    lam_max: float = CIE_MAX_NM
+
+    def u_to_x(self, u: np.ndarray) -> np.ndarray:
+        """(N, 4) unit-cube points → (N, 4) reduced inputs (r, ωx, ωy, λ), float64."""
+        u = np.asarray(u, dtype=np.float64)
+        rho = self.s_max * np.sqrt(u[:, 1])
+        th = math.pi * u[:, 2]
+        lam, _ = sample_cie_wavelength(u[:, 3])
+        return np.stack([self.r_max * u[:, 0], rho * np.cos(th), rho * np.sin(th), lam], 1)
+
+    def x_to_u(self, x: np.ndarray) -> np.ndarray:
+        x = np.asarray(x, dtype=np.float64)
+        rho = np.hypot(x[:, 1], x[:, 2])
+        return np.stack([x[:, 0] / self.r_max, (rho / self.s_max) ** 2,
+                         np.arctan2(x[:, 2], x[:, 1]) / math.pi, cie_u_of_lambda(x[:, 3])], 1)
+
+    # input normalisation used by the networks: every column to about [-1, 1]
+    def norm_center_scale(self):
+        c = np.array([0.5 * self.r_max, 0.0, 0.5 * self.s_max, 0.5 * (self.lam_min + self.lam_max)])
+        s = np.array([0.5 * self.r_max, self.s_max, 0.5 * self.s_max, 0.5 * (self.lam_max - self.lam_min)])
+        return c, s
+
+    def to_dict(self):
+        return {"r_max_mm": self.r_max, "s_max": self.s_max, "lambda_min_nm": self.lam_min,
+                "lambda_max_nm": self.lam_max}
+
+    def contains_dr(self, x):
+        """Mask of the reduced inputs ``x = (r, ωx, ωy, λ)`` (Dr.Jit floats) inside the domain."""
+        import drjit as dr
+        r, wx, wy, lam = x
+        ok = (r <= self.r_max) & (dr.fma(wx, wx, wy * wy) <= self.s_max ** 2)
+        return ok & (lam >= self.lam_min) & (lam <= self.lam_max)
+
+    @staticmethod
+    def from_dict(d):
+        """A :class:`Domain` from its :meth:`to_dict` form (a :class:`Domain` is returned as is)."""
+        if isinstance(d, Domain):
+            return d
+        return Domain(float(d["r_max_mm"]), float(d["s_max"]), float(d["lambda_min_nm"]), float(d["lambda_max_nm"]))
+
+
+# ----------------------------------------------------------------------------- ghost selection
+def select_ghosts(ranking, energy_fraction: float = 0.99, max_ghosts: int = 32):
+    """The smallest strongest-first prefix of ``ranking`` carrying ``energy_fraction`` of the ghost
+    energy, at most ``max_ghosts`` long; ghosts with zero energy are never kept."""
+    rk = sorted(ranking, key=lambda dd: -float(dd.get("energy", 0.0)))
+    tot = sum(float(dd.get("energy", 0.0)) for dd in rk) or 1.0
+    keep, c = [], 0.0
+    for dd in rk:
+        if len(keep) >= max_ghosts or float(dd.get("energy", 0.0)) <= 0:
+            break
+        keep.append(int(dd["path_id"]))
+        c += float(dd["energy"]) / tot
+        if c >= energy_fraction - 1e-12:
+            break
+    return keep
