@@ -1,10 +1,17 @@
 """The ``lens_flare`` integrator: a nested integrator's image plus the ghosts of the scene's bright lights.
 
-Defined per Mitsuba variant by :func:`make_lens_flare` and registered by
-:func:`mi_neurallens.integrators.register`.  The forward sampling and the radiometry live in
+:class:`LensFlare` derives from the ``mi.SamplingIntegrator`` of the variant that was set when this
+module was (re-)imported; :func:`mi_neurallens.integrators.register` re-imports it per variant.  The forward sampling and the radiometry live in
 :mod:`mi_neurallens.flare.render`.
 """
 from __future__ import annotations
+
+import mitsuba as mi
+import numpy as np
+
+from ..flare.render import FlareError, FlareOptions, FlareRenderer, parse_id_list
+from ..sensors.common import PropertyReader
+
 
 PLUGIN = "lens_flare"
 
@@ -179,8 +186,6 @@ _BASE_PROPS = ("samples_per_pass", "timeout", "hide_emitters", "max_depth", "rr_
 def options_from_props(props, nested_names=()):
     """Read every lens_flare property into :class:`~mi_neurallens.flare.render.FlareOptions`, with the
     sensors' :class:`~mi_neurallens.sensors.common.PropertyReader` (clear errors naming the property)."""
-    from ..flare.render import FlareOptions, parse_id_list
-    from ..sensors.common import PropertyReader
     rd = PropertyReader(props, PLUGIN)
     rd.refuse_unknown(tuple(_PROPS), skip=tuple(nested_names) + _BASE_PROPS)
     kw = {}
@@ -200,70 +205,62 @@ def options_from_props(props, nested_names=()):
     return FlareOptions(**kw).validate()
 
 
-def make_lens_flare():
-    """Define the ``lens_flare`` class for the CURRENT Mitsuba variant."""
-    import mitsuba as mi
+class LensFlare(mi.SamplingIntegrator):
+    __doc__ = DOC
 
-    class LensFlare(mi.SamplingIntegrator):
-        __doc__ = DOC
+    def __init__(self, props):
+        super().__init__(props)
+        self.nested = None
+        nested_names = []
+        for k in props.keys():
+            v = props.get(k) if k not in ("samples_per_pass", "timeout", "hide_emitters") else None
+            if isinstance(v, mi.Integrator):
+                if self.nested is not None:
+                    from ..flare.render import FlareError
+                    raise FlareError("lens_flare: give at most one nested integrator")
+                self.nested = v
+                nested_names.append(k)
+        self.opts = options_from_props(props, nested_names)
+        self.last_result = None
 
-        def __init__(self, props):
-            super().__init__(props)
-            self.nested = None
-            nested_names = []
-            for k in props.keys():
-                v = props.get(k) if k not in ("samples_per_pass", "timeout", "hide_emitters") else None
-                if isinstance(v, mi.Integrator):
-                    if self.nested is not None:
-                        from ..flare.render import FlareError
-                        raise FlareError("lens_flare: give at most one nested integrator")
-                    self.nested = v
-                    nested_names.append(k)
-            self.opts = options_from_props(props, nested_names)
-            self.last_result = None
+    def flare(self, scene, sensor, seed=0, per_ghost=False):
+        """The flare alone as a :class:`~mi_neurallens.flare.render.FlareResult` (numpy)."""
+        if isinstance(sensor, int):
+            sensor = scene.sensors()[sensor]
+        res = FlareRenderer(scene, sensor, self.opts).render(seed=int(seed), per_ghost=per_ghost)
+        self.last_result = res
+        return res
 
-        def flare(self, scene, sensor, seed=0, per_ghost=False):
-            """The flare alone as a :class:`~mi_neurallens.flare.render.FlareResult` (numpy)."""
-            from ..flare.render import FlareRenderer
-            if isinstance(sensor, int):
-                sensor = scene.sensors()[sensor]
-            res = FlareRenderer(scene, sensor, self.opts).render(seed=int(seed), per_ghost=per_ghost)
-            self.last_result = res
-            return res
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        if isinstance(sensor, int):
+            sensor = scene.sensors()[sensor]
+        res = self.flare(scene, sensor, seed)
+        fl = mi.TensorXf(res.total)
+        if self.nested is None:
+            return fl
+        img = self.nested.render(scene, sensor, seed, spp, develop, evaluate)
+        if not develop:
+            return img
+        C = img.shape[2]
+        if C == 3:
+            return img + fl
+        arr = img.numpy() if hasattr(img, "numpy") else img
+        import numpy as np
+        out = np.array(arr, copy=True)
+        if C >= 3:
+            out[..., :3] += res.total
+        else:
+            out[..., 0] += res.total @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+        return mi.TensorXf(out)
 
-        def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-            if isinstance(sensor, int):
-                sensor = scene.sensors()[sensor]
-            res = self.flare(scene, sensor, seed)
-            fl = mi.TensorXf(res.total)
-            if self.nested is None:
-                return fl
-            img = self.nested.render(scene, sensor, seed, spp, develop, evaluate)
-            if not develop:
-                return img
-            C = img.shape[2]
-            if C == 3:
-                return img + fl
-            arr = img.numpy() if hasattr(img, "numpy") else img
-            import numpy as np
-            out = np.array(arr, copy=True)
-            if C >= 3:
-                out[..., :3] += res.total
-            else:
-                out[..., 0] += res.total @ np.array([0.2126, 0.7152, 0.0722], np.float32)
-            return mi.TensorXf(out)
+    def aov_names(self):
+        return []
 
-        def aov_names(self):
-            return []
+    def traverse(self, cb):
+        if self.nested is not None:
+            cb.put("nested", self.nested, mi.ParamFlags.NonDifferentiable)
 
-        def traverse(self, cb):
-            if self.nested is not None:
-                cb.put("nested", self.nested, mi.ParamFlags.NonDifferentiable)
-
-        def to_string(self):
-            o = self.opts
-            return (f"LensFlare[mode={o.mode}, flare_samples={o.samples}, max_ghosts={o.max_ghosts}, "
-                    f"ghosts={o.ghosts}, coating={o.coating}, blades={o.blades}, nested={self.nested}]")
-
-    LensFlare.__name__ = "LensFlare"
-    return LensFlare
+    def to_string(self):
+        o = self.opts
+        return (f"LensFlare[mode={o.mode}, flare_samples={o.samples}, max_ghosts={o.max_ghosts}, "
+                f"ghosts={o.ghosts}, coating={o.coating}, blades={o.blades}, nested={self.nested}]")

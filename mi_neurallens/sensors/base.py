@@ -1,7 +1,8 @@
 """The sensor class both lens sensors derive from: everything but the lens transport itself.
 
-:func:`make_lens_sensor_base` defines, for the Mitsuba variant that is currently set, a
-``mi.Sensor`` subclass that reads the shared properties (``lens``, ``focus_distance`` XOR
+:class:`LensSensorBase` is a ``mi.Sensor`` subclass of the Mitsuba variant that was set when this
+module was (re-)imported (:func:`mi_neurallens.sensors.register` re-imports it per variant, as
+Mitsuba's own Python plugins are); it reads the shared properties (``lens``, ``focus_distance`` XOR
 ``sensor_distance``, ``fstop``, ``sensor_width``, ``scene_unit_mm``, ``fresnel``,
 ``pupil_sampling``), focuses and stops down the lens (:func:`.common.configure_lens`), samples a film
 point, a point on the exit-pupil bound (:class:`.pupil.PupilBounds`) and one wavelength
@@ -20,186 +21,174 @@ from __future__ import annotations
 
 import math
 
-_CACHE: dict = {}
+import drjit as dr
+import mitsuba as mi
 
+from .common import PropertyReader, SensorPropertyError, configure_lens, film_to_sensor, lens_to_camera
+from .pupil import EXIT_PUPIL, MODES, PupilBounds
+from .wavelengths import prepare_shutter, sample_wavelength
 
-def make_lens_sensor_base():
-    """The shared base class for the CURRENT Mitsuba variant (cached per variant)."""
-    import drjit as dr
-    import mitsuba as mi
+class LensSensorBase(mi.Sensor):
+    PLUGIN = "lens_sensor"
 
-    key = mi.variant()
-    if key in _CACHE:
-        return _CACHE[key]
+    def __init__(self, props):
+        plugin = self.PLUGIN
+        rd = PropertyReader(props, plugin)
+        self._read_properties(rd)
+        focus = rd.float("focus_distance", None, allow_inf=True)
+        sdist = rd.float("sensor_distance", None)
+        fstop = rd.float("fstop", None)
+        width = rd.float("sensor_width", 36.0, positive=True)
+        unit = rd.float("scene_unit_mm", 1000.0, positive=True)
+        fresnel = rd.bool("fresnel", True)
+        mode = rd.string("pupil_sampling", EXIT_PUPIL, choices=MODES)
+        if focus is not None and sdist is not None:
+            raise SensorPropertyError(plugin, "focus_distance",
+                                      "give either 'focus_distance' (scene units from the sensor plane) "
+                                      "or 'sensor_distance' (mm behind the last vertex), not both")
+        if focus is not None and not focus > 0:
+            raise SensorPropertyError(plugin, "focus_distance",
+                                      f"must be > 0 scene units (or inf), got {focus:g}")
+        if sdist is not None and not sdist > 0:
+            raise SensorPropertyError(plugin, "sensor_distance",
+                                      f"must be > 0 mm behind the last vertex, got {sdist:g}")
+        if fstop is not None and not fstop > 0:
+            raise SensorPropertyError(plugin, "fstop", f"must be > 0, got {fstop:g}")
+        base = self._load_lens(rd)
+        # the wavelength mode must be known before the base class reads the shutter
+        probe = configure_lens(base, fstop=fstop, sensor_distance_mm=base.surfaces[-1].thickness,
+                               fresnel=fresnel, plugin=plugin)
+        lambda_mode = prepare_shutter(mi, props, self._lambda_dependent(probe))
+        super().__init__(props)
+        self.lambda_mode = lambda_mode
+        size = self.film().size()
+        self.setup = configure_lens(
+            base, fstop=fstop, sensor_distance_mm=sdist,
+            focus_distance_mm=None if focus is None else focus * unit,
+            sensor_width_mm=width, film_size=(int(size[0]), int(size[1])), scene_unit_mm=unit,
+            fresnel=fresnel, plugin=plugin)
+        self.pupil = PupilBounds(self.setup, mode)
+        first = self.setup.lens.surfaces[0]
+        sag = float(first.sag(first.semi_diameter)) if not first.is_stop else 0.0
+        #: lens-space plane where rays leave the lens (in front of the whole first surface)
+        self.z_out = min(0.0, sag if math.isfinite(sag) else 0.0)
+        self.tmap = self._make_map()
+        self.z_out = self.tmap.z_out
+        self.m_needs_sample_3 = True
 
-    from .common import PropertyReader, SensorPropertyError, configure_lens, film_to_sensor, lens_to_camera
-    from .pupil import EXIT_PUPIL, MODES, PupilBounds
-    from .wavelengths import prepare_shutter, sample_wavelength
+    # ------------------------------------------------------------------ hooks
+    def _read_properties(self, rd):
+        """Read the plugin's own properties (before the shared ones)."""
 
-    class LensSensorBase(mi.Sensor):
-        PLUGIN = "lens_sensor"
+    def _load_lens(self, rd):
+        raise NotImplementedError
 
-        def __init__(self, props):
-            plugin = self.PLUGIN
-            rd = PropertyReader(props, plugin)
-            self._read_properties(rd)
-            focus = rd.float("focus_distance", None, allow_inf=True)
-            sdist = rd.float("sensor_distance", None)
-            fstop = rd.float("fstop", None)
-            width = rd.float("sensor_width", 36.0, positive=True)
-            unit = rd.float("scene_unit_mm", 1000.0, positive=True)
-            fresnel = rd.bool("fresnel", True)
-            mode = rd.string("pupil_sampling", EXIT_PUPIL, choices=MODES)
-            if focus is not None and sdist is not None:
-                raise SensorPropertyError(plugin, "focus_distance",
-                                          "give either 'focus_distance' (scene units from the sensor plane) "
-                                          "or 'sensor_distance' (mm behind the last vertex), not both")
-            if focus is not None and not focus > 0:
-                raise SensorPropertyError(plugin, "focus_distance",
-                                          f"must be > 0 scene units (or inf), got {focus:g}")
-            if sdist is not None and not sdist > 0:
-                raise SensorPropertyError(plugin, "sensor_distance",
-                                          f"must be > 0 mm behind the last vertex, got {sdist:g}")
-            if fstop is not None and not fstop > 0:
-                raise SensorPropertyError(plugin, "fstop", f"must be > 0, got {fstop:g}")
-            base = self._load_lens(rd)
-            # the wavelength mode must be known before the base class reads the shutter
-            probe = configure_lens(base, fstop=fstop, sensor_distance_mm=base.surfaces[-1].thickness,
-                                   fresnel=fresnel, plugin=plugin)
-            lambda_mode = prepare_shutter(mi, props, self._lambda_dependent(probe))
-            super().__init__(props)
-            self.lambda_mode = lambda_mode
-            size = self.film().size()
-            self.setup = configure_lens(
-                base, fstop=fstop, sensor_distance_mm=sdist,
-                focus_distance_mm=None if focus is None else focus * unit,
-                sensor_width_mm=width, film_size=(int(size[0]), int(size[1])), scene_unit_mm=unit,
-                fresnel=fresnel, plugin=plugin)
-            self.pupil = PupilBounds(self.setup, mode)
-            first = self.setup.lens.surfaces[0]
-            sag = float(first.sag(first.semi_diameter)) if not first.is_stop else 0.0
-            #: lens-space plane where rays leave the lens (in front of the whole first surface)
-            self.z_out = min(0.0, sag if math.isfinite(sag) else 0.0)
-            self.tmap = self._make_map()
-            self.z_out = self.tmap.z_out
-            self.m_needs_sample_3 = True
+    def _lambda_dependent(self, setup) -> bool:
+        return setup.lambda_dependent
 
-        # ------------------------------------------------------------------ hooks
-        def _read_properties(self, rd):
-            """Read the plugin's own properties (before the shared ones)."""
+    def _make_map(self):
+        raise NotImplementedError
 
-        def _load_lens(self, rd):
-            raise NotImplementedError
+    def _transport(self, o, d, lam, active):
+        """Camera rays on the film plane → (position, direction, throughput, valid) of the ray
+        leaving the lens (lens space, position on ``self.z_out``); ``fresnel = false``: T = 1."""
+        res = self.tmap.eval_dr(o, d, lam, active)
+        T = res.throughput if self.setup.fresnel else dr.zeros(type(res.throughput), dr.width(res.throughput)) + 1.0
+        return res.position, res.direction, T, res.valid
 
-        def _lambda_dependent(self, setup) -> bool:
-            return setup.lambda_dependent
+    def _describe(self) -> str:
+        return f"lens={self.setup.lens.name}"
 
-        def _make_map(self):
-            raise NotImplementedError
+    # ------------------------------------------------------------------ rays
+    def _trace(self, time, sample1, sample2, sample3, active=True):
+        st = self.setup
+        lam, wav, wspec, time = sample_wavelength(mi, dr, self, self.lambda_mode, time, sample1,
+                                                  sample2, sample3, active)
+        fx, fy = film_to_sensor(mi, self, st, sample2)
+        X, Y, area = self.pupil.sample(mi, dr, fx, fy, sample3)
+        z_img, dzp = self.pupil.z_img, self.pupil.dz
+        ex, ey = X - fx, Y - fy
+        inv_len = dr.rsqrt(dr.fma(ex, ex, dr.fma(ey, ey, dzp * dzp)))
+        d = (ex * inv_len, ey * inv_len, -dzp * inv_len)
+        zf = dr.zeros(mi.Float, dr.width(fx)) + z_img
+        pos, dirn, T, valid = self._transport((fx, fy, zf), d, lam, active)
+        cos_t = dzp * inv_len
+        c2 = cos_t * cos_t
+        # cos^4θ · A / Δz² · T / (π NA'²)
+        w = c2 * c2 * area * (st.normalisation / (dzp * dzp)) * T
+        w = dr.select(valid, w, 0.0)
+        (ox, oy, oz), (dx, dy, dz) = lens_to_camera(st, pos, dirn)
+        o = mi.Point3f(dr.select(valid, ox, 0.0), dr.select(valid, oy, 0.0), dr.select(valid, oz, 0.0))
+        dcam = mi.Vector3f(dr.select(valid, dx, 0.0), dr.select(valid, dy, 0.0), dr.select(valid, dz, 1.0))
+        ray = mi.Ray3f(self.m_to_world @ o, dr.normalize(self.m_to_world @ dcam), time,
+                       wav if wav is not None else [])
+        # invalid rays: weight 0 and a zero-length segment so integrators stop at once
+        ray.maxt = dr.select(valid, ray.maxt, 0.0)
+        weight = wspec * w if not isinstance(wspec, float) else mi.Spectrum(w)
+        return ray, weight
 
-        def _transport(self, o, d, lam, active):
-            """Camera rays on the film plane → (position, direction, throughput, valid) of the ray
-            leaving the lens (lens space, position on ``self.z_out``); ``fresnel = false``: T = 1."""
-            res = self.tmap.eval_dr(o, d, lam, active)
-            T = res.throughput if self.setup.fresnel else dr.zeros(type(res.throughput), dr.width(res.throughput)) + 1.0
-            return res.position, res.direction, T, res.valid
+    def sample_ray(self, time, sample1, sample2, sample3, active=True):
+        return self._trace(time, sample1, sample2, sample3, active)
 
-        def _describe(self) -> str:
-            return f"lens={self.setup.lens.name}"
+    def sample_ray_differential(self, time, sample1, sample2, sample3, active=True):
+        ray, w = self._trace(time, sample1, sample2, sample3, active)
+        rdiff = mi.RayDifferential3f(ray)
+        rdiff.has_differentials = False
+        return rdiff, w
 
-        # ------------------------------------------------------------------ rays
-        def _trace(self, time, sample1, sample2, sample3, active=True):
-            st = self.setup
-            lam, wav, wspec, time = sample_wavelength(mi, dr, self, self.lambda_mode, time, sample1,
-                                                      sample2, sample3, active)
-            fx, fy = film_to_sensor(mi, self, st, sample2)
-            X, Y, area = self.pupil.sample(mi, dr, fx, fy, sample3)
-            z_img, dzp = self.pupil.z_img, self.pupil.dz
-            ex, ey = X - fx, Y - fy
-            inv_len = dr.rsqrt(dr.fma(ex, ex, dr.fma(ey, ey, dzp * dzp)))
-            d = (ex * inv_len, ey * inv_len, -dzp * inv_len)
-            zf = dr.zeros(mi.Float, dr.width(fx)) + z_img
-            pos, dirn, T, valid = self._transport((fx, fy, zf), d, lam, active)
-            cos_t = dzp * inv_len
-            c2 = cos_t * cos_t
-            # cos^4θ · A / Δz² · T / (π NA'²)
-            w = c2 * c2 * area * (st.normalisation / (dzp * dzp)) * T
-            w = dr.select(valid, w, 0.0)
-            (ox, oy, oz), (dx, dy, dz) = lens_to_camera(st, pos, dirn)
-            o = mi.Point3f(dr.select(valid, ox, 0.0), dr.select(valid, oy, 0.0), dr.select(valid, oz, 0.0))
-            dcam = mi.Vector3f(dr.select(valid, dx, 0.0), dr.select(valid, dy, 0.0), dr.select(valid, dz, 1.0))
-            ray = mi.Ray3f(self.m_to_world @ o, dr.normalize(self.m_to_world @ dcam), time,
-                           wav if wav is not None else [])
-            # invalid rays: weight 0 and a zero-length segment so integrators stop at once
-            ray.maxt = dr.select(valid, ray.maxt, 0.0)
-            weight = wspec * w if not isinstance(wspec, float) else mi.Spectrum(w)
-            return ray, weight
+    # ------------------------------------------------------------------ unsupported
+    def _unsupported(self, what):
+        raise NotImplementedError(
+            f"{self.PLUGIN}: {what} is not supported: this sensor only generates camera rays (backward "
+            "tracing), so integrators that connect to the camera from the scene (ptracer, "
+            "prb_projective, direct_projective) cannot use it; use path, volpath, direct, aov, prb")
 
-        def sample_ray(self, time, sample1, sample2, sample3, active=True):
-            return self._trace(time, sample1, sample2, sample3, active)
+    def sample_direction(self, it, sample, active=True):
+        self._unsupported("sample_direction")
 
-        def sample_ray_differential(self, time, sample1, sample2, sample3, active=True):
-            ray, w = self._trace(time, sample1, sample2, sample3, active)
-            rdiff = mi.RayDifferential3f(ray)
-            rdiff.has_differentials = False
-            return rdiff, w
+    def pdf_direction(self, it, ds, active=True):
+        self._unsupported("pdf_direction")
 
-        # ------------------------------------------------------------------ unsupported
-        def _unsupported(self, what):
-            raise NotImplementedError(
-                f"{self.PLUGIN}: {what} is not supported: this sensor only generates camera rays (backward "
-                "tracing), so integrators that connect to the camera from the scene (ptracer, "
-                "prb_projective, direct_projective) cannot use it; use path, volpath, direct, aov, prb")
+    def eval_direction(self, it, ds, active=True):
+        self._unsupported("eval_direction")
 
-        def sample_direction(self, it, sample, active=True):
-            self._unsupported("sample_direction")
+    def sample_position(self, time, sample, active=True):
+        self._unsupported("sample_position")
 
-        def pdf_direction(self, it, ds, active=True):
-            self._unsupported("pdf_direction")
+    def pdf_position(self, ps, active=True):
+        self._unsupported("pdf_position")
 
-        def eval_direction(self, it, ds, active=True):
-            self._unsupported("eval_direction")
+    def eval(self, si, active=True):
+        self._unsupported("eval")
 
-        def sample_position(self, time, sample, active=True):
-            self._unsupported("sample_position")
+    # ------------------------------------------------------------------ misc
+    def bbox(self):
+        """World-space box around the sensor and the lens body."""
+        L = self.setup.lens
+        k = 1.0 / self.setup.scene_unit_mm
+        rmax = max(max(s.semi_diameter for s in L.surfaces), 0.5 * math.hypot(
+            self.setup.sensor_width_mm, self.setup.sensor_height_mm)) * k
+        zmax = (self.setup.image_z - self.z_out) * k
+        m = self.m_to_world.matrix.numpy()
+        M = mi.ScalarTransform4f(m[..., 0] if m.ndim == 3 else m)
+        box = mi.ScalarBoundingBox3f()
+        for x in (-rmax, rmax):
+            for y in (-rmax, rmax):
+                for z in (0.0, zmax):
+                    box.expand(M @ mi.ScalarPoint3f(x, y, z))
+        return box
 
-        def pdf_position(self, ps, active=True):
-            self._unsupported("pdf_position")
+    def traverse(self, cb):
+        cb.put("to_world", self.m_to_world, mi.ParamFlags.NonDifferentiable)
 
-        def eval(self, si, active=True):
-            self._unsupported("eval")
+    def parameters_changed(self, keys=[]):
+        pass
 
-        # ------------------------------------------------------------------ misc
-        def bbox(self):
-            """World-space box around the sensor and the lens body."""
-            L = self.setup.lens
-            k = 1.0 / self.setup.scene_unit_mm
-            rmax = max(max(s.semi_diameter for s in L.surfaces), 0.5 * math.hypot(
-                self.setup.sensor_width_mm, self.setup.sensor_height_mm)) * k
-            zmax = (self.setup.image_z - self.z_out) * k
-            m = self.m_to_world.matrix.numpy()
-            M = mi.ScalarTransform4f(m[..., 0] if m.ndim == 3 else m)
-            box = mi.ScalarBoundingBox3f()
-            for x in (-rmax, rmax):
-                for y in (-rmax, rmax):
-                    for z in (0.0, zmax):
-                        box.expand(M @ mi.ScalarPoint3f(x, y, z))
-            return box
-
-        def traverse(self, cb):
-            cb.put("to_world", self.m_to_world, mi.ParamFlags.NonDifferentiable)
-
-        def parameters_changed(self, keys=[]):
-            pass
-
-        def to_string(self):
-            st = self.setup
-            fd = st.focus_distance_mm / st.scene_unit_mm
-            return (f"{type(self).__name__}[{self._describe()}, f/{st.fnumber:.3g} "
-                    f"(widest f/{st.max_fnumber:.3g}), focus_distance={fd:g} (sensor_distance="
-                    f"{st.sensor_distance_mm:.4f} mm), sensor {st.sensor_width_mm:g}x{st.sensor_height_mm:.4g} mm, "
-                    f"scene_unit_mm={st.scene_unit_mm:g}, fresnel={st.fresnel}, "
-                    f"pupil_sampling={self.pupil.mode}, film={self.film().size()}]")
-
-    _CACHE[key] = LensSensorBase
-    return LensSensorBase
+    def to_string(self):
+        st = self.setup
+        fd = st.focus_distance_mm / st.scene_unit_mm
+        return (f"{type(self).__name__}[{self._describe()}, f/{st.fnumber:.3g} "
+                f"(widest f/{st.max_fnumber:.3g}), focus_distance={fd:g} (sensor_distance="
+                f"{st.sensor_distance_mm:.4f} mm), sensor {st.sensor_width_mm:g}x{st.sensor_height_mm:.4g} mm, "
+                f"scene_unit_mm={st.scene_unit_mm:g}, fresnel={st.fresnel}, "
+                f"pupil_sampling={self.pupil.mode}, film={self.film().size()}]")

@@ -8,7 +8,13 @@ Fresnel throughput) with literal weights and a rational tanh, and the undo of th
 """
 from __future__ import annotations
 
+import dataclasses
 import os
+
+from ..errors import ModelError
+from ..neural.model import bundled_model_path, load_model
+from .base import LensSensorBase
+from .common import FSTOP_TOLERANCE, SensorPropertyError, load_lens
 
 PLUGIN = "neural_lens"
 
@@ -98,8 +104,6 @@ position, direction and throughput in the reduced frame, and the reduction is un
 
 def resolve_model_path(spec: str, plugin: str = PLUGIN) -> str:
     """A model file path from the ``model`` property (a path, or a bundled lens name)."""
-    from ..neural.model import bundled_model_path
-    from .common import SensorPropertyError
     if not isinstance(spec, str) or not spec.strip():
         raise SensorPropertyError(plugin, "model", f"must be a model file or a bundled lens name, got {spec!r}")
     try:
@@ -122,71 +126,59 @@ def resolve_model_path(spec: str, plugin: str = PLUGIN) -> str:
                               f"`mi-neurallens train LENS`")
 
 
-def make_neural_lens():
-    """Define the ``neural_lens`` class for the CURRENT Mitsuba variant (call after set_variant)."""
-    import dataclasses
+class NeuralLens(LensSensorBase):
+    __doc__ = DOC
+    PLUGIN = PLUGIN
 
-    from .base import make_lens_sensor_base
-    from .common import FSTOP_TOLERANCE, SensorPropertyError, load_lens
-    from ..errors import ModelError
-    from ..neural.model import load_model
+    def _read_properties(self, rd):
+        self.model_spec = rd.string("model", "wide-22mm")
+        self.lens_prop = rd.string("lens", None)
+        self.use_classifier = rd.bool("use_classifier", True)
+        self.mlp = rd.string("mlp", "fused", choices=("fused", "coopvec"))
+        self.method = rd.string("method", "neural", choices=METHODS)
 
-    class NeuralLens(make_lens_sensor_base()):
-        __doc__ = DOC
-        PLUGIN = PLUGIN
+    def _load_lens(self, rd):
+        self.model_path = resolve_model_path(self.model_spec)
+        try:
+            probe = load_model(self.model_path)  # header + tensors; lens check below
+        except ModelError as e:
+            raise SensorPropertyError(PLUGIN, "model", str(e)) from e
+        lens = load_lens(self.lens_prop or probe.lens_name, PLUGIN)
+        if lens.fingerprint() != probe.fingerprint:
+            raise SensorPropertyError(
+                PLUGIN, "lens" if self.lens_prop else "model",
+                f"model {self.model_path} was trained for lens '{probe.lens_name}' (fingerprint "
+                f"{probe.fingerprint}), but the lens is '{lens.name}' (fingerprint {lens.fingerprint()}); "
+                f"use the matching lens or train a model for this one")
+        if not probe.has("transmit", "backward"):
+            raise SensorPropertyError(PLUGIN, "model", f"model {self.model_path} has no backward transmit "
+                                      f"map (it has {sorted(probe.maps)})")
+        self.model = probe
+        return lens
 
-        def _read_properties(self, rd):
-            self.model_spec = rd.string("model", "wide-22mm")
-            self.lens_prop = rd.string("lens", None)
-            self.use_classifier = rd.bool("use_classifier", True)
-            self.mlp = rd.string("mlp", "fused", choices=("fused", "coopvec"))
-            self.method = rd.string("method", "neural", choices=METHODS)
+    def _lambda_dependent(self, setup):
+        return setup.lambda_dependent
 
-        def _load_lens(self, rd):
-            self.model_path = resolve_model_path(self.model_spec)
-            try:
-                probe = load_model(self.model_path)  # header + tensors; lens check below
-            except ModelError as e:
-                raise SensorPropertyError(PLUGIN, "model", str(e)) from e
-            lens = load_lens(self.lens_prop or probe.lens_name, PLUGIN)
-            if lens.fingerprint() != probe.fingerprint:
-                raise SensorPropertyError(
-                    PLUGIN, "lens" if self.lens_prop else "model",
-                    f"model {self.model_path} was trained for lens '{probe.lens_name}' (fingerprint "
-                    f"{probe.fingerprint}), but the lens is '{lens.name}' (fingerprint {lens.fingerprint()}); "
-                    f"use the matching lens or train a model for this one")
-            if not probe.has("transmit", "backward"):
-                raise SensorPropertyError(PLUGIN, "model", f"model {self.model_path} has no backward transmit "
-                                          f"map (it has {sorted(probe.maps)})")
-            self.model = probe
-            return lens
+    def _make_map(self):
+        st = self.setup
+        if st.fnumber > st.max_fnumber * (1 + FSTOP_TOLERANCE):
+            raise SensorPropertyError(
+                PLUGIN, "fstop", f"the model was trained wide open (f/{st.max_fnumber:.3g}); the stop is "
+                f"part of the learned map, so f/{st.fnumber:.3g} needs a model trained at that aperture")
+        try:
+            self.model.check_sensor_distance(st.sensor_distance_mm)
+        except ModelError as e:
+            which = "sensor_distance" if not (st.focus_distance_mm > 0) else "focus_distance"
+            raise SensorPropertyError(PLUGIN, which, str(e)) from e
+        tm = self.model.map("transmit", "backward")
+        if self.method == "neural":
+            return dataclasses.replace(tm, use_classifier=self.use_classifier, mlp=self.mlp)
+        # a baseline between the same planes (docs/baselines.md); the map starts on its input
+        # plane: the pupil sample only gives the direction
+        from ..transport import make_map
+        return make_map(st.lens, self.method, "transmit", "backward", z_in=tm.z_in, z_out=tm.z_out,
+                        **({"fresnel": st.fresnel} if self.method == "exact" else {}))
 
-        def _lambda_dependent(self, setup):
-            return setup.lambda_dependent
-
-        def _make_map(self):
-            st = self.setup
-            if st.fnumber > st.max_fnumber * (1 + FSTOP_TOLERANCE):
-                raise SensorPropertyError(
-                    PLUGIN, "fstop", f"the model was trained wide open (f/{st.max_fnumber:.3g}); the stop is "
-                    f"part of the learned map, so f/{st.fnumber:.3g} needs a model trained at that aperture")
-            try:
-                self.model.check_sensor_distance(st.sensor_distance_mm)
-            except ModelError as e:
-                which = "sensor_distance" if not (st.focus_distance_mm > 0) else "focus_distance"
-                raise SensorPropertyError(PLUGIN, which, str(e)) from e
-            tm = self.model.map("transmit", "backward")
-            if self.method == "neural":
-                return dataclasses.replace(tm, use_classifier=self.use_classifier, mlp=self.mlp)
-            # a baseline between the same planes (docs/baselines.md); the map starts on its input
-            # plane: the pupil sample only gives the direction
-            from ..transport import make_map
-            return make_map(st.lens, self.method, "transmit", "backward", z_in=tm.z_in, z_out=tm.z_out,
-                            **({"fresnel": st.fresnel} if self.method == "exact" else {}))
-
-        def _describe(self):
-            return (f"model='{self.model_spec}' ({os.path.basename(self.model_path)}), lens={self.setup.lens.name}, "
-                    f"use_classifier={self.use_classifier}, mlp={self.mlp}, method={self.method}")
-
-    NeuralLens.__name__ = "NeuralLens"
-    return NeuralLens
+    def _describe(self):
+        return (f"model='{self.model_spec}' ({os.path.basename(self.model_path)}), lens={self.setup.lens.name}, "
+                f"use_classifier={self.use_classifier}, mlp={self.mlp}, method={self.method}")

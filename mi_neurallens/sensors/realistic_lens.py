@@ -1,10 +1,13 @@
 """The ``realistic_lens`` sensor: exact ray tracing through a real lens prescription.
 
-The class is defined by :func:`make_realistic_lens` for the Mitsuba variant that is set when it is
-called (a class defined under one variant has the wrong ``mi.Sensor`` base in another), and
-registered by :func:`mi_neurallens.sensors.register`.
+The class derives from the ``mi.Sensor`` of the variant that was set when this module was
+(re-)imported; :func:`mi_neurallens.sensors.register` re-imports it per variant and registers it.
 """
 from __future__ import annotations
+
+from .base import LensSensorBase
+from .common import load_lens
+from ..transport.exact import ExactMap
 
 PLUGIN = "realistic_lens"
 
@@ -114,27 +117,18 @@ Mitsuba's 4 hero wavelengths.
 """
 
 
-def make_realistic_lens():
-    """Define the ``realistic_lens`` class for the CURRENT Mitsuba variant (call after set_variant)."""
-    from .base import make_lens_sensor_base
-    from .common import load_lens
-    from ..transport.exact import ExactMap
+class RealisticLens(LensSensorBase):
+    __doc__ = DOC
+    PLUGIN = PLUGIN
 
-    class RealisticLens(make_lens_sensor_base()):
-        __doc__ = DOC
-        PLUGIN = PLUGIN
+    def _load_lens(self, rd):
+        self.lens_spec = rd.string("lens", "wide-22mm")
+        return load_lens(self.lens_spec, PLUGIN)
 
-        def _load_lens(self, rd):
-            self.lens_spec = rd.string("lens", "wide-22mm")
-            return load_lens(self.lens_spec, PLUGIN)
+    def _make_map(self):
+        # from the film plane (where the pupil sample starts the ray) to the front of the lens
+        return ExactMap(self.setup.lens, "transmit", "backward", self.pupil.z_img, self.z_out,
+                        fresnel=self.setup.fresnel)
 
-        def _make_map(self):
-            # from the film plane (where the pupil sample starts the ray) to the front of the lens
-            return ExactMap(self.setup.lens, "transmit", "backward", self.pupil.z_img, self.z_out,
-                            fresnel=self.setup.fresnel)
-
-        def _describe(self):
-            return f"lens='{self.lens_spec}' ({self.setup.lens.name})"
-
-    RealisticLens.__name__ = "RealisticLens"
-    return RealisticLens
+    def _describe(self):
+        return f"lens='{self.lens_spec}' ({self.setup.lens.name})"
