@@ -15,7 +15,7 @@ from mi_neurallens.baselines.taylor import _Ctx, surface_step
 from mi_neurallens.optics.glass import AIR, constant
 from mi_neurallens.optics.prescription import Surface
 from mi_neurallens.trace.api import float_type
-from mi_neurallens.trace.paths import Step, resolve_path
+from mi_neurallens.trace.paths import interaction_step, resolve_path
 from mi_neurallens.training.data import Domain
 
 
@@ -49,7 +49,7 @@ def test_single_refraction_taylor_matches_analytic_derivatives():
     (intersection + Snell) to degree 5, and its linear part is the paraxial refraction matrix."""
     R, n2 = 20.0, 1.6
     lens = single_surface_lens(R, n2)
-    step = Step("T", 0, 1)
+    step = interaction_step(lens, "T", 0, 1)
     z_p = -3.0
     x, y, u, v = tps_vars(4, 5)
     (X, Y, U, V), h, zv, F, hit = surface_step(lens, step, (x, y, u, v), 1, z_p, _Ctx(lam_nm=550.0))

@@ -51,8 +51,7 @@ def path_matrices(lens, spec, z_in: float, z_out: float, lam_nm: float):
                 M_stop = M.copy()
             continue
         surf = lens.surfaces[st.surface]
-        mb, ma = lens.medium_before(st.surface), surf.medium
-        m1, m2 = (mb, ma) if st.heading > 0 else (ma, mb)
+        m1, m2 = st.media
         n1, n2 = float(m1.index(lam_nm)), float(m2.index(lam_nm))
         c = surf.curvature
         if st.kind == "T":

@@ -126,7 +126,7 @@ class FittedMap(BaselineMap):
         for k, st in enumerate(self.spec.steps):
             px, py, _ = (np.asarray(c.numpy(), np.float64) for c in res.points[k + 1])
             reach = np.broadcast_to(res.alive[k + 1].numpy().astype(bool), (n,))
-            R = lens.stop.semi_diameter if st.kind == "stop" else tr._aperture_radius(st)
+            R = st.clear_radius
             r2 = px * px + py * py
             ok = reach & np.isfinite(r2)
             if ok.sum() < 50 or not np.any(r2[ok] > R * R):

@@ -174,8 +174,7 @@ def surface_step(lens, step, state, h: int, z_p: float, ctx: _Ctx, fresnel: bool
     if h < 0:
         nx, ny, nz = -nx, -ny, -nz
     cos_i = -(u * nx + v * ny + w * nz)
-    mb, ma = lens.medium_before(step.surface), surf.medium
-    m1, m2 = (mb, ma) if h > 0 else (ma, mb)
+    m1, m2 = step.media
     n1, n2 = ctx.n(m1), ctx.n(m2)
     F = None
     if step.kind == "T":
@@ -219,13 +218,6 @@ def _end_step(state, h, z_p, z_out):
     return (x + t * u, y + t * v, u, v)
 
 
-def _aperture_radius(lens, step):
-    from ..trace.tracer import LensTracer
-    if step.kind == "stop":
-        return lens.stop.semi_diameter
-    return LensTracer(lens)._aperture_radius(step)
-
-
 def expand_path(lens, spec, z_in: float, z_out: float, degree: int, ctx_factory, nv: int,
                 fresnel: bool = True, aperture: str = "none", build: str = "compose"):
     """Taylor polynomials (list of TPS) of one path: [X, Y, U, V, T, (ax, ay) per aperture check] and
@@ -235,7 +227,7 @@ def expand_path(lens, spec, z_in: float, z_out: float, degree: int, ctx_factory,
     l_var = ident[4] if nv == 5 else None
     checks = [i for i, st in enumerate(spec.steps)
               if (aperture == "stop" and st.kind == "stop") or aperture == "all"]
-    radii = [_aperture_radius(lens, spec.steps[i]) for i in checks]
+    radii = [spec.steps[i].clear_radius for i in checks]
     h = spec.steps[0].heading
     z = float(z_in)
     T = TPS.const(b, 1.0)

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from itertools import combinations
+import math
 
 from ..errors import NeuralLensError
 
@@ -30,7 +31,8 @@ FORWARD, BACKWARD = "forward", "backward"
 
 @dataclass(frozen=True)
 class Step:
-    """One static step of a traced path.
+    """One static step of a traced path, with the facts every consumer of the path needs resolved once
+    (the tracer, Taylor and ABCD optics, the fitted baseline's aperture fits).
 
     ``kind``: ``"T"``/``"R"`` (an interaction at optical surface ``surface``), or ``"stop"``
     (crossing the aperture-stop plane).  ``heading`` is +1 when the ray travels toward +z when it
@@ -40,6 +42,13 @@ class Step:
     kind: str
     surface: int
     heading: int
+    #: the media on either side of the surface in the ray's order: (the one the ray arrives in, the
+    #: one across the surface); ``(None, None)`` for the stop, which only occludes
+    media: tuple = (None, None)
+    #: the radius (mm) a ray's hit point must not exceed: the surface's clear semi-diameter tightened by
+    #: the housing of every gap this step borders (a reflection borders only the gap it arrives from);
+    #: for the stop, its semi-diameter (a bladed stop is tested as a polygon by the tracer)
+    clear_radius: float = math.inf
 
 
 @dataclass(frozen=True)
@@ -119,7 +128,7 @@ def resolve_path(lens, path, direction: str = FORWARD) -> PathSpec:
     def stops_between(s_from: float, s_to: float, h: int):
         lo, hi = min(s_from, s_to), max(s_from, s_to)
         if lo < stop < hi:
-            steps.append(Step("stop", stop, h))
+            steps.append(Step("stop", stop, h, clear_radius=float(lens.stop.semi_diameter)))
 
     prev = -0.5 if direction == FORWARD else len(lens.surfaces) - 0.5  # virtual input position
     m = 0
@@ -130,7 +139,7 @@ def resolve_path(lens, path, direction: str = FORWARD) -> PathSpec:
         s = opt[k]
         stops_between(prev, s, heading)
         kind = "R" if (pid >> m) & 1 else "T"
-        steps.append(Step(kind, s, heading))
+        steps.append(interaction_step(lens, kind, s, heading))
         prev = s
         if kind == "R":
             heading = -heading
@@ -146,6 +155,19 @@ def resolve_path(lens, path, direction: str = FORWARD) -> PathSpec:
         raise NeuralLensError(f"path id {pid} leaves the lens through the {side}; a {direction} path must "
                               f"leave through the {'rear' if direction == FORWARD else 'front'}")
     return PathSpec(pid, direction, tuple(steps))
+
+
+def interaction_step(lens, kind: str, i: int, h: int) -> Step:
+    """The T/R step at surface ``i`` with heading ``h``, its media and clear radius resolved."""
+    surfs = lens.surfaces
+    mb, ma = lens.medium_before(i), surfs[i].medium
+    r = surfs[i].semi_diameter
+    gap_in = i - 1 if h > 0 else i
+    gaps = (gap_in,) if kind == "R" else (gap_in, i if h > 0 else i - 1)
+    for g in gaps:
+        if 0 <= g < len(surfs) and surfs[g].housing_radius is not None:
+            r = min(r, surfs[g].housing_radius)
+    return Step(kind, i, h, (mb, ma) if h > 0 else (ma, mb), float(r))
 
 
 def rank_ghosts_by_energy(lens, energy, ghost_ids=None, skip=None) -> list[dict]:

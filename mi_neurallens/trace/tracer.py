@@ -76,19 +76,6 @@ class LensTracer:
         return self.lens.image_z if direction == FORWARD else 0.0
 
     # ------------------------------------------------------------------------------ helpers
-    def _aperture_radius(self, step) -> float:
-        """Clear semi-diameter, tightened by the housing of every gap this step borders."""
-        s = self.lens.surfaces
-        r = s[step.surface].semi_diameter
-        i = step.surface
-        h = step.heading
-        gap_in = i - 1 if h > 0 else i
-        gaps = (gap_in,) if step.kind == "R" else (gap_in, i if h > 0 else i - 1)
-        for g in gaps:
-            if 0 <= g < len(s) and s[g].housing_radius is not None:
-                r = min(r, s[g].housing_radius)
-        return r
-
     def _stop_ok(self, x, y):
         stop = self.lens.stop
         r = stop.semi_diameter
@@ -176,7 +163,7 @@ class LensTracer:
                 if margin:
                     note(self._stop_margin(x, y))
                 continue
-            rad = self._aperture_radius(step)
+            rad = step.clear_radius
             valid = valid & (dr.fma(x, x, y * y) <= rad * rad)
             if margin:
                 note(1.0 - dr.fma(x, x, y * y) / (rad * rad))
@@ -191,8 +178,7 @@ class LensTracer:
                 fail(cos_i > 0.0)
 
             surf = lens.surfaces[step.surface]
-            m_before, m_after = lens.medium_before(step.surface), surf.medium
-            m1, m2 = (m_before, m_after) if h > 0 else (m_after, m_before)
+            m1, m2 = step.media
             same = m1 == m2
             (n1, _), (n2, inv_n2) = n_of(m1), n_of(m2)
 
