@@ -221,7 +221,7 @@ def test_bad_ghost_ids_raise():
     with pytest.raises(NeuralLensError, match="not a forward two-reflection path"):
         render_flare(scene, 0, ghosts=[3])
     with pytest.raises(NeuralLensError, match="cannot read"):
-        from mi_neurallens.flare.render import parse_id_list
+        from mi_neurallens.flare.options import parse_id_list
         parse_id_list("12 x7")
     with pytest.raises(Exception, match="must be one of"):
         render_flare(scene, 0, mode="magic")

@@ -63,7 +63,8 @@ def _norm_png(path, img, ref_max=None, exposure=0.0):
 def run(args) -> int:
     from .render import _resolution, load_scene
     from ..errors import NeuralLensError
-    from ..flare.render import FlareOptions, FlareRenderer, parse_id_list
+    from ..flare.options import FlareOptions, parse_id_list
+    from ..flare.render import FlareRenderer
     res = _resolution(args.resolution) if args.resolution else None
     scene = load_scene(args.scene, variant=args.variant, lens=args.lens, resolution=res, params=args.params)
     sensor = scene.sensors()[0]

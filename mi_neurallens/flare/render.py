@@ -36,118 +36,23 @@ samples the whole disk (the "before" pass fraction).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 import math
 import time
 import zlib
 
 import numpy as np
 
-from ..errors import ModelError, NeuralLensError
+from ..errors import ModelError
 from .energy import front_radius, ghost_energy_ranking, input_plane, select_ghosts, trivial_ghost
-
-MODES = ("auto", "exact", "neural")
-#: baselines usable as ghost evaluators (docs/baselines.md), planes as the neural maps'
-BASELINE_MODES = ("abcd", "taylor3", "taylor5", "fitted")
-COATINGS = ("lens", "none", "quarter_wave")
-BOUNDS = ("pilot", "none")
+from .lights import scene_lights
+from .options import BASELINE_MODES, FlareError, FlareOptions
 
 # golden-ratio style additive recurrence (R_d sequence, d = 6) in 32-bit fixed point
 _PHI6 = 1.0
 for _ in range(64):
     _PHI6 = (1.0 + _PHI6) ** (1.0 / 7.0)
 _ALPHA = [int((1.0 / _PHI6 ** (k + 1)) % 1.0 * 2 ** 32) & 0xFFFFFFFF for k in range(6)]
-
-
-class FlareError(NeuralLensError, ValueError):
-    """Bad flare options (ghost ids, modes, missing ghost models...)."""
-
-
-@dataclass
-class FlareOptions:
-    mode: str = "auto"                 #: auto | exact | neural | abcd | taylor3 | taylor5 | fitted
-    ghosts: list | None = None         #: ghost path ids to render (None: automatic selection)
-    exclude_ghosts: list = field(default_factory=list)
-    max_ghosts: int = 32               #: cap of the automatic selection
-    energy_fraction: float = 0.99      #: automatic selection covers this share of ghost energy
-    samples: int = 1 << 20             #: forward samples per light (split over its ghosts)
-    min_samples: int = 1 << 12         #: floor per ghost
-    pilot_grid: int = 64
-    pilot_spp: int = 4
-    bounds: str = "pilot"              #: pilot | none
-    #: who plans the sampling (pilot cells and per-ghost budgets): "self" (the render's own evaluator)
-    #: or "exact" (the tracer, whatever the mode).  Random numbers depend on the seed and the path only,
-    #: so with "exact" renders of different modes at one seed use identical samples (common random
-    #: numbers): their difference is the maps' error alone, without Monte Carlo noise between them.
-    pilot_with: str = "self"
-    coating: str = "lens"              #: lens (as the sensor's lens) | none | quarter_wave
-    coating_index: float = 1.38
-    coating_wavelength: float = 550.0
-    coating_surfaces: list | None = None   #: optical-surface indices that get the coating (None: all)
-    blades: int | None = None
-    blade_rotation: float | None = None
-    visibility: bool = True            #: shadow-test the light from the front of the lens
-    small_emitters: int = 0            #: also flare the N brightest small area emitters
-    small_emitter_size: float = 0.05   #: "small": bounding-box diagonal below this (scene units)
-    include_transmit: bool = False     #: also splat the transmit path (radiometric checks)
-    transmit_only: bool = False        #: splat only the transmit path
-    model: object = None               #: NeuralLensModel or a file (default: the sensor's model)
-
-    def validate(self):
-        if self.mode not in MODES + BASELINE_MODES:
-            raise FlareError(f"lens_flare: 'mode' must be one of {', '.join(MODES + BASELINE_MODES)}, "
-                             f"got {self.mode!r}")
-        if self.coating not in COATINGS:
-            raise FlareError(f"lens_flare: 'coating' must be one of {', '.join(COATINGS)}, got {self.coating!r}")
-        if self.pilot_with not in ("self", "exact"):
-            raise FlareError(f"lens_flare: 'pilot_with' must be 'self' or 'exact', got {self.pilot_with!r}")
-        if self.bounds not in BOUNDS:
-            raise FlareError(f"lens_flare: 'bounds' must be one of {', '.join(BOUNDS)}, got {self.bounds!r}")
-        if not self.samples > 0:
-            raise FlareError(f"lens_flare: 'flare_samples' must be > 0, got {self.samples}")
-        if not 1 <= self.max_ghosts:
-            raise FlareError(f"lens_flare: 'max_ghosts' must be >= 1, got {self.max_ghosts}")
-        if not 0 < self.energy_fraction <= 1:
-            raise FlareError(f"lens_flare: 'energy_fraction' must be in (0, 1], got {self.energy_fraction}")
-        if self.blades is not None and self.blades != 0 and self.blades < 3:
-            raise FlareError(f"lens_flare: 'blades' must be 0 (circular) or >= 3, got {self.blades}")
-        if not self.pilot_grid >= 4 or not self.pilot_spp >= 1:
-            raise FlareError("lens_flare: 'pilot_grid' must be >= 4 and 'pilot_spp' >= 1")
-        return self
-
-
-def parse_id_list(text, what="ghosts"):
-    """'12 40, 3' or [12, 40] → [12, 40, 3]; 'a:b' pairs (optical-surface indices) → ghost ids."""
-    from ..trace.paths import ghost_id
-    if text is None:
-        return None
-    if isinstance(text, (list, tuple)):
-        items = list(text)
-    else:
-        items = [t for t in str(text).replace(",", " ").split() if t]
-    out = []
-    for t in items:
-        if isinstance(t, (int, np.integer)):
-            out.append(int(t))
-            continue
-        t = str(t)
-        try:
-            if ":" in t:
-                a, b = (int(v) for v in t.split(":"))
-                out.append(ghost_id(max(a, b), min(a, b)))
-            else:
-                out.append(int(t))
-        except (ValueError, NeuralLensError):
-            raise FlareError(f"lens_flare: '{what}': cannot read {t!r}: give integer path ids (e.g. 132) "
-                             f"or optical-surface pairs 'a:b'") from None
-    return out
-
-
-@dataclass
-class Light:
-    emitter: object
-    name: str
-    kind: str          # point | spot | directional | area
 
 
 @dataclass
@@ -179,6 +84,19 @@ class GhostStats:
                 "fraction_before": self.fraction_before, "fraction_after": self.fraction_after,
                 "cells": self.cells, "cells_total": self.cells_total, "energy": self.energy,
                 "seconds": self.seconds}
+
+
+@dataclass
+class Pilot:
+    """What the pilot pass found for one (light, path): the kept cells of the input disk (lower-left
+    corners, (n, 2), lens space mm), their size and the disk's radius (mm), the pilot's in-disk
+    samples and hits, and the estimated luminance flux on the film (pixel units · pixels)."""
+    cells: np.ndarray
+    cell_size: float
+    radius: float
+    samples: int
+    hits: int
+    energy: float
 
 
 @dataclass
@@ -216,44 +134,7 @@ class GhostEvaluator:
 
 
 # ------------------------------------------------------------------------------------ helpers
-def scene_lights(scene, opts: FlareOptions):
-    """The emitters that flare: point, spot, directional; plus the brightest small area emitters."""
-    import mitsuba as mi
-    lights, areas = [], []
-    for i, e in enumerate(scene.emitters()):
-        cls = e.class_().name() if hasattr(e, "class_") else type(e).__name__
-        name = f"{e.id() or cls}#{i}"
-        fl = e.flags()
-        if mi.has_flag(fl, mi.EmitterFlags.DeltaPosition):
-            kind = "spot" if "spot" in cls.lower() or "Spot" in str(e) else "point"
-            lights.append(Light(e, name, kind))
-        elif mi.has_flag(fl, mi.EmitterFlags.DeltaDirection):
-            lights.append(Light(e, name, "directional"))
-        elif opts.small_emitters > 0 and mi.has_flag(fl, mi.EmitterFlags.Surface) and e.get_shape() is not None:
-            sh = e.get_shape()
-            bb = sh.bbox()
-            diag = float(dr_norm(bb.max - bb.min))
-            if diag <= opts.small_emitter_size:
-                p = mi.traverse(e)
-                val = None
-                for k in p.keys():
-                    if k.startswith("radiance"):
-                        val = np.asarray(p[k], dtype=np.float64).ravel()
-                        break
-                lum = float(np.mean(val)) if val is not None and val.size else 1.0
-                power = math.pi * lum * float(sh.surface_area()[0] if hasattr(sh.surface_area(), '__len__')
-                                              else sh.surface_area())
-                areas.append((power, Light(e, name, "area")))
-    areas.sort(key=lambda t: -t[0])
-    lights += [l for _, l in areas[:opts.small_emitters]]
-    return lights
-
-
-def dr_norm(v):
-    return math.sqrt(sum(float(c) ** 2 for c in v))
-
-
-def sensor_model(sensor, opts: FlareOptions, lens):
+def sensor_model(sensor, opts: FlareOptions):
     """The neural model to use: ``opts.model`` (object or file) else the sensor's, else None."""
     from ..neural.model import NeuralLensModel
     m = opts.model
@@ -327,7 +208,7 @@ class FlareRenderer:
         self.lambda_mode = LAMBDA_SAMPLE1 if lam_dep else LAMBDA_NONE
         from ..trace.tracer import LensTracer
         self.tracer = LensTracer(self.lens, fresnel=self.fresnel)
-        self.model = sensor_model(sensor, self.opts, self.lens)
+        self.model = sensor_model(sensor, self.opts)
         film = sensor.film()
         self.size = (int(film.size()[0]), int(film.size()[1]))
         self.crop_size = (int(film.crop_size()[0]), int(film.crop_size()[1]))
@@ -413,17 +294,13 @@ class FlareRenderer:
         """Radius of the conservative input disk for ``light`` (lens space, mm)."""
         import mitsuba as mi
         # direction from the light toward the lens centre, via a sample from the axis point
-        tmax = 0.0
-        for r in (0.0,):
-            it = self._interaction(mi.Float(0.0), mi.Float(0.0), None)
-            ds, _ = light.emitter.sample_direction(it, mi.Point2f(0.5, 0.5), True)
-            dl = self._to_cam @ (-ds.d)
-            dz = abs(float(dl.z[0]))
-            s = math.sqrt(max(1.0 - dz * dz, 0.0))
-            tmax = max(tmax, s / max(dz, 1e-3))
+        it = self._interaction(mi.Float(0.0), mi.Float(0.0), None)
+        ds, _ = light.emitter.sample_direction(it, mi.Point2f(0.5, 0.5), True)
+        dl = self._to_cam @ (-ds.d)
+        dz = abs(float(dl.z[0]))
+        tmax = math.sqrt(max(1.0 - dz * dz, 0.0)) / max(dz, 1e-3)
         # a finite light near the lens sees the rim at steeper angles: add the rim's angular size
-        R0 = front_radius(self.lens, min(tmax * 1.2 + 0.05, 20.0), self.z_in)
-        return R0
+        return front_radius(self.lens, min(tmax * 1.2 + 0.05, 20.0), self.z_in)
 
     def _interaction(self, qx, qy, wav):
         import mitsuba as mi
@@ -456,8 +333,7 @@ class FlareRenderer:
                            mi.Float(0.0), wav if wav is not None else [])
             ok &= ~self.scene.ray_test(ray, ok)
         zq = dr.zeros(mi.Float, dr.width(qx)) + self.z_in
-        lam_t = lam if not isinstance(lam, float) else lam
-        valid, x, y, T = ev((qx, qy, zq), (dx, dy, dz), lam_t, ok)
+        valid, x, y, T = ev((qx, qy, zq), (dx, dy, dz), lam, ok)
         W, H = self.size
         px = (x * (1.0 / self.setup.sensor_width_mm) + 0.5) * W
         py = (y * (1.0 / self.setup.sensor_height_mm) + 0.5) * H
@@ -476,8 +352,7 @@ class FlareRenderer:
         return hit, px, py, rgb, lum
 
     def pilot(self, light, ev, seed=0):
-        """Occupied cells (dilated) of the input region for ``light`` and evaluator ``ev``.
-        Returns (cells (n, 2) lower-left corners in mm, cell size, R, n_samples, n_hits, energy)."""
+        """Occupied cells (dilated) of the input region for ``light`` and evaluator ``ev``: a :class:`Pilot`."""
         import mitsuba as mi
         import drjit as dr
         G, S = self.opts.pilot_grid, self.opts.pilot_spp
@@ -522,7 +397,7 @@ class FlareRenderer:
             d2[:, 1:] |= d[:, :-1]; d2[:, :-1] |= d[:, 1:]
             occ = d2
         keep = np.nonzero(occ.ravel())[0]
-        return np.stack([x0[keep], y0[keep]], 1), c, R, n_in, n_hit, energy
+        return Pilot(np.stack([x0[keep], y0[keep]], 1), c, R, n_in, n_hit, energy)
 
     def splat(self, light, ev, n, block, cells, c, R, seed=0):
         """Splat ``n`` samples of one (light, path) into ``block``; cells None = whole disk."""
@@ -572,27 +447,27 @@ class FlareRenderer:
         blocks = {}
         stats = []
         for li, light in enumerate(self.lights):
-            plan = []
+            plan = []          # (path id, evaluator, pilot, stats) of the paths that reach the film
             for pid in ids:
                 t0 = time.perf_counter()
                 ev = self.evaluator(pid)
                 ev_plan = ev if opts.pilot_with == "self" or ev.kind == "exact" else \
                     GhostEvaluator(self.exact_map(pid), self.z_img, self.fresnel)
-                cells, c, R, n_in, n_hit, energy = self.pilot(light, ev_plan, seed * 1000 + li)
+                pl = self.pilot(light, ev_plan, seed * 1000 + li)
                 st = GhostStats(pid, ghost_surfaces(pid) if pid else (), light.name, ev.kind,
-                                pilot_samples=n_in, pilot_hits=n_hit, cells=len(cells),
-                                cells_total=int(round(math.pi * R * R / (c * c))), energy=energy,
-                                seconds=time.perf_counter() - t0)
+                                pilot_samples=pl.samples, pilot_hits=pl.hits, cells=len(pl.cells),
+                                cells_total=int(round(math.pi * pl.radius ** 2 / pl.cell_size ** 2)),
+                                energy=pl.energy, seconds=time.perf_counter() - t0)
                 stats.append(st)
-                if n_hit > 0:
-                    plan.append((pid, ev, cells, c, R, st))
+                if pl.hits > 0:
+                    plan.append((pid, ev, pl, st))
             # ghosts share the budget in proportion to their energy; the transmit path (include_transmit:
             # the light's own, sharp image, ~100x brighter than all ghosts together but only a few pixels
             # wide) gets one equal share instead, or it would take nearly every sample
             ghosts_in_plan = [p for p in plan if p[0] != 0]
-            etot = sum(max(p[5].energy, 0.0) for p in ghosts_in_plan)
+            etot = sum(max(st.energy, 0.0) for _, _, _, st in ghosts_in_plan)
             n_ghost_budget = N * len(ghosts_in_plan) // len(plan) if ghosts_in_plan else 0
-            for pid, ev, cells, c, R, st in plan:
+            for pid, ev, pl, st in plan:
                 t0 = time.perf_counter()
                 if pid == 0:
                     n = N // len(plan)
@@ -604,8 +479,8 @@ class FlareRenderer:
                 blk = total
                 if per_ghost:
                     blk = blocks.setdefault(pid, self.new_block())
-                nh = self.splat(light, ev, n, blk, None if opts.bounds == "none" else cells, c, R,
-                                seed=seed * 7919 + li)
+                nh = self.splat(light, ev, n, blk, None if opts.bounds == "none" else pl.cells, pl.cell_size,
+                                pl.radius, seed=seed * 7919 + li)
                 dr.eval(blk.tensor())
                 st.samples, st.hits = n, int(nh[0] if hasattr(nh, "__len__") else nh)
                 st.seconds += time.perf_counter() - t0

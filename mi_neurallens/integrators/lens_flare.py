@@ -9,7 +9,8 @@ from __future__ import annotations
 import mitsuba as mi
 import numpy as np
 
-from ..flare.render import FlareError, FlareOptions, FlareRenderer, parse_id_list
+from ..flare.options import FlareError, FlareOptions, parse_id_list
+from ..flare.render import FlareRenderer
 from ..sensors.common import PropertyReader
 
 
@@ -216,7 +217,6 @@ class LensFlare(mi.SamplingIntegrator):
             v = props.get(k) if k not in ("samples_per_pass", "timeout", "hide_emitters") else None
             if isinstance(v, mi.Integrator):
                 if self.nested is not None:
-                    from ..flare.render import FlareError
                     raise FlareError("lens_flare: give at most one nested integrator")
                 self.nested = v
                 nested_names.append(k)
@@ -245,7 +245,6 @@ class LensFlare(mi.SamplingIntegrator):
         if C == 3:
             return img + fl
         arr = img.numpy() if hasattr(img, "numpy") else img
-        import numpy as np
         out = np.array(arr, copy=True)
         if C >= 3:
             out[..., :3] += res.total

@@ -329,12 +329,3 @@ def lens_to_camera(setup: LensSetup, p, d):
     x, y, z = p
     dx, dy, dz = d
     return (x * k, y * k, (zi - z) * k), (dx, dy, -dz)
-
-
-def camera_to_lens(setup: LensSetup, p, d):
-    """Inverse of :func:`lens_to_camera`."""
-    k = setup.scene_unit_mm
-    zi = setup.image_z
-    x, y, z = p
-    dx, dy, dz = d
-    return (x * k, y * k, zi - z * k), (dx, dy, -dz)

@@ -156,9 +156,6 @@ class NeuralLens(LensSensorBase):
         self.model = probe
         return lens
 
-    def _lambda_dependent(self, setup):
-        return setup.lambda_dependent
-
     def _make_map(self):
         st = self.setup
         if st.fnumber > st.max_fnumber * (1 + FSTOP_TOLERANCE):

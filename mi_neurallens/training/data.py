@@ -17,16 +17,13 @@ exit direction (dx, dy) (dz follows from the heading), Fresnel throughput T.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 import math
-import os
 import time
 
 import numpy as np
 
 from ..errors import NeuralLensError
-from ..transport.planning import (CIE_MAX_NM, CIE_MIN_NM, Domain, cie_u_of_lambda,  # noqa: F401 (re-exported)
-                                  pdf_cie_wavelength, sample_cie_wavelength)
+from ..transport.planning import Domain, sample_cie_wavelength
 
 #: names of the reduced input and output columns
 INPUT_NAMES = ("r", "wx", "wy", "lambda_nm")
@@ -312,16 +309,3 @@ def classifier_samples(ps: PathSampler, valid_u: np.ndarray, n: int, rng: np.ran
 
 
 # ----------------------------------------------------------------------------- optional disk cache
-def cache_array(path: str, make):
-    """Return ``np.load(path, mmap_mode='r')`` if it exists, else ``make()`` written atomically to
-    ``path`` (temporary file + ``os.replace``) and memory-mapped."""
-    if os.path.exists(path):
-        return np.load(path, mmap_mode="r")
-    arr = np.ascontiguousarray(make())
-    from ..fileio import atomic_write
-
-    def w(tmp):
-        with open(tmp, "wb") as f:
-            np.save(f, arr)
-    atomic_write(path, w)
-    return np.load(path, mmap_mode="r")

@@ -140,7 +140,6 @@ class TransportMap:
     def eval_np(self, o, d, lam_nm) -> MapResult:
         """The same evaluation on numpy rays, in Dr.Jit ``Float64``: ``o``, ``d`` (N, 3), ``lam_nm``
         scalar or (N,) → :class:`MapResult` of float64 numpy arrays."""
-        import drjit as dr
         F = float64_type()
         o = np.asarray(o, np.float64)
         d = np.asarray(d, np.float64)

@@ -1,0 +1,99 @@
+"""Options of a flare render (the ``lens_flare`` properties as a dataclass) and ghost-id parsing."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import NeuralLensError
+
+#: who evaluates the ghost paths (see the ``lens_flare`` docs)
+MODES = ("auto", "exact", "neural")
+#: baselines usable as ghost evaluators (docs/baselines.md), planes as the neural maps'
+BASELINE_MODES = ("abcd", "taylor3", "taylor5", "fitted")
+COATINGS = ("lens", "none", "quarter_wave")
+BOUNDS = ("pilot", "none")
+
+
+class FlareError(NeuralLensError, ValueError):
+    """Bad flare options (ghost ids, modes, missing ghost models...)."""
+
+
+@dataclass
+class FlareOptions:
+    mode: str = "auto"                 #: auto | exact | neural | abcd | taylor3 | taylor5 | fitted
+    ghosts: list | None = None         #: ghost path ids to render (None: automatic selection)
+    exclude_ghosts: list = field(default_factory=list)
+    max_ghosts: int = 32               #: cap of the automatic selection
+    energy_fraction: float = 0.99      #: automatic selection covers this share of ghost energy
+    samples: int = 1 << 20             #: forward samples per light (split over its ghosts)
+    min_samples: int = 1 << 12         #: floor per ghost
+    pilot_grid: int = 64
+    pilot_spp: int = 4
+    bounds: str = "pilot"              #: pilot | none
+    #: who plans the sampling (pilot cells and per-ghost budgets): "self" (the render's own evaluator)
+    #: or "exact" (the tracer, whatever the mode).  Random numbers depend on the seed and the path only,
+    #: so with "exact" renders of different modes at one seed use identical samples (common random
+    #: numbers): their difference is the maps' error alone, without Monte Carlo noise between them.
+    pilot_with: str = "self"
+    coating: str = "lens"              #: lens (as the sensor's lens) | none | quarter_wave
+    coating_index: float = 1.38
+    coating_wavelength: float = 550.0
+    coating_surfaces: list | None = None   #: optical-surface indices that get the coating (None: all)
+    blades: int | None = None
+    blade_rotation: float | None = None
+    visibility: bool = True            #: shadow-test the light from the front of the lens
+    small_emitters: int = 0            #: also flare the N brightest small area emitters
+    small_emitter_size: float = 0.05   #: "small": bounding-box diagonal below this (scene units)
+    include_transmit: bool = False     #: also splat the transmit path (radiometric checks)
+    transmit_only: bool = False        #: splat only the transmit path
+    model: object = None               #: NeuralLensModel or a file (default: the sensor's model)
+
+    def validate(self):
+        if self.mode not in MODES + BASELINE_MODES:
+            raise FlareError(f"lens_flare: 'mode' must be one of {', '.join(MODES + BASELINE_MODES)}, "
+                             f"got {self.mode!r}")
+        if self.coating not in COATINGS:
+            raise FlareError(f"lens_flare: 'coating' must be one of {', '.join(COATINGS)}, got {self.coating!r}")
+        if self.pilot_with not in ("self", "exact"):
+            raise FlareError(f"lens_flare: 'pilot_with' must be 'self' or 'exact', got {self.pilot_with!r}")
+        if self.bounds not in BOUNDS:
+            raise FlareError(f"lens_flare: 'bounds' must be one of {', '.join(BOUNDS)}, got {self.bounds!r}")
+        if not self.samples > 0:
+            raise FlareError(f"lens_flare: 'flare_samples' must be > 0, got {self.samples}")
+        if not 1 <= self.max_ghosts:
+            raise FlareError(f"lens_flare: 'max_ghosts' must be >= 1, got {self.max_ghosts}")
+        if not 0 < self.energy_fraction <= 1:
+            raise FlareError(f"lens_flare: 'energy_fraction' must be in (0, 1], got {self.energy_fraction}")
+        if self.blades is not None and self.blades != 0 and self.blades < 3:
+            raise FlareError(f"lens_flare: 'blades' must be 0 (circular) or >= 3, got {self.blades}")
+        if not self.pilot_grid >= 4 or not self.pilot_spp >= 1:
+            raise FlareError("lens_flare: 'pilot_grid' must be >= 4 and 'pilot_spp' >= 1")
+        return self
+
+
+def parse_id_list(text, what="ghosts"):
+    """'12 40, 3' or [12, 40] → [12, 40, 3]; 'a:b' pairs (optical-surface indices) → ghost ids."""
+    from ..trace.paths import ghost_id
+    if text is None:
+        return None
+    if isinstance(text, (list, tuple)):
+        items = list(text)
+    else:
+        items = [t for t in str(text).replace(",", " ").split() if t]
+    out = []
+    for t in items:
+        if isinstance(t, (int, np.integer)):
+            out.append(int(t))
+            continue
+        t = str(t)
+        try:
+            if ":" in t:
+                a, b = (int(v) for v in t.split(":"))
+                out.append(ghost_id(max(a, b), min(a, b)))
+            else:
+                out.append(int(t))
+        except (ValueError, NeuralLensError):
+            raise FlareError(f"lens_flare: '{what}': cannot read {t!r}: give integer path ids (e.g. 132) "
+                             f"or optical-surface pairs 'a:b'") from None
+    return out
