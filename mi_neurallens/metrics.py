@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .constants import LUMINANCE_WEIGHTS
+
 EPSILON = 0.01
 
 
@@ -48,7 +50,7 @@ def error_map(a, b, eps: float = EPSILON) -> np.ndarray:
 
 
 #: Rec. 709 luminance weights
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722], np.float64)
+LUMINANCE = np.array(LUMINANCE_WEIGHTS, np.float64)
 #: flare MAPE: mask threshold and epsilon, relative to the reference's maximum luminance
 FLARE_MASK_REL, FLARE_EPS_REL = 1e-2, 1e-3
 

@@ -122,7 +122,7 @@ def test_plot_bad_extension(tmp_path, capsys):
 def test_plot_into_axes_leaves_no_pyplot_state():
     import sys
     from matplotlib.figure import Figure
-    from mi_neurallens.plot import plot_lens
+    from mi_neurallens.optics.plot import plot_lens
     before = sys.modules["matplotlib.pyplot"].get_fignums() if "matplotlib.pyplot" in sys.modules else []
     fig = Figure()
     ax = fig.add_subplot()

@@ -31,7 +31,7 @@ SHARED = Path(os.environ.get("MI_NEURALLENS_LENS_DATA",
                              Path(__file__).resolve().parents[2] / "shared" / "lens-data"))
 need_shared = pytest.mark.skipif(not SHARED.is_dir(), reason=f"shared lens data not found at {SHARED}")
 SCHEMA = json.loads((Path(nl.__file__).parent / "data" / "lens.schema.json").read_text())
-LAMBDA_D = 587.5618
+from mi_neurallens.constants import LAMBDA_D  # noqa: E402
 
 # pbrt wide.22mm.dat, byte for byte (CRLF, trailing tabs, a stray '"' in a comment): 482 bytes.
 WIDE22_DAT = (b'# Wide-angle (38-degree) lens. Nakamura.\t\t\t\r\n# MLD, p. 360"\t\t\t\r\n# Scaled to 22 mm from '

@@ -26,11 +26,12 @@ import time
 
 import numpy as np
 
+from ..constants import ARCSEC_PER_RAD, FULL_FRAME_HALF_DIAGONAL_MM
 from ..metrics import mape_masked
 from ..trace import symmetry
 from .common import bundled_model, default_domain, default_map_planes
 
-ARCSEC = 180.0 / math.pi * 3600.0
+ARCSEC = ARCSEC_PER_RAD
 #: the paper's image MAPE (flare renders, Fig. "light_tracing"): Poly (Taylor) vs neural
 PAPER_MAPE = {"ood-59mm": {"all paths": {"poly": 0.148, "neural": 0.047},
                            "single path": {"poly": 0.027, "neural": 0.007, "path": "131092 (paper's id)"}},
@@ -189,7 +190,8 @@ def ghost_ranking(lens, model=None, n_rays: int = 1 << 16):
     from ..training import plan
     zf, zr = default_map_planes(lens, "forward", model)
     dom = default_domain(lens, 0, "forward", model)
-    return plan.rank_ghosts(lens, zf, dom, lens.surfaces[-1].thickness, 21.6333, n_rays=n_rays)
+    return plan.rank_ghosts(lens, zf, dom, lens.surfaces[-1].thickness, FULL_FRAME_HALF_DIAGONAL_MM,
+                           n_rays=n_rays)
 
 
 def pick_ghosts(lens, k: int, model=None):
@@ -247,7 +249,7 @@ def flare_images(lens, paths, methods=("abcd", "taylor3", "taylor5", "fitted", "
         from ..training import plan
         field_deg = 0.5 * plan.default_field_half_angle(lens)
     if half_extent is None:
-        half_extent = 21.6333
+        half_extent = FULL_FRAME_HALF_DIAGONAL_MM
     sensor_z = lens.image_z
     rng = np.random.default_rng(seed)
     o, d = flare_rays(lens, dom, zf, field_deg, n, rng)

@@ -14,6 +14,8 @@ import json
 import math
 import os
 
+from ..constants import LAMBDA_C, LAMBDA_D, LAMBDA_F
+
 #: sensor used for the FOV line of ``lens info`` (36 × 24 mm, "full frame")
 FULL_FRAME = (36.0, 24.0)
 
@@ -27,7 +29,7 @@ def add_parser(subparsers):
     pi = sub.add_parser("info", help="print the prescription and its paraxial numbers")
     pi.add_argument("path", metavar="PATH", help="lens file or bundled lens name")
     pi.add_argument("--json", action="store_true", help="print JSON instead of text")
-    pi.add_argument("--wavelength", type=float, default=587.5618, metavar="NM",
+    pi.add_argument("--wavelength", type=float, default=LAMBDA_D, metavar="NM",
                     help="wavelength of the paraxial numbers in nm (default 587.5618, the d line)")
     pi.set_defaults(func=run_info)
 
@@ -38,7 +40,7 @@ def add_parser(subparsers):
     pp.add_argument("--fields", type=float, nargs="+", metavar="DEG",
                     help="field angles in degrees (default: 0, 0.7 and 1 x the half field of view)")
     pp.add_argument("--wavelengths", type=float, nargs="+", metavar="NM",
-                    default=[486.13, 587.56, 656.27], help="wavelengths in nm (default F, d, C lines)")
+                    default=[LAMBDA_F, LAMBDA_D, LAMBDA_C], help="wavelengths in nm (default F, d, C lines)")
     pp.add_argument("--rays", type=int, default=11, metavar="N", help="rays per fan (default 11)")
     pp.add_argument("--title", help="extra first title line")
     pp.set_defaults(func=run_plot)
@@ -103,7 +105,7 @@ def _surface_rows(lens, wavelength_nm):
     return rows
 
 
-def info_dict(lens, wavelength_nm=587.5618) -> dict:
+def info_dict(lens, wavelength_nm=LAMBDA_D) -> dict:
     """Everything ``lens info --json`` prints: name, provenance, fingerprint, the paraxial numbers
     (:meth:`ParaxialSystem.to_dict`, at the top level), the 36×24 mm paraxial FOV and the surfaces."""
     p = lens.paraxial(wavelength_nm)
@@ -148,7 +150,7 @@ def _text_info(lens, wavelength_nm) -> str:
     out.append(f"  {len(lens.surfaces)} surfaces, stop at surface {lens.stop_index}, "
                f"track {lens.total_track:.4f} mm (first to last vertex), image plane at z = {lens.image_z:.4f} mm")
     out.append("")
-    show_n = abs(wavelength_nm - 587.5618) > 1e-6
+    show_n = abs(wavelength_nm - LAMBDA_D) > 1e-6
     head = (f"  {'#':>3} {'label':<6} {'radius':>12} {'thickness':>10} {'medium after':<18} {'nd':>8} {'Vd':>7}"
             + (f" {'n(λ)':>9}" if show_n else "") + f" {'semi-diam':>9}  notes")
     out.append("Surfaces (mm; radius > 0: centre toward the sensor; medium listed AFTER the surface)")
@@ -224,7 +226,7 @@ def run_info(args) -> int:
 
 
 def run_plot(args) -> int:
-    from ..plot import plot_lens
+    from ..optics.plot import plot_lens
     lens = _load(args.path)
     out = args.output or f"{lens.name}-layout.png"
     path = plot_lens(lens, out, fields_deg=args.fields, wavelengths_nm=tuple(args.wavelengths),

@@ -43,6 +43,7 @@ import zlib
 
 import numpy as np
 
+from ..constants import LUMINANCE_WEIGHTS
 from ..errors import ModelError
 from .energy import front_radius, ghost_energy_ranking, input_plane, select_ghosts, trivial_ghost
 from .lights import scene_lights
@@ -348,7 +349,7 @@ class FlareRenderer:
         else:
             rgb = val
         rgb = [dr.select(hit, rgb[i], 0.0) for i in range(3)]
-        lum = 0.2126 * rgb[0] + 0.7152 * rgb[1] + 0.0722 * rgb[2]
+        lum = LUMINANCE_WEIGHTS[0] * rgb[0] + LUMINANCE_WEIGHTS[1] * rgb[1] + LUMINANCE_WEIGHTS[2] * rgb[2]
         return hit, px, py, rgb, lum
 
     def pilot(self, light, ev, seed=0):

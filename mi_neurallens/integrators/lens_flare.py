@@ -9,6 +9,7 @@ from __future__ import annotations
 import mitsuba as mi
 import numpy as np
 
+from ..constants import LUMINANCE_WEIGHTS
 from ..flare.options import FlareError, FlareOptions, parse_id_list
 from ..flare.render import FlareRenderer
 from ..sensors.common import PropertyReader
@@ -249,7 +250,7 @@ class LensFlare(mi.SamplingIntegrator):
         if C >= 3:
             out[..., :3] += res.total
         else:
-            out[..., 0] += res.total @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+            out[..., 0] += res.total @ np.array(LUMINANCE_WEIGHTS, np.float32)
         return mi.TensorXf(out)
 
     def aov_names(self):

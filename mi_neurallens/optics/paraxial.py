@@ -31,6 +31,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ..constants import LAMBDA_D
 from ..errors import LensError
 
 #: |Φ| · (track length + 1 mm) below this is treated as afocal (no finite focal length).
@@ -85,7 +86,7 @@ class ParaxialSystem:
     :class:`~mi_neurallens.errors.LensError` for an afocal system (Φ = 0): a camera lens must focus.
     """
 
-    def __init__(self, lens, wavelength_nm: float = 587.5618):
+    def __init__(self, lens, wavelength_nm: float = LAMBDA_D):
         wl = float(wavelength_nm)
         if not (math.isfinite(wl) and wl > 0):
             raise LensError(f"wavelength must be a positive number of nm, got {wavelength_nm!r}",

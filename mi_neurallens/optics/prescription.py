@@ -27,6 +27,7 @@ import math
 
 import numpy as np
 
+from ..constants import LAMBDA_D
 from ..errors import LensError
 from .glass import AIR, Medium
 
@@ -226,15 +227,15 @@ class Lens:
         from .formats.project_json import save_lens
         save_lens(self, path)
 
-    def paraxial(self, wavelength_nm: float = 587.5618):
+    def paraxial(self, wavelength_nm: float = LAMBDA_D):
         from .paraxial import ParaxialSystem
         return ParaxialSystem(self, wavelength_nm)
 
-    def efl(self, wavelength_nm: float = 587.5618) -> float:
+    def efl(self, wavelength_nm: float = LAMBDA_D) -> float:
         """Effective focal length (mm), paraxial."""
         return self.paraxial(wavelength_nm).efl
 
-    def bfl(self, wavelength_nm: float = 587.5618) -> float:
+    def bfl(self, wavelength_nm: float = LAMBDA_D) -> float:
         """Back focal length (mm): last vertex to the paraxial image of an object at infinity."""
         return self.paraxial(wavelength_nm).bfl
 

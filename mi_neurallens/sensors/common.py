@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import math
 import os
 
+from ..constants import LAMBDA_D
 from ..errors import LensError, NeuralLensError
 
 #: an fstop this much (relative) below the lens's widest f-number (e.g. the rounded value 2.68 for
@@ -31,7 +32,7 @@ from ..errors import LensError, NeuralLensError
 FSTOP_TOLERANCE = 0.005
 
 #: wavelength (nm) at which paraxial focus, f-number and normalisation are computed (He d-line)
-PARAXIAL_WAVELENGTH_NM = 587.5618
+PARAXIAL_WAVELENGTH_NM = LAMBDA_D
 
 
 class SensorPropertyError(NeuralLensError, ValueError):

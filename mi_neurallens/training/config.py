@@ -13,6 +13,7 @@ import hashlib
 import json
 import os
 
+from ..constants import FULL_FRAME_HALF_DIAGONAL_MM
 from ..errors import NeuralLensError
 
 
@@ -73,7 +74,7 @@ class TrainConfig:
     ship_ghosts: int = 32               # …but train at most this many (CPU budget)
     ghost_rank_rays: int = 1 << 20
     close_focus_mm: float = 300.0       # nearest object distance (from the first vertex) to support
-    film_half_diagonal_mm: float = 21.6333
+    film_half_diagonal_mm: float = FULL_FRAME_HALF_DIAGONAL_MM
     field_margin: float = 1.1
     mcmc_threshold: float = 0.02        # valid fraction below which regressor data comes from MCMC
     mcmc_chains: int = 1 << 16

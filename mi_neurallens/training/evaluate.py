@@ -11,9 +11,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..constants import ARCSEC_PER_RAD
 from .data import MCMCSampler, PathSampler, rejection_sample, valid_fraction
 
-ARCSEC = 180.0 / np.pi * 3600.0
+ARCSEC = ARCSEC_PER_RAD
 
 
 def regression_errors(y_pred: np.ndarray, y_true: np.ndarray, heading: int) -> dict:

@@ -16,6 +16,7 @@ import math
 
 import numpy as np
 
+from ..constants import FULL_FRAME_HALF_DIAGONAL_MM, LAMBDA_D
 from ..errors import NeuralLensError
 from .data import Domain, PathSampler
 
@@ -37,7 +38,7 @@ def sensor_distance_range(lens, close_focus_mm: float | None, margin: float = 0.
     """[s_min, s_max] (mm behind the last vertex): from just beyond infinity focus (``margin`` ·
     BFL closer, and never farther than the file's own sensor distance) to the paraxial sensor
     distance for an object ``close_focus_mm`` in front of the first vertex."""
-    px = lens.paraxial(587.5618)
+    px = lens.paraxial(LAMBDA_D)
     s_inf = float(px.bfl)
     s_min = min(s_inf, float(lens.surfaces[-1].thickness)) * (1.0 - margin)
     s_max = s_inf if not close_focus_mm else float(px.sensor_distance_for(float(close_focus_mm)))
@@ -81,8 +82,9 @@ def backward_domain(lens, path_id: int, z_rear: float, z_front: float, rng, n: i
     return Domain(r_max=r, s_max=s)
 
 
-def default_field_half_angle(lens, film_half_diagonal_mm: float = 21.6333, margin: float = 1.1) -> float:
-    px = lens.paraxial(587.5618)
+def default_field_half_angle(lens, film_half_diagonal_mm: float = FULL_FRAME_HALF_DIAGONAL_MM,
+                             margin: float = 1.1) -> float:
+    px = lens.paraxial(LAMBDA_D)
     return min(math.degrees(math.atan(film_half_diagonal_mm / abs(px.efl))) * margin, 80.0)
 
 

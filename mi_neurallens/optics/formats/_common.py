@@ -15,7 +15,7 @@ from typing import Any, Iterable
 from ...errors import LensError
 
 #: The d line (nm): the reference wavelength of nd/Vd and of the pbrt image distance.
-LAMBDA_D_NM = 587.5618
+from ...constants import LAMBDA_D as LAMBDA_D_NM  # noqa: F401 (re-exported)
 
 
 class Ctx:

@@ -30,13 +30,14 @@ import os
 
 import numpy as np
 
-from .errors import LensError
+from ..constants import LAMBDA_C, LAMBDA_D, LAMBDA_F
+from ..errors import LensError
 
 #: 36 × 24 mm half diagonal (mm), the default image radius used to pick the full field
 FULL_FRAME_HALF_DIAGONAL = 0.5 * math.hypot(36.0, 24.0)
 FIELD_FRACTIONS = (0.0, 0.7, 1.0)
 FIELD_COLORS = ("#1f6fb4", "#1a9850", "#d7301f")
-PRIMARY_WAVELENGTH = 587.5618
+PRIMARY_WAVELENGTH = LAMBDA_D
 #: fans aim at ±this fraction of the stop radius (so edge rays are not lost to rounding at the stop)
 STOP_FILL = 0.999
 
@@ -138,7 +139,7 @@ def _raw_points(lens, o, d, wl):
     where it dies and the stop heights of vignetted rays (needed for ray aiming) come from the
     tracer's unmasked geometry; which rays survive is always taken from ``Lens.trace``.
     """
-    from .trace.api import float_type, tracer_for
+    from ..trace.api import float_type, tracer_for
     wl = np.broadcast_to(np.asarray(wl, dtype=np.float64), (len(o),))
     (o, d, wl), n = _pad(o, d, wl)
     F = float_type("float64")
@@ -429,7 +430,7 @@ def _draw_lens(ax, lens):
     return outer
 
 
-def plot_lens(lens, path_or_ax, fields_deg=None, wavelengths_nm=(486.13, 587.56, 656.27),
+def plot_lens(lens, path_or_ax, fields_deg=None, wavelengths_nm=(LAMBDA_F, LAMBDA_D, LAMBDA_C),
               rays_per_fan=11, title=None, *, image_radius_mm=None, dpi=150):
     """Draw ``lens`` (y–z section, traced fans) to a file or into a matplotlib ``Axes``.
 
@@ -613,6 +614,6 @@ def _save(fig, path) -> str:
     FigureCanvasAgg(fig)
     path = os.fspath(path)
     ext = _image_format(path)
-    from .fileio import atomic_write
+    from ..fileio import atomic_write
     atomic_write(path, lambda tmp: fig.savefig(tmp, format=ext))
     return path
