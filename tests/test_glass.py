@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from mi_neurallens.errors import GlassError
-from mi_neurallens.optics import glass as G
+from mi_neurallens.optics import catalogs, glass as G
 from mi_neurallens.optics.glass import (AIR, LAMBDA_C, LAMBDA_D, LAMBDA_E, LAMBDA_F, Medium,
                                         catalog_glass, constant, lines_glass, model_glass,
                                         ood_material, resolve_medium, table_glass)
@@ -105,7 +105,7 @@ def test_catalog_order_for_names_in_several_catalogs():
     seen = {}
     for c in G.CATALOGS:
         for n in gf.get_glass_catalog(c).get_glass_names():
-            seen.setdefault(G._norm(n), []).append(c)
+            seen.setdefault(catalogs._norm(n), []).append(c)
     multi = {k: v for k, v in seen.items() if len(v) > 1}
     assert multi  # e.g. F2 (Schott, CDGM)
     for k, cats in multi.items():
@@ -132,9 +132,9 @@ def test_unknown_glass_error_names_catalogs_and_suggestions():
 
 def test_catalog_lookups_are_cached():
     catalog_glass("N-SF11", "Schott")
-    before = G._catalog_lookup.cache_info().hits
+    before = catalogs._catalog_lookup.cache_info().hits
     a, b = catalog_glass("N-SF11", "Schott"), catalog_glass("N-SF11", "Schott")
-    assert G._catalog_lookup.cache_info().hits == before + 2
+    assert catalogs._catalog_lookup.cache_info().hits == before + 2
     assert a == b
     a.source["mutated"] = True  # each call gets its own source dict
     assert "mutated" not in catalog_glass("N-SF11", "Schott").source
