@@ -12,12 +12,9 @@ import argparse
 import dataclasses
 import os
 import platform
-import sys
 import time
 
 import numpy as np
-
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "tests"))
 
 import drjit as dr  # noqa: E402
 
@@ -65,7 +62,7 @@ def time_ours(lens, path, o, d, lam, repeats):
 
 
 def time_optiland(lens, o, d, lam_nm, repeats):
-    from reference_optics import optiland_optic
+    from mi_neurallens.optics.interop import optiland_optic
     from optiland.rays import RealRays
     optic = optiland_optic(lens, lam_nm)
     group = optic.surfaces if hasattr(optic.surfaces, "trace") else optic.surface_group

@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-sys.path.insert(0, os.path.dirname(__file__))  # tests/reference_optics.py
+sys.path.insert(0, os.path.dirname(__file__))  # test modules import helpers from conftest
 
 from mi_neurallens.optics.glass import AIR, constant  # noqa: E402
 from mi_neurallens.optics.prescription import Lens, Surface  # noqa: E402

@@ -61,7 +61,7 @@ def _get(name, request):
 @pytest.mark.parametrize("name", _lenses())
 @pytest.mark.parametrize("precision,tol", [("float32", 1e-3), ("float64", 1e-7)])
 def test_real_rays_match_optiland(name, precision, tol, request):
-    from reference_optics import optiland_trace
+    from mi_neurallens.optics.interop import optiland_trace
     lens = _get(name, request)
     rng = np.random.default_rng(7)
     checked = 0

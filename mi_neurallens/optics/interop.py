@@ -1,7 +1,11 @@
-"""Independent reference tracers (optiland, ray-optics) driven from our Lens, for tests only.
+"""Interoperability: a :class:`~mi_neurallens.optics.prescription.Lens` as an optiland optic.
 
-Media are handed over as constant indices evaluated by our Medium at the test wavelength, so a
-comparison isolates the tracer (intersection, refraction) from the glass model.
+Used as the independent reference of the tracer (tests/test_tracer.py) and of its speed
+(benchmarks/bench_tracer.py), and by users who want to check a lens in optiland.  optiland is an
+optional dependency (the ``dev`` extra), imported when a function is called.
+
+Media are handed over as constant indices evaluated by our :class:`~mi_neurallens.optics.glass.Medium` at
+the given wavelength, so a comparison isolates the tracer (intersection, refraction) from the glass model.
 """
 from __future__ import annotations
 
