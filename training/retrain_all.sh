@@ -7,7 +7,7 @@ cd "$(dirname "$0")/.."
 for lens in wide-22mm ood-59mm canon-ef-24mm-f1.4l; do
   echo "=== $lens ==="
   /usr/bin/time -v python -m mi_neurallens train "$lens" --config "training/$lens.toml" --out lenses/models "$@" \
-      2> >(tee "lenses/models/$lens.train.log" >&2)
+      2> >(tee "training/logs/$lens.train.log" >&2)
 done
 for lens in wide-22mm ood-59mm canon-ef-24mm-f1.4l; do
   python -m mi_neurallens evaluate "lenses/models/$lens.model.safetensors" -n 200000
