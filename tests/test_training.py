@@ -12,6 +12,7 @@ from mi_neurallens.optics.glass import AIR, constant
 from mi_neurallens.optics.prescription import Surface
 from mi_neurallens.trace.api import float_type
 from mi_neurallens.training import data, plan
+from mi_neurallens.transport import planning
 from mi_neurallens.training.config import load_config
 
 
@@ -26,17 +27,17 @@ def thick_lens():
 def test_cie_sampling_matches_mitsuba_and_its_pdf():
     import mitsuba as mi
     u = np.linspace(0.001, 0.999, 257)
-    lam, w = data.sample_cie_wavelength(u)
+    lam, w = planning.sample_cie_wavelength(u)
     ref = np.array([mi.scalar_rgb.sample_rgb_spectrum(float(v)) for v in u])
     np.testing.assert_allclose(lam, ref[:, 0], rtol=1e-5)
     np.testing.assert_allclose(w, ref[:, 1], rtol=1e-4)
     # the pdf integrates to 1 on [360, 830] nm and the inverse is exact
     g = np.linspace(360, 830, 200001)
-    assert abs(np.trapezoid(data.pdf_cie_wavelength(g), g) - 1.0) < 1e-3
-    np.testing.assert_allclose(data.cie_u_of_lambda(lam), u, atol=1e-9)
+    assert abs(np.trapezoid(planning.pdf_cie_wavelength(g), g) - 1.0) < 1e-3
+    np.testing.assert_allclose(planning.cie_u_of_lambda(lam), u, atol=1e-9)
     # Dr.Jit version (what the generator runs) agrees
     F = float_type("float32")
-    lam_d, _ = data.sample_cie_wavelength(F(u.astype(np.float32)))
+    lam_d, _ = planning.sample_cie_wavelength(F(u.astype(np.float32)))
     np.testing.assert_allclose(lam_d.numpy(), lam, rtol=1e-5)
 
 
@@ -48,7 +49,7 @@ def test_generator_wavelength_histogram_follows_cie():
     edges = np.linspace(360, 830, 48)
     h, _ = np.histogram(lam, edges)
     c = np.linspace(0, 1, 4001)
-    cdf_lam = data.sample_cie_wavelength(c)[0]
+    cdf_lam = planning.sample_cie_wavelength(c)[0]
     expected = np.diff(np.interp(edges, cdf_lam, c)) * len(lam)
     chi2 = np.sum((h - expected) ** 2 / expected)
     assert chi2 < 120, chi2          # 47 bins: ~47 ± 10 for a correct sampler

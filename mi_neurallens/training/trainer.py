@@ -22,6 +22,7 @@ import time
 
 import numpy as np
 
+from ..constants import ARCSEC_PER_RAD
 from ..errors import NeuralLensError
 from ..fileio import atomic_write, atomic_write_text
 from .config import NetConfig, TrainConfig
@@ -164,7 +165,7 @@ def fit_output_transform(xn: np.ndarray, y: np.ndarray, residual: str, M: np.nda
 
 
 #: accuracy goals per output column (x, y in mm; dx, dy; T relative), used by loss_weights="goals"
-GOAL_UNITS = (0.002, 0.002, 5.0 / 206264.8, 5.0 / 206264.8, 0.005)
+GOAL_UNITS = (0.002, 0.002, 5.0 / ARCSEC_PER_RAD, 5.0 / ARCSEC_PER_RAD, 0.005)
 
 
 def loss_weights(mode: str, oscale, y) -> np.ndarray:
@@ -297,104 +298,136 @@ def train_regressor(stream: RegressorStream, val, nc: NetConfig, *, heading: int
         u0, x0, y0 = stream.sample(nc.pool)
         xn0 = (x0 - center) / scale_in
     state.update(odd_y=odd_s is not None, skip=skip.tolist(), shift=shift.tolist(), oscale=oscale.tolist())
-    f32 = lambda a: torch.as_tensor(np.ascontiguousarray(a, dtype=np.float32), device=dev)
-    T_skip, T_shift, T_scale = f32(skip), f32(shift), f32(oscale)
-    sig_d2 = float(np.mean(oscale[2:4] ** 2))
-    W = f32(loss_weights(nc.loss_weights, oscale, y0))
-
-    def targets(x, xn, y):
-        """What the network's output times M should equal: (y − M·(shift + skip·xn)) / scale."""
-        return (y - odd_factor(x[:, 2], odd_s) * (shift + xn @ skip.T)) / oscale
-
-    # M of a batch from its normalised inputs (ωy = center + scale·xn)
-    wy_c, wy_s = float(center[2]), float(scale_in[2])
-
-    def M_of(xb):
-        M = torch.ones((xb.shape[0], 5), device=dev)
-        if odd_s is not None:
-            m = (wy_c + wy_s * xb[:, 2]) / odd_s
-            for j in ODD_COLUMNS:
-                M[:, j] = m
-        return M
-
-    X = f32(xn0)
-    Y = f32(targets(x0, xn0, y0))
-    Yraw = f32(y0)
-    Wedge = f32(edge_weights(stream.ps, u0, nc)) if nc.edge_weight > 0 else None
-    xv, yv = val
-    xvn = (xv - center) / scale_in
-    Xv, Yv = f32(xvn), f32(targets(xv, xvn, yv))
-    # the validation rays within edge_margin of an aperture edge: their error is logged on its own
-    _, mv, _ = stream.ps.margin_u(stream.ps.domain.x_to_u(xv))
-    near_edge = mv < nc.edge_margin
-
-    def dir3(dxy):
-        dz = heading * torch.sqrt(torch.clamp(1.0 - (dxy * dxy).sum(1, keepdim=True), min=0.0))
-        v = torch.cat([dxy, dz], 1)
-        return v / v.norm(dim=1, keepdim=True)
-
-    def predict(xb):
-        """Network output times M (compared with the targets) and M."""
-        M = M_of(xb)
-        return net(xb) * M, M
-
-    def loss_fn(xb, tb, yb_raw, wb=None):
-        """Per-sample squared errors (and cosine term), averaged with the sample weights ``wb``
-        (edge emphasis; ``None``: uniform)."""
-        p, M = predict(xb)
-        mean = (lambda v: v.mean()) if wb is None else (lambda v: (v * wb).mean())
-        if nc.direction_loss == "cosine":
-            l = mean((((p - tb) ** 2) * W)[:, [0, 1, 4]].mean(1)) * 3.0 / 5.0
-        else:
-            l = mean((((p - tb) ** 2) * W).mean(1))
-        if nc.direction_loss in ("cosine", "mse+cosine"):
-            d_pred = M[:, 2:4] * (T_shift[2:4] + xb @ T_skip[2:4].T) + T_scale[2:4] * p[:, 2:4]
-            # 1 − cos(a, b) = |â − b̂|²/2 for unit vectors (the stable form in float32)
-            cos_term = mean(((dir3(d_pred) - dir3(yb_raw[:, 2:4])) ** 2).sum(1)) / (2.0 * sig_d2)
-            l = l + nc.cosine_weight * cos_term * (2.0 / 5.0)
-        return l
-
+    fit = RegressorFit(torch, dev, net, nc, stream, val, (u0, x0, y0), rng=rng, state=state, heading=heading,
+                       center=center, scale_in=scale_in, transform=(skip, shift, oscale), odd_s=odd_s,
+                       log=log, desc=desc)
     bar = _progress(nc.max_steps, desc, progress)
     bar.update(state["step"])
-
-    def validate(step, loss, seconds):
-        with torch.no_grad():
-            pv, _ = predict(Xv)
-            vl = float(((pv - Yv) ** 2).mean())
-            yp = pv.double().cpu().numpy() * oscale + odd_factor(xv[:, 2], odd_s) * (shift + xvn @ skip.T)
-        from .evaluate import regression_errors
-        m = regression_errors(yp, yv, heading)
-        rec = {"step": step, "loss": loss.item() if loss is not None else math.nan, "val_mse": vl,
-               "seconds": seconds,
-               "pos_um_med": m["position_um_median"], "pos_um_p99": m["position_um_p99"],
-               "dir_as_med": m["direction_arcsec_median"], "dir_as_p99": m["direction_arcsec_p99"],
-               "T_rel_med": m["throughput_rel_median"]}
-        if near_edge.any():
-            e = regression_errors(yp[near_edge], yv[near_edge], heading)
-            rec.update(edge_pos_um_med=e["position_um_median"], edge_pos_um_p99=e["position_um_p99"])
-        state["history"].append(rec)
-        if log:
-            log(desc, rec)
-        return vl, dict(val=f"{vl:.2e}", pos=f"{m['position_um_median']:.2f}µm",
-                        dir=f"{m['direction_arcsec_median']:.2f}\"")
-
-    def refresh(k):
-        ur, xr, yr = stream.sample(k)
-        xrn = (xr - center) / scale_in
-        idx = torch.as_tensor(rng.choice(len(X), k, replace=False), device=dev)
-        X[idx], Y[idx], Yraw[idx] = f32(xrn), f32(targets(xr, xrn, yr)), f32(yr)
-        if Wedge is not None:
-            Wedge[idx] = f32(edge_weights(stream.ps, ur, nc))
-
-    best, _ = _fit(torch, net, opt, nc, state, best, n_pool=len(X),
-                   batch_loss=lambda bi: loss_fn(X[bi], Y[bi], Yraw[bi], None if Wedge is None else Wedge[bi]),
-                   refresh=refresh,
-                   validate=validate, ckpt=ckpt, bar=bar, dev=dev)
+    best, _ = _fit(torch, net, opt, nc, state, best, n_pool=len(fit.X), batch_loss=fit.batch_loss,
+                   refresh=fit.refresh, validate=fit.validate, ckpt=ckpt, bar=bar, dev=dev)
     state["wall_seconds_total"] = time.perf_counter() - t_start
     net.load_state_dict(best)
     if ckpt:
         save_checkpoint(ckpt, net, opt, best, state)
     return _reg_result(net, skip, shift, oscale, state)
+
+
+class RegressorFit:
+    """One regressor's training problem, its pieces as methods (what :func:`train_regressor` runs and
+    tests call): the sample pool and its targets, the loss, validation and pool refresh.
+
+    ``transform`` = (skip, shift, oscale) of :func:`fit_output_transform`; the network's output ``p``
+    relates to the reduced-frame outputs ``y`` by ``y = M·(shift + skip·xn) + oscale·(M·p)`` with ``M``
+    the odd-y factor (1 unless ``odd_s``).  ``pool0`` = (u, x, y) of the first pool.
+    """
+
+    def __init__(self, torch, dev, net, nc: NetConfig, stream, val, pool0, *, rng, state, heading: int,
+                 center, scale_in, transform, odd_s, log=None, desc="regressor"):
+        self.torch, self.dev, self.net, self.nc, self.stream = torch, dev, net, nc, stream
+        self.rng, self.state, self.heading, self.log, self.desc = rng, state, heading, log, desc
+        self.center, self.scale_in, self.odd_s = center, scale_in, odd_s
+        self.skip, self.shift, self.oscale = transform
+        self.T_skip, self.T_shift, self.T_scale = (self.f32(v) for v in transform)
+        u0, x0, y0 = pool0
+        xn0 = (x0 - center) / scale_in
+        self.sig_d2 = float(np.mean(self.oscale[2:4] ** 2))
+        self.W = self.f32(loss_weights(nc.loss_weights, self.oscale, y0))
+        # M of a batch from its normalised inputs (ωy = center + scale·xn)
+        self.wy_c, self.wy_s = float(center[2]), float(scale_in[2])
+        self.X = self.f32(xn0)
+        self.Y = self.f32(self.targets(x0, xn0, y0))
+        self.Yraw = self.f32(y0)
+        self.Wedge = self.f32(edge_weights(stream.ps, u0, nc)) if nc.edge_weight > 0 else None
+        self.xv, self.yv = val
+        self.xvn = (self.xv - center) / scale_in
+        self.Xv, self.Yv = self.f32(self.xvn), self.f32(self.targets(self.xv, self.xvn, self.yv))
+        # the validation rays within edge_margin of an aperture edge: their error is logged on its own
+        _, mv, _ = stream.ps.margin_u(stream.ps.domain.x_to_u(self.xv))
+        self.near_edge = mv < nc.edge_margin
+
+    def f32(self, a):
+        return self.torch.as_tensor(np.ascontiguousarray(a, dtype=np.float32), device=self.dev)
+
+    def targets(self, x, xn, y):
+        """What the network's output times M should equal: (y − M·(shift + skip·xn)) / scale."""
+        return (y - odd_factor(x[:, 2], self.odd_s) * (self.shift + xn @ self.skip.T)) / self.oscale
+
+    def outputs(self, x, xn, p):
+        """The inverse of :meth:`targets`: reduced-frame outputs from the network's output times M."""
+        return p * self.oscale + odd_factor(x[:, 2], self.odd_s) * (self.shift + xn @ self.skip.T)
+
+    def M_of(self, xb):
+        """The odd-y factor M of a batch of normalised inputs (ones unless ``odd_s``)."""
+        M = self.torch.ones((xb.shape[0], 5), device=self.dev)
+        if self.odd_s is not None:
+            m = (self.wy_c + self.wy_s * xb[:, 2]) / self.odd_s
+            for j in ODD_COLUMNS:
+                M[:, j] = m
+        return M
+
+    def dir3(self, dxy):
+        """Unit 3-vectors from (dx, dy) with dz of the map's heading."""
+        torch = self.torch
+        dz = self.heading * torch.sqrt(torch.clamp(1.0 - (dxy * dxy).sum(1, keepdim=True), min=0.0))
+        v = torch.cat([dxy, dz], 1)
+        return v / v.norm(dim=1, keepdim=True)
+
+    def predict(self, xb):
+        """Network output times M (compared with the targets) and M."""
+        M = self.M_of(xb)
+        return self.net(xb) * M, M
+
+    def loss(self, xb, tb, yb_raw, wb=None):
+        """Per-sample squared errors (and cosine term), averaged with the sample weights ``wb``
+        (edge emphasis; ``None``: uniform)."""
+        nc = self.nc
+        p, M = self.predict(xb)
+        mean = (lambda v: v.mean()) if wb is None else (lambda v: (v * wb).mean())
+        if nc.direction_loss == "cosine":
+            l = mean((((p - tb) ** 2) * self.W)[:, [0, 1, 4]].mean(1)) * 3.0 / 5.0
+        else:
+            l = mean((((p - tb) ** 2) * self.W).mean(1))
+        if nc.direction_loss in ("cosine", "mse+cosine"):
+            d_pred = M[:, 2:4] * (self.T_shift[2:4] + xb @ self.T_skip[2:4].T) + self.T_scale[2:4] * p[:, 2:4]
+            # 1 − cos(a, b) = |â − b̂|²/2 for unit vectors (the stable form in float32)
+            cos_term = mean(((self.dir3(d_pred) - self.dir3(yb_raw[:, 2:4])) ** 2).sum(1)) / (2.0 * self.sig_d2)
+            l = l + nc.cosine_weight * cos_term * (2.0 / 5.0)
+        return l
+
+    def batch_loss(self, bi):
+        """The loss of pool rows ``bi``."""
+        return self.loss(self.X[bi], self.Y[bi], self.Yraw[bi], None if self.Wedge is None else self.Wedge[bi])
+
+    def validate(self, step, loss, seconds):
+        """Held-out errors, appended to the training history; returns (score, progress-bar postfix)."""
+        from .evaluate import regression_errors
+        with self.torch.no_grad():
+            pv, _ = self.predict(self.Xv)
+            vl = float(((pv - self.Yv) ** 2).mean())
+            yp = self.outputs(self.xv, self.xvn, pv.double().cpu().numpy())
+        m = regression_errors(yp, self.yv, self.heading)
+        rec = {"step": step, "loss": loss.item() if loss is not None else math.nan, "val_mse": vl,
+               "seconds": seconds,
+               "pos_um_med": m["position_um_median"], "pos_um_p99": m["position_um_p99"],
+               "dir_as_med": m["direction_arcsec_median"], "dir_as_p99": m["direction_arcsec_p99"],
+               "T_rel_med": m["throughput_rel_median"]}
+        if self.near_edge.any():
+            e = regression_errors(yp[self.near_edge], self.yv[self.near_edge], self.heading)
+            rec.update(edge_pos_um_med=e["position_um_median"], edge_pos_um_p99=e["position_um_p99"])
+        self.state["history"].append(rec)
+        if self.log:
+            self.log(self.desc, rec)
+        return vl, dict(val=f"{vl:.2e}", pos=f"{m['position_um_median']:.2f}µm",
+                        dir=f"{m['direction_arcsec_median']:.2f}\"")
+
+    def refresh(self, k):
+        """Replace ``k`` random pool rows with fresh samples of the stream."""
+        ur, xr, yr = self.stream.sample(k)
+        xrn = (xr - self.center) / self.scale_in
+        idx = self.torch.as_tensor(self.rng.choice(len(self.X), k, replace=False), device=self.dev)
+        self.X[idx], self.Y[idx], self.Yraw[idx] = self.f32(xrn), self.f32(self.targets(xr, xrn, yr)), self.f32(yr)
+        if self.Wedge is not None:
+            self.Wedge[idx] = self.f32(edge_weights(self.stream.ps, ur, self.nc))
 
 
 def _reg_result(net, skip, shift, oscale, state):
@@ -417,63 +450,81 @@ def train_classifier(ps: PathSampler, valid_u_source, val, nc: NetConfig, *, cen
             net.load_state_dict(best)
             return {"layers": net_layers(net), "state": state}
         rng = np.random.default_rng([seed, state["step"]])
-    f32 = lambda a: torch.as_tensor(np.ascontiguousarray(a, dtype=np.float32), device=dev)
-
-    margin = nc.target == "margin"
-
-    def pool(n):
-        """(inputs, training target): the 0/1 label, or scale·margin clipped to ±clip (−clip on a hard
-        failure)."""
-        got = classifier_samples(ps, valid_u_source(max(n // 3, 1024)), n, rng, margin=margin,
-                                 sigma_range=tuple(nc.boundary_sigma))
-        if not margin:
-            return f32((got[0] - center) / scale_in), f32(got[1])
-        x, _, m, hard = got
-        c = nc.margin_clip
-        t = np.where(hard, -c, np.clip(m * nc.margin_scale, -c, c))
-        return f32((x - center) / scale_in), f32(t)
-
-    def margin_loss(logit, t):
-        """Interval regression: logit = scale·margin inside the band |t| < clip; at the clip only the
-        side counts (logit ≥ clip where the margin is large, ≤ −clip where it is very negative or the ray
-        fails for a non-aperture reason), so the network spends nothing on fitting far-away targets."""
-        c = nc.margin_clip
-        lo = torch.where(t <= -c, torch.full_like(t, -math.inf), t)
-        hi = torch.where(t >= c, torch.full_like(t, math.inf), t)
-        return torch.mean(torch.relu(lo - logit) ** 2 + torch.relu(logit - hi) ** 2)
-
-    X, L = pool(nc.pool)
-    xv, lv = val
-    Xv, Lv = f32((xv - center) / scale_in), torch.as_tensor(lv.astype(bool), device=dev)
-    bce = torch.nn.BCEWithLogitsLoss()
+    fit = ClassifierFit(torch, dev, net, nc, ps, valid_u_source, val, rng=rng, state=state, center=center,
+                        scale_in=scale_in, log=log, desc=desc)
     bar = _progress(nc.max_steps, desc, progress)
     bar.update(state["step"])
-
-    def validate(step, loss, seconds):
-        with torch.no_grad():
-            lg = net(Xv)[:, 0]
-            err = float(((lg > 0) != Lv).float().mean())
-            vb = float(bce(lg, Lv.float()))
-        rec = {"step": step, "loss": loss.item() if loss is not None else math.nan, "val_bce": vb,
-               "val_misclass": err, "seconds": seconds}
-        state["history"].append(rec)
-        if log:
-            log(desc, rec)
-        return err + 0.01 * vb, dict(miscls=f"{100 * err:.3f}%")
-
-    def refresh(k):
-        xr, lr_ = pool(k)
-        idx = torch.as_tensor(rng.choice(len(X), k, replace=False), device=dev)
-        X[idx], L[idx] = xr, lr_
-
-    best, _ = _fit(torch, net, opt, nc, state, best, n_pool=len(X),
-                   batch_loss=(lambda bi: margin_loss(net(X[bi])[:, 0], L[bi])) if margin else
-                   (lambda bi: bce(net(X[bi])[:, 0], L[bi])), refresh=refresh,
-                   validate=validate, ckpt=ckpt, bar=bar, dev=dev)
+    best, _ = _fit(torch, net, opt, nc, state, best, n_pool=len(fit.X), batch_loss=fit.batch_loss,
+                   refresh=fit.refresh, validate=fit.validate, ckpt=ckpt, bar=bar, dev=dev)
     net.load_state_dict(best)
     if ckpt:
         save_checkpoint(ckpt, net, opt, best, state)
     return {"layers": net_layers(net), "state": state}
+
+
+class ClassifierFit:
+    """One classifier's training problem, its pieces as methods (what :func:`train_classifier` runs and
+    tests call): the labelled (or margin-target) pool, the loss, validation and pool refresh."""
+
+    def __init__(self, torch, dev, net, nc: NetConfig, ps: PathSampler, valid_u_source, val, *, rng, state,
+                 center, scale_in, log=None, desc="classifier"):
+        self.torch, self.dev, self.net, self.nc, self.ps = torch, dev, net, nc, ps
+        self.valid_u_source, self.rng, self.state = valid_u_source, rng, state
+        self.center, self.scale_in, self.log, self.desc = center, scale_in, log, desc
+        self.margin = nc.target == "margin"
+        self.X, self.L = self.pool(nc.pool)
+        xv, lv = val
+        self.Xv, self.Lv = self.f32((xv - center) / scale_in), torch.as_tensor(lv.astype(bool), device=dev)
+        self.bce = torch.nn.BCEWithLogitsLoss()
+
+    def f32(self, a):
+        return self.torch.as_tensor(np.ascontiguousarray(a, dtype=np.float32), device=self.dev)
+
+    def pool(self, n):
+        """(inputs, training target): the 0/1 label, or scale·margin clipped to ±clip (−clip on a hard
+        failure)."""
+        nc = self.nc
+        got = classifier_samples(self.ps, self.valid_u_source(max(n // 3, 1024)), n, self.rng, margin=self.margin,
+                                 sigma_range=tuple(nc.boundary_sigma))
+        if not self.margin:
+            return self.f32((got[0] - self.center) / self.scale_in), self.f32(got[1])
+        x, _, m, hard = got
+        c = nc.margin_clip
+        t = np.where(hard, -c, np.clip(m * nc.margin_scale, -c, c))
+        return self.f32((x - self.center) / self.scale_in), self.f32(t)
+
+    def margin_loss(self, logit, t):
+        """Interval regression: logit = scale·margin inside the band |t| < clip; at the clip only the
+        side counts (logit ≥ clip where the margin is large, ≤ −clip where it is very negative or the ray
+        fails for a non-aperture reason), so the network spends nothing on fitting far-away targets."""
+        torch, c = self.torch, self.nc.margin_clip
+        lo = torch.where(t <= -c, torch.full_like(t, -math.inf), t)
+        hi = torch.where(t >= c, torch.full_like(t, math.inf), t)
+        return torch.mean(torch.relu(lo - logit) ** 2 + torch.relu(logit - hi) ** 2)
+
+    def batch_loss(self, bi):
+        """The loss of pool rows ``bi``: the margin interval loss or binary cross-entropy."""
+        logit = self.net(self.X[bi])[:, 0]
+        return self.margin_loss(logit, self.L[bi]) if self.margin else self.bce(logit, self.L[bi])
+
+    def validate(self, step, loss, seconds):
+        """Held-out misclassification and BCE, appended to the history; returns (score, postfix)."""
+        with self.torch.no_grad():
+            lg = self.net(self.Xv)[:, 0]
+            err = float(((lg > 0) != self.Lv).float().mean())
+            vb = float(self.bce(lg, self.Lv.float()))
+        rec = {"step": step, "loss": loss.item() if loss is not None else math.nan, "val_bce": vb,
+               "val_misclass": err, "seconds": seconds}
+        self.state["history"].append(rec)
+        if self.log:
+            self.log(self.desc, rec)
+        return err + 0.01 * vb, dict(miscls=f"{100 * err:.3f}%")
+
+    def refresh(self, k):
+        """Replace ``k`` random pool rows with fresh samples."""
+        xr, lr_ = self.pool(k)
+        idx = self.torch.as_tensor(self.rng.choice(len(self.X), k, replace=False), device=self.dev)
+        self.X[idx], self.L[idx] = xr, lr_
 
 
 # ----------------------------------------------------------------------------- prior calibration
