@@ -40,7 +40,7 @@ def main(argv=None):
     tm = model.map("transmit", "backward")
     n = 1 << a.rays
     rng = np.random.default_rng(0)
-    d = tm.domain
+    d = tm.domain if isinstance(tm.domain, dict) else tm.domain.to_dict()   # a Domain since the transport spine
     x_np = [rng.uniform(0, d["r_max_mm"], n), rng.uniform(-d["s_max"], d["s_max"], n) * 0.7,
             rng.uniform(0, d["s_max"], n) * 0.7, rng.uniform(d["lambda_min_nm"], d["lambda_max_nm"], n)]
     X = [mi.Float(v.astype(np.float32)) for v in x_np]
