@@ -328,3 +328,17 @@ def test_bad_paths(wide22):
         wide22.trace(np.zeros(3), d, 550.0)
     with pytest.raises(NeuralLensError, match="wavelength"):
         wide22.trace(o, d, -1.0)
+
+
+def test_record_ends_at_the_blocking_hit(wide22):
+    """``record=True`` shows a blocked ray up to and including the hit where it is blocked, and nothing
+    after it: a ray above the front element's clear aperture ends on the first surface."""
+    sd = wide22.surfaces[0].semi_diameter
+    o = np.array([[0.0, 1.3 * sd, -5.0], [0.0, 1.0, -5.0]])
+    d = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    r = wide22.trace(o, d, 550.0, record=True, precision="float64")
+    assert list(r.valid) == [False, True]
+    blocked = r.points[0]
+    assert np.isfinite(blocked[1]).all() and blocked[1, 1] > sd          # the hit beyond the clear aperture
+    assert np.isnan(blocked[2:]).all()                                    # and nothing after it
+    assert np.isfinite(r.points[1]).all()                                 # a valid ray keeps every point

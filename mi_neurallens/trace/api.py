@@ -104,7 +104,8 @@ def trace(lens, origins, directions, wavelength_nm, direction: str = "forward", 
     if record:
         pts = np.stack([np.stack([c.numpy() for c in p], 1) for p in res.points], 1).astype(np.float64)
         alive = np.stack([np.broadcast_to(a.numpy().astype(bool), (n,)) for a in res.alive], 1)
-        # keep the hit where a ray is blocked: a point is shown if the ray was alive *before* it
-        shown = np.concatenate([alive[:, :1], alive[:, :-1]], 1)
-        pts[~shown] = np.nan
+        # keep the hit where a ray is blocked: alive[k] is recorded when the ray reaches point k, before
+        # that step's aperture, stop and TIR tests, so a ray blocked at point k still shows it and
+        # nothing after it
+        pts[~alive] = np.nan
     return RayBundle(pos, dirn, thr, valid, pts)
