@@ -35,16 +35,25 @@ from mi_neurallens.optics.glass import AIR, catalog_glass, constant, model_glass
 rayoptics = pytest.importorskip("rayoptics")
 RO = Path(rayoptics.__file__).resolve().parent
 
-# file (relative to the rayoptics package) -> glass substitutions (what ray-optics substitutes itself,
-# except B270: ray-optics falls back to n = 1.5, here a model glass close to Schott B 270)
+# file (relative to the rayoptics package) -> reader options.  Glass substitutions are what ray-optics
+# substitutes itself, except B270: ray-optics falls back to n = 1.5, here a model glass close to
+# Schott B 270.
 ACCEPTED = {
     "zemax/tests/US00583336-2-scaled.zmx": {},
-    "zemax/tests/US08427765-1.ZMX": {"L-TIM28_MOLD": {"glass": "S-TIM28", "catalog": "Ohara"}},
+    "zemax/tests/US08427765-1.ZMX": {"glasses": {"L-TIM28_MOLD": {"glass": "S-TIM28", "catalog": "Ohara"}}},
     "zemax/tests/zmax_55278.zmx": {},
-    "zemax/tests/354710-C-Zemax(ZMX).zmx": {"D-ZK3M": {"glass": "D-ZK3", "catalog": "CDGM"}},
-    "elem/tests/ACL3026U-Zemax(ZMX).zmx": {"B270": {"nd": 1.5230, "vd": 58.5}},
+    "zemax/tests/354710-C-Zemax(ZMX).zmx": {"glasses": {"D-ZK3M": {"glass": "D-ZK3", "catalog": "CDGM"}}},
+    "elem/tests/ACL3026U-Zemax(ZMX).zmx": {"glasses": {"B270": {"nd": 1.5230, "vd": 58.5}}},
+    # CODE V
+    "codev/tests/CODV_32327.seq": {},
+    "codev/tests/CODV_49664.seq": {},
+    "codev/tests/CODV_65564.seq": {},
+    "codev/tests/CODV_65988_noDOE.seq": {},
+    "codev/tests/ag_dblgauss.seq": {},
+    "codev/tests/unfolded_lenses_w_ape.seq": {},
+    "codev/tests/landscape_lens.seq": {"radius_mode": False},   # no RDM: curvatures, as ray-optics assumes
 }
-# file -> (keyword, Zemax surface number or None) of the first thing outside the supported subset
+# file -> (keyword, surface number or None) of the first thing outside the supported subset
 REFUSED = {
     "zemax/models/PhotoPrime/US05331467-1.zmx": ("OBSC", 2),   # central obscuration (a catadioptric)
     "zemax/tests/ASL5040-UV-Zemax(ZMX).zmx": ("TYPE", 1),       # QED_TYPE polynomial asphere
@@ -56,6 +65,28 @@ REFUSED = {
     "zemax/tests/US05831776-1.zmx": ("OBNA", None),             # object-space NA aperture
     "zemax/tests/US08011793-1.zmx": ("GLAS", 2),                # GLAS MIRROR
     "zemax/tests/zmax_37992.zmx": ("TYPE", 2),                  # COORDBRK
+    # CODE V
+    "codev/tests/CODV_65988.seq": ("DIF", 1),                   # diffractive surface
+    "codev/tests/achroMangin.seq": ("REFL", 3),
+    "codev/tests/achroMangin_ok.seq": ("REFL", 3),
+    "codev/tests/dar_test.seq": ("ADE", 2),
+    "codev/tests/dec_rev_tilt_test.seq": ("YDE", 2),
+    "codev/tests/dec_test.seq": ("YDE", 2),
+    "codev/tests/dec_tilt_test.seq": ("REFL", 2),
+    "codev/tests/folded_lenses.seq": ("REFL", 2),
+    "codev/tests/lens_reflection_test.seq": ("REFL", 2),
+    "codev/tests/mangin.seq": ("REFL", 2),
+    "codev/tests/paraboloid.seq": ("REFL", 1),
+    "codev/tests/paraboloid_f8.seq": ("REFL", 1),
+    "codev/tests/questar35.seq": ("CIR", 2),                    # CIR OBS: obscuration
+    "codev/tests/rc_f16.seq": ("REFL", 1),
+    "codev/tests/schmidt.seq": ("REFL", 3),
+    "codev/tests/schmidt_sph.seq": ("REFL", 3),
+    "codev/tests/singlet.seq": ("RDM", None),                   # and, with radius_mode=, no STO
+    "codev/tests/test.seq": ("SI", None),                       # no image surface
+    "codev/tests/threemir.seq": ("REFL", 2),
+    "codev/tests/tilt_test.seq": ("ADE", 2),
+    "codev/tests/asp46.seq": (None, None),                      # a flat aspheric plate: afocal
 }
 # without a substitution these name an unknown glass: file -> (surface, glass)
 UNKNOWN_GLASS = {
@@ -64,7 +95,8 @@ UNKNOWN_GLASS = {
     "elem/tests/ACL3026U-Zemax(ZMX).zmx": (2, "B270"),
 }
 # every glass of these files is the same catalogue glass in both readers
-SAME_GLASSES = ("zemax/tests/US00583336-2-scaled.zmx", "zemax/tests/US08427765-1.ZMX")
+SAME_GLASSES = ("zemax/tests/US00583336-2-scaled.zmx", "zemax/tests/US08427765-1.ZMX", "codev/tests/CODV_32327.seq",
+                "codev/tests/CODV_65564.seq", "codev/tests/ag_dblgauss.seq")
 WAVELENGTHS = (486.1327, 587.5618, 656.2725)
 
 
@@ -79,7 +111,12 @@ def where_ok(excinfo, file, *, surface=None, field=None):
 
 
 def load(rel, **kw):
-    return nl.Lens.load(RO / rel, glasses=ACCEPTED.get(rel) or None, **kw)
+    return nl.Lens.load(RO / rel, **ACCEPTED.get(rel, {}), **kw)
+
+
+def md_of(lens):
+    """The reader's own metadata (Zemax or CODE V)."""
+    return lens.metadata.get("zemax") or lens.metadata["codev"]
 
 
 # ----------------------------------------------------------------------------------------- ray-optics
@@ -129,7 +166,7 @@ def ro_open(tmp_path_factory):
 
 def _medium_after(lens, k):
     """Our medium after Zemax surface k (dropped dummies keep the medium before them)."""
-    nums = lens.metadata["zemax"]["surface_numbers"]
+    nums = md_of(lens)["surface_numbers"]
     m = lens.object_medium
     for j in range(1, k + 1):
         if j in nums:
@@ -157,8 +194,8 @@ def _ro_media(opm, lens, wavelength):
     finally:
         for g, m in zip(sm.gaps, saved):
             g.medium = m
-        wv.set_from_list([[w, t] for w, t in zip(saved_wv[0], saved_wv[1])])
-        wv.reference_wvl = saved_wv[2]
+        wv.wavelengths, wv.spectral_wts, wv.reference_wvl = saved_wv
+        wv.calc_colors()
         opm.update_model()
 
 
@@ -174,7 +211,7 @@ def _rays(lens, wavelength, rng, n_per_field=40):
     s0 = lens.surfaces[0]
     r = np.linspace(0, s0.semi_diameter, 50)
     # in front of the first surface and of the dummy surfaces the reader dropped before it
-    z0 = min(0.0, float(np.nanmin(s0.sag(r)))) - 5.0 - lens.metadata["zemax"]["first_vertex_z_in_file"]
+    z0 = min(0.0, float(np.nanmin(s0.sag(r)))) - 5.0 - md_of(lens)["first_vertex_z_in_file"]
     tmax = min(math.radians(12.0), math.atan(0.35 * lens.surfaces[-1].semi_diameter / abs(p.efl)))
     o, d = [], []
     for f in (0.0, 0.5, 1.0):
@@ -193,7 +230,7 @@ def _ro_trace(opm, lens, o, d, z0, wavelength):
     """ray-optics' trace of our rays; returns positions and directions on OUR image plane."""
     from rayoptics.raytr.trace import trace
     sm = opm["seq_model"]
-    zfirst = lens.metadata["zemax"]["first_vertex_z_in_file"]
+    zfirst = md_of(lens)["first_vertex_z_in_file"]
     T = -(z0 + zfirst)                    # object plane -> Zemax surface 1
     assert T > 0
     old = sm.gaps[0].thi
@@ -220,8 +257,8 @@ def _ro_trace(opm, lens, o, d, z0, wavelength):
 
 
 # ----------------------------------------------------------------------------------------- the files
-def test_every_shipped_zmx_is_classified():
-    shipped = {str(p.relative_to(RO)) for p in RO.rglob("*") if p.suffix.lower() == ".zmx"}
+def test_every_shipped_file_is_classified():
+    shipped = {str(p.relative_to(RO)) for p in RO.rglob("*") if p.suffix.lower() in (".zmx", ".seq")}
     assert shipped == set(ACCEPTED) | set(REFUSED), shipped ^ (set(ACCEPTED) | set(REFUSED))
 
 
@@ -231,7 +268,10 @@ def test_refused_with_keyword(rel):
     with pytest.raises(LensError) as ei:
         nl.Lens.load(RO / rel)
     msg = where_ok(ei, RO / rel, surface=surface, field=keyword)
-    assert "not supported" in msg and "line " in msg
+    if keyword is None:
+        assert "afocal" in msg
+    elif keyword not in ("RDM", "SI"):
+        assert "not supported" in msg and "line " in msg
 
 
 @pytest.mark.parametrize("rel", sorted(UNKNOWN_GLASS))
@@ -248,16 +288,23 @@ def test_unknown_glass_is_an_error_not_a_guess(rel):
 @pytest.mark.parametrize("rel", sorted(ACCEPTED))
 def test_first_order_and_real_rays_match_rayoptics(rel, ro_open):
     lens = load(rel)
-    md = lens.metadata["zemax"]
+    md = md_of(lens)
     opm = ro_open(rel)
     primary = md["primary_wavelength_nm"]
-    # the image distance is the file's last DISZ, in both
+    # the image distance is the file's last thickness (Zemax DISZ; CODE V: plus the SI defocus, which
+    # ray-optics keeps aside as a focus shift)
     sm = opm["seq_model"]
-    assert lens.surfaces[-1].thickness == pytest.approx(sm.gaps[-1].thi, rel=1e-12)
+    defocus = md.get("image_defocus_mm", 0.0)
+    zfirst = md["first_vertex_z_in_file"]
+    assert lens.image_z + zfirst == pytest.approx(sum(g.thi for g in sm.gaps[1:]) + defocus, rel=1e-12)
+    if not md["dropped_surfaces"] or md["dropped_surfaces"][-1]["surface"] != md["surface_numbers"][-1] + 1:
+        assert lens.surfaces[-1].thickness == pytest.approx(sm.gaps[-1].thi + defocus, rel=1e-12)
     with _ro_media(opm, lens, primary):
         efl, bfl = _ro_first_order(opm)
     assert lens.efl(primary) == pytest.approx(efl, rel=1e-4)
-    assert lens.bfl(primary) == pytest.approx(bfl, rel=1e-4)
+    # BFL from the last vertex; a trailing dummy surface, which the reader drops, moves that vertex
+    shift = zfirst + float(lens.vertex_z[-1]) - sum(g.thi for g in sm.gaps[1:-1])
+    assert lens.bfl(primary) + shift == pytest.approx(bfl, rel=1e-4)
     rng = np.random.default_rng(19)
     checked = 0
     for lam in WAVELENGTHS:
@@ -267,7 +314,7 @@ def test_first_order_and_real_rays_match_rayoptics(rel, ro_open):
         o, d = o[ours.valid], d[ours.valid]
         with _ro_media(opm, lens, lam):
             pos, dirs, ro_image = _ro_trace(opm, lens, o, d, z0, lam)
-        assert ro_image == pytest.approx(lens.image_z, abs=1e-9)
+        assert ro_image + defocus == pytest.approx(lens.image_z, abs=1e-9)
         ok = np.isfinite(pos).all(1)
         assert ok.mean() > 0.95
         dp = np.abs(ours.position[ours.valid][ok] - pos[ok]).max()
@@ -300,7 +347,7 @@ def test_glasses_match_rayoptics_where_the_same(rel, ro_open):
 def test_first_order_with_rayoptics_own_glasses(rel, ro_open):
     lens = load(rel)
     opm = ro_open(rel)
-    primary = lens.metadata["zemax"]["primary_wavelength_nm"]
+    primary = md_of(lens)["primary_wavelength_nm"]
     wv = opm["optical_spec"]["wvls"]
     assert wv.wavelengths[wv.reference_wvl] == pytest.approx(primary)
     efl, bfl = _ro_first_order(opm)
@@ -344,7 +391,7 @@ def test_round_trip_through_project_json(rel, tmp_path):
     lens.save(out)
     back = nl.Lens.load(out)
     assert back.fingerprint() == lens.fingerprint() and back == lens
-    assert back.metadata["zemax"]["primary_wavelength_nm"] == lens.metadata["zemax"]["primary_wavelength_nm"]
+    assert md_of(back)["primary_wavelength_nm"] == md_of(lens)["primary_wavelength_nm"]
 
 
 def test_utf16_and_utf8_read_the_same(tmp_path):
@@ -595,3 +642,116 @@ def test_glass_option_parsing(spec, expect):
     assert glass_spec(spec) == ("X", expect)
     with pytest.raises(LensError):
         glass_spec("no-equals-sign")
+
+
+# ----------------------------------------------------------------------------------------- CODE V
+SEQ = """RDM;LEN "a test"
+TITLE 'singlet & stop' ! a comment; not a command
+EPD 10.0; DIM M
+WL 656.2725 587.5618 486.1327; REF 2
+YAN 0.0 10.0
+SO 0.0 1e10
+S 0.0 5.0
+  STO
+S 50.0 6.0 NBK7_SCHOTT
+  CIR 12.0; CIR EDG 13.0
+S -200.0 &
+   90.0
+  ASP; K -1.5
+  A 1.0e-6; B -2.0e-9
+SI 0.0 0.5
+"""
+
+
+def test_codev_small_file(tmp_path):
+    p = write(tmp_path, SEQ, "lens.seq")
+    assert F.detect_format(p) == "codev"
+    lens = nl.Lens.load(p)
+    md = lens.metadata["codev"]
+    st, s2, s3 = lens.surfaces
+    assert st.is_stop and st.thickness == 5.0 and st.semi_diameter == pytest.approx(5.0)
+    assert s2.radius == 50.0 and s2.medium == catalog_glass("N-BK7") and s2.semi_diameter == 12.0
+    assert s2.housing_radius == 13.0
+    assert s3.radius == -200.0 and s3.conic == -1.5 and s3.aspheric == (1e-6, -2e-9)
+    assert s3.thickness == 90.5 and md["image_defocus_mm"] == 0.5          # SI thickness = defocus
+    assert list(md["estimated_semi_diameters"]) == ["3"]                  # no CIR on surface 3
+    assert md["primary_wavelength_nm"] == 587.5618
+    assert lens.metadata["description"] == "singlet & stop"
+    # the same lens in curvatures and centimetres
+    cv = (SEQ.replace("RDM;LEN", "RDM N;LEN").replace("DIM M", "DIM C").replace("EPD 10.0", "EPD 1.0")
+          .replace("S 0.0 5.0", "S 0.0 0.5").replace("S 50.0 6.0", "S 0.2 0.6").replace("CIR 12.0; CIR EDG 13.0",
+          "CIR 1.2; CIR EDG 1.3").replace("S -200.0 &\n   90.0", "S -0.05 9.0").replace("A 1.0e-6; B -2.0e-9",
+          "A 1.0e-3; B -2.0e-4").replace("SI 0.0 0.5", "SI 0.0 0.05"))
+    other = nl.Lens.load(write(tmp_path, cv, "cm.seq"))
+    for a, b in zip(other.surfaces, lens.surfaces):
+        for f in ("radius", "thickness", "semi_diameter", "conic", "housing_radius"):
+            assert getattr(a, f) == pytest.approx(getattr(b, f), rel=1e-12), f
+        np.testing.assert_allclose(a.aspheric, b.aspheric, rtol=1e-12)
+
+
+@pytest.mark.parametrize("glass,nd,vd", [("517000.520000", 1.517, 52.0), ("500.700", 1.5, 70.0),
+                                         ("1.6968:55.53", None, None)])
+def test_codev_glass_codes(tmp_path, glass, nd, vd):
+    p = write(tmp_path, SEQ.replace("NBK7_SCHOTT", glass), "g.seq")
+    if nd is None:
+        with pytest.raises(LensError) as ei:
+            nl.Lens.load(p)
+        where_ok(ei, p, surface=2, field="S")
+        return
+    m = nl.Lens.load(p).surfaces[1].medium
+    assert m.nd == pytest.approx(nd, abs=1e-12) and m.vd == pytest.approx(vd, rel=1e-9)
+
+
+def test_codev_private_glass(tmp_path):
+    text = SEQ.replace("SO 0.0 1e10", "PRV\n PWL 656.3 587.6 486.1\n 'E48' 1.527 1.5306 1.5378\nEND\nSO 0.0 1e10")
+    lens = nl.Lens.load(write(tmp_path, text.replace("NBK7_SCHOTT", "'E48'"), "p.seq"))
+    m = lens.surfaces[1].medium
+    assert m.formula == "table" and float(m.index(587.6)) == pytest.approx(1.5306)
+
+
+@pytest.mark.parametrize("change,keyword,surface", [
+    (("NBK7_SCHOTT", "NBK7_SCHOTT REFL"), "S", 2),
+    (("NBK7_SCHOTT", "REFL"), "REFL", 2),
+    (("  STO\n", "  STO\n  ADE 2.0\n"), "ADE", 1),
+    (("  STO\n", "  STO\n  YDE 0.1\n"), "YDE", 1),
+    (("  CIR 12.0;", "  CIR OBS 2.0; CIR 12.0;"), "CIR", 2),
+    (("  STO\n", ""), "STO", None),
+    (("RDM;LEN", "LEN"), "RDM", None),
+    (("EPD 10.0", "NAO 0.1"), "NAO", None),
+    (("NBK7_SCHOTT", "NBK77_SCHOTT"), "S", 2),
+    (("NBK7_SCHOTT", "NBK7_NOSUCHCAT"), "S", 2),
+    (("CIR 12.0;", "CIR 55.0;"), "CIR", 2),
+    (("SI 0.0 0.5\n", ""), "SI", None),
+    (("S -200.0 &\n   90.0", "S -200.0 9x0"), "S", 3),
+    (("  ASP; K -1.5", "  ASP; K -1.5; CIR S2 3.0"), "CIR", 3),
+    (("SI 0.0 0.5", "SI -100.0 0.5"), "SI", 4),
+])
+def test_codev_refusals(tmp_path, change, keyword, surface):
+    text = SEQ.replace(*change)
+    assert text != SEQ
+    p = write(tmp_path, text, "bad.seq")
+    with pytest.raises(LensError) as ei:
+        nl.Lens.load(p)
+    where_ok(ei, p, surface=surface, field=keyword)
+
+
+def test_codev_truncated(tmp_path):
+    lines = SEQ.splitlines()
+    for c in range(7, len(lines)):                                   # from the first S line on
+        p = write(tmp_path, "\n".join(lines[:c]) + "\n", f"cut{c}.seq")
+        with pytest.raises(LensError) as ei:
+            nl.Lens.load(p)
+        assert str(p) in str(ei.value) and ei.value.field is not None
+    p = write(tmp_path, SEQ.split("   90.0")[0], "amp.seq")        # ends with '&'
+    with pytest.raises(LensError, match="truncated"):
+        nl.Lens.load(p)
+
+
+def test_codev_radius_mode_option():
+    rel = "codev/tests/singlet.seq"
+    with pytest.raises(LensError) as ei:                            # curvatures given, but no stop
+        nl.Lens.load(RO / rel, radius_mode=False)
+    where_ok(ei, RO / rel, field="STO")
+    with pytest.raises(LensError) as ei:                            # the file says RDM: no override
+        nl.Lens.load(RO / "codev/tests/ag_dblgauss.seq", radius_mode=True)
+    where_ok(ei, RO / "codev/tests/ag_dblgauss.seq", field="RDM")

@@ -8,6 +8,7 @@
 * LensVisualizer JSON (``{"surfaces": [{"label", "R", "d", "nd", "elemId", "sd"}], "elements": [...]}``)
   — :mod:`.lensvisualizer`
 * Zemax OpticStudio sequential ``.zmx`` (UTF-16 or UTF-8; ``SURF n`` blocks) — :mod:`.zemax`
+* CODE V sequence files ``.seq`` (``SO``/``S``/``SI`` commands) — :mod:`.codev`
 * a bundled lens name (a file ``lenses/<name>.json``) — :func:`bundled_lens_path`
 
 :func:`convert_bundled` regenerates the bundled lenses from the shared lens data
@@ -23,6 +24,7 @@ from typing import Any, Callable
 from ...errors import LensError
 from ..prescription import Lens
 from ._common import Ctx, loads_json, sha256_file
+from .codev import looks_like_codev, read_codev
 from .lensvisualizer import looks_like_lensvisualizer, read_lensvisualizer
 from .ood import looks_like_ood, read_ood
 from .pbrt import looks_like_pbrt, read_pbrt
@@ -40,6 +42,7 @@ FORMATS = {
     "ood": "Open Optical Designer JSON (surfaces with radius_of_curvature/aperture_radius/material, env_* settings)",
     "lensvisualizer": "LensVisualizer JSON (surfaces {label, R, d, nd, elemId, sd} + elements[] + asph)",
     "zemax": "Zemax OpticStudio sequential .zmx (UTF-16 or UTF-8 text: SURF blocks with TYPE STANDARD/EVENASPH)",
+    "codev": "CODE V sequence file .seq (RDM, DIM, EPD/FNO, WL, then SO / S ... / SI commands)",
 }
 
 
@@ -127,9 +130,12 @@ def _detect_text(ctx: Ctx, text: str):
         return _detect_doc(ctx, doc), doc
     if looks_like_zemax(text):
         return "zemax", text
+    if looks_like_codev(text):
+        return "codev", text
     if looks_like_pbrt(text):
         return "pbrt", text
-    raise ctx.error(f"not a recognised lens file (not JSON, not Zemax SURF blocks, not rows of numbers); "
+    raise ctx.error(f"not a recognised lens file (not JSON, not Zemax SURF blocks, not CODE V SO/S/SI commands, "
+                    f"not rows of numbers); "
                     f"supported formats: "
                     f"{_format_list()}")
 
@@ -140,10 +146,11 @@ _READERS: dict[str, Callable[..., Lens]] = {
     "ood": lambda doc, file, **kw: read_ood(doc, file=file, **kw),
     "lensvisualizer": lambda doc, file, **kw: read_lensvisualizer(doc, file=file, **kw),
     "zemax": lambda text, file, **kw: read_zemax(text, file=file, **kw),
+    "codev": lambda text, file, **kw: read_codev(text, file=file, **kw),
 }
 _OPTIONS = {"project": lens_from_dict, "pbrt": read_pbrt, "ood": read_ood, "lensvisualizer": read_lensvisualizer,
-            "zemax": read_zemax}
-_TEXT_FORMATS = ("pbrt", "zemax")
+            "zemax": read_zemax, "codev": read_codev}
+_TEXT_FORMATS = ("pbrt", "zemax", "codev")
 
 
 def _check_options(ctx: Ctx, fmt: str, kw: dict) -> None:
@@ -158,10 +165,10 @@ def _check_options(ctx: Ctx, fmt: str, kw: dict) -> None:
 def load_lens(path_or_name, *, format: str | None = None, **kw) -> Lens:
     """Read a lens: a file in any supported format (detected from the content) or a bundled name.
 
-    ``format`` forces a reader (``"project"``, ``"pbrt"``, ``"ood"``, ``"lensvisualizer"``, ``"zemax"``).
-    Other keyword options go to the reader: pbrt ``layout=``; Open Optical Designer ``stop_radius=``;
-    LensVisualizer ``focus=``, ``zoom=``; Zemax ``glasses=``, ``stop_radius=``; every reader but the
-    project one ``name=``.
+    ``format`` forces a reader (``"project"``, ``"pbrt"``, ``"ood"``, ``"lensvisualizer"``, ``"zemax"``,
+    ``"codev"``).  Other keyword options go to the reader: pbrt ``layout=``; Open Optical Designer
+    ``stop_radius=``; LensVisualizer ``focus=``, ``zoom=``; Zemax and CODE V ``glasses=``,
+    ``stop_radius=``; CODE V ``radius_mode=``; every reader but the project one ``name=``.
     A :class:`Lens` is returned as is; a ``dict`` is read as a parsed JSON document.
     """
     if isinstance(path_or_name, Lens):
@@ -331,4 +338,4 @@ def _conversion_notes(lens: Lens) -> list[str]:
 
 __all__ = ["load_lens", "save_lens", "lens_to_dict", "lens_from_dict", "load_project_json", "bundled_lenses",
            "bundled_lens_path", "lenses_dir", "detect_format", "convert_bundled", "convert_file", "FORMATS", "BUNDLED",
-           "read_pbrt", "read_ood", "read_lensvisualizer", "read_zemax"]
+           "read_pbrt", "read_ood", "read_lensvisualizer", "read_zemax", "read_codev"]

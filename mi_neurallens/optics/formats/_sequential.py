@@ -15,7 +15,9 @@ validated :class:`~mi_neurallens.optics.prescription.Lens`:
   surface.  A stop on a lens surface (curved, aspheric or between two media, as in most catalogue
   singlets) becomes a flat stop in the plane of that surface's vertex — paraxially the same place —
   inserted in front of the surface when the surface's sag is ≥ 0 across its semi-diameter (it bulges
-  toward the object, or is flat), behind it otherwise, so that the two never cross.
+  toward the object, or is flat), behind it when the sag is ≤ 0, so that the two never cross.  When
+  the sag has both signs (some aspheres), the stop goes in front, where the surface reaches farthest
+  forward, and the metadata records that shift.
 * **The stop radius** is chosen so that the paraxial entrance pupil at the primary wavelength matches
   the file's system aperture: ``("epd", D)`` gives an entrance-pupil radius D/2, ``("fno", N)`` an
   entrance-pupil diameter EFL/N (image-space f-number, object at infinity), ``("float", None)`` keeps
@@ -112,9 +114,8 @@ def build_lens(ctx: Ctx, surfaces: list[SeqSurface], *, keywords: dict, object_m
         if len(s.aspheric) > MAX_ASPHERIC:
             raise ctx.error(f"{len(s.aspheric)} polynomial terms; at most A4 … A16 ({MAX_ASPHERIC}) are supported"
                             f"{s.where(kw['aspheric'])}", surface=s.number, field=kw["aspheric"])
-        plain_dummy = s.is_plain and not s.stop
-        if plain_dummy:
-            continue  # a dummy or a flat refracting surface: no sag limit (checked below if it is kept)
+        if s.is_plain:
+            continue  # a dummy, a flat stop or a flat refracting surface: checked below where it needs one
         _check_semi_diameter(ctx, s, kw)
 
     # -- the surfaces of our lens
@@ -158,14 +159,32 @@ def build_lens(ctx: Ctx, surfaces: list[SeqSurface], *, keywords: dict, object_m
         surf = _surface(s)
         if s.stop:
             r = np.linspace(0.0, s.semi_diameter, 257)
-            front = bool(np.nanmin(surf.sag(r)) >= -1e-9)
+            sag = surf.sag(r)
+            lo, hi = float(np.nanmin(sag)), float(np.nanmax(sag))
+            front = lo >= -1e-9 or hi > 1e-9     # sag ≥ 0, or of both signs: in front
+            shift = 0.0 if lo >= -1e-9 or hi <= 1e-9 else -lo
             stop_info = {"placed": (f"a flat stop in the vertex plane of surface {s.number} (which carries the file's "
                                     f"stop), {'in front of' if front else 'behind'} it"),
                          "file_semi_diameter_mm": s.semi_diameter}
+            if shift:
+                # the sag changes sign: no plane through the vertex clears the surface; the stop goes
+                # where the surface is farthest forward, and the gap in front of it gives way
+                stop_info["placed"] = (f"a flat stop {shift:.6g} mm in front of the vertex of surface {s.number} (which "
+                                       "carries the file's stop; its sag changes sign, so no plane through the "
+                                       "vertex clears it)")
+                stop_info["shift_mm"] = shift
+                if out:
+                    if out[-1].thickness < shift:
+                        raise ctx.error(f"the stop on surface {s.number} cannot be placed: the surface's sag changes "
+                                        f"sign and reaches {shift:.4g} mm in front of its vertex, farther than the "
+                                        f"gap in front of it", surface=s.number, field=stop_keyword)
+                    out[-1] = _replace(out[-1], thickness=out[-1].thickness - shift)
+                else:
+                    z_first -= shift
             stop_kw = dict(radius=math.inf, conic=0.0, aspheric=(), housing_radius=None, is_stop=True,
                            label="STO", semi_diameter=s.semi_diameter)
             if front:
-                out += [_surface(s, thickness=0.0, medium=before, **stop_kw), surf]
+                out += [_surface(s, thickness=shift, medium=before, **stop_kw), surf]
                 roles += ["inserted stop", "surface"]
             else:
                 out += [_replace(surf, thickness=0.0), _surface(s, **stop_kw)]
