@@ -634,6 +634,22 @@ def test_cli_convert(tmp_path, capsys):
     assert nl.Lens.load(out2).fingerprint() == nl.Lens.load("wide-22mm").fingerprint()
 
 
+def test_cli_info_and_plot_read_design_files(tmp_path, capsys):
+    from mi_neurallens.cli import main
+    src = RO / "codev/tests/ag_dblgauss.seq"
+    assert main(["lens", "info", str(src), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    lens = nl.Lens.load(src)
+    assert d["efl"] == lens.efl() and d["fingerprint"] == lens.fingerprint()
+    assert d["fnumber"] == pytest.approx(2.0, rel=1e-3)                       # EPD 50, EFL 100
+    out = tmp_path / "layout.png"
+    assert main(["lens", "plot", str(RO / "zemax/tests/zmax_55278.zmx"), "-o", str(out), "--rays", "3",
+                 "--fields", "0", "--wavelengths", "587.6", "--dpi", "50"]) == 0
+    with open(out, "rb") as f:
+        head = f.read(24)
+    assert head[:8] == b"\x89PNG\r\n\x1a\n" and int.from_bytes(head[16:20], "big") < 700   # 50 dpi
+
+
 @pytest.mark.parametrize("spec,expect", [
     ("X=N-BK7", "N-BK7"), ("X=1.5", 1.5), ("X=1.5891/61.16", {"nd": 1.5891, "vd": 61.16}),
     ('X={"glass": "S-TIM28", "catalog": "Ohara"}', {"glass": "S-TIM28", "catalog": "Ohara"})])
@@ -755,3 +771,43 @@ def test_codev_radius_mode_option():
     with pytest.raises(LensError) as ei:                            # the file says RDM: no override
         nl.Lens.load(RO / "codev/tests/ag_dblgauss.seq", radius_mode=True)
     where_ok(ei, RO / "codev/tests/ag_dblgauss.seq", field="RDM")
+
+
+# ----------------------------------------------------------------------------------------- the table
+if __name__ == "__main__":  # `PYTHONPATH=. python3 tests/test_zemax.py`: the table in docs/lens-format.md
+    import logging
+    import tempfile
+
+    class _Factory:
+        def mktemp(self, name):
+            return Path(tempfile.mkdtemp(prefix=name))
+
+    warnings.simplefilter("ignore")
+    gen = ro_open._get_wrapped_function()(_Factory())
+    get = next(gen)
+    print("| file | primary nm | EFL mm | EFL rel. diff | BFL mm | BFL rel. diff | rays | max Δpos mm | max Δdir |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for rel in sorted(ACCEPTED, key=lambda r: (not r.endswith((".zmx", ".ZMX")), r.lower())):
+        lens, opm = load(rel), get(rel)
+        md = md_of(lens)
+        pw = md["primary_wavelength_nm"]
+        sm = opm["seq_model"]
+        shift = md["first_vertex_z_in_file"] + float(lens.vertex_z[-1]) - sum(g.thi for g in sm.gaps[1:-1])
+        with _ro_media(opm, lens, pw):
+            efl, bfl = _ro_first_order(opm)
+        rng = np.random.default_rng(19)
+        dp = dd = 0.0
+        n = 0
+        for lam in WAVELENGTHS:
+            o, d, z0 = _rays(lens, lam, rng)
+            ours = lens.trace(o, d, lam, precision="float64")
+            o, d = o[ours.valid], d[ours.valid]
+            with _ro_media(opm, lens, lam):
+                pos, dirs, _ = _ro_trace(opm, lens, o, d, z0, lam)
+            ok = np.isfinite(pos).all(1)
+            n += int(ok.sum())
+            dp = max(dp, float(np.abs(ours.position[ours.valid][ok] - pos[ok]).max()))
+            dd = max(dd, float(np.abs(ours.direction[ours.valid][ok] - dirs[ok]).max()))
+        b = lens.bfl(pw) + shift
+        print(f"| {Path(rel).name} | {pw:g} | {lens.efl(pw):.6f} | {abs(lens.efl(pw) / efl - 1):.0e} | {b:.6f} | "
+              f"{abs(b / bfl - 1):.0e} | {n} | {dp:.0e} | {dd:.0e} |")

@@ -1,13 +1,13 @@
 """``mi-neurallens lens``: inspect, list and draw lens prescriptions.
 
   lens info PATH [--json] [--wavelength NM]   the prescription and every paraxial number
-  lens plot PATH [-o layout.png] [--fields DEG ...] [--wavelengths NM ...] [--rays N]
+  lens plot PATH [-o layout.png] [--fields DEG ...] [--wavelengths NM ...] [--rays N] [--dpi N]
   lens list [--json]                          the bundled lenses with EFL and f-number
   lens convert IN OUT.json [--name NAME] [--glass NAME=SPEC ...] [--stop-radius MM]
                                               any readable lens file -> project JSON (atomic write)
 
 PATH is a lens file (project JSON, pbrt .dat, Open Optical Designer JSON, LensVisualizer JSON,
-Zemax .zmx) or the name of a bundled lens (``lens list``).  Lengths are in mm; ``*_z`` are lens-space positions
+Zemax .zmx, CODE V .seq) or the name of a bundled lens (``lens list``).  Lengths are in mm; ``*_z`` are lens-space positions
 (first vertex at z = 0, +z toward the sensor).
 """
 from __future__ import annotations
@@ -43,6 +43,7 @@ def add_parser(subparsers):
                     default=[486.13, 587.56, 656.27], help="wavelengths in nm (default F, d, C lines)")
     pp.add_argument("--rays", type=int, default=11, metavar="N", help="rays per fan (default 11)")
     pp.add_argument("--title", help="extra first title line")
+    pp.add_argument("--dpi", type=int, default=150, help="resolution of raster output (default 150)")
     pp.set_defaults(func=run_plot)
 
     pl = sub.add_parser("list", help="list the bundled lenses with EFL and f-number")
@@ -57,11 +58,12 @@ def add_parser(subparsers):
     pc.add_argument("output", metavar="OUT", help="project JSON file to write")
     pc.add_argument("--name", help="lens name to store (default: the reader's, usually the file name)")
     pc.add_argument("--glass", action="append", default=[], metavar="NAME=SPEC",
-                    help="Zemax: replace the file's glass NAME by SPEC: a catalogue glass (N-BK7), a "
+                    help="Zemax/CODE V: replace the file's glass NAME by SPEC: a catalogue glass (N-BK7), a "
                          "constant index (1.5), nd/Vd of a model glass (1.5891/61.16) or a JSON medium "
                          "('{\"nd\": 1.5891, \"vd\": 61.16}'); repeatable")
     pc.add_argument("--stop-radius", type=float, metavar="MM",
-                    help="Zemax/Open Optical Designer: the stop radius in mm instead of the file's aperture")
+                    help="Zemax/CODE V/Open Optical Designer: the stop radius in mm instead of the file's "
+                         "aperture")
     pc.set_defaults(func=run_convert)
 
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
@@ -245,7 +247,7 @@ def run_plot(args) -> int:
     lens = _load(args.path)
     out = args.output or f"{lens.name}-layout.png"
     path = plot_lens(lens, out, fields_deg=args.fields, wavelengths_nm=tuple(args.wavelengths),
-                     rays_per_fan=args.rays, title=args.title)
+                     rays_per_fan=args.rays, title=args.title, dpi=args.dpi)
     print(f"wrote {path} ({os.path.getsize(path)} bytes)")
     return 0
 
