@@ -763,6 +763,14 @@ def test_codev_truncated(tmp_path):
         nl.Lens.load(p)
 
 
+def test_codev_stop_on_a_lens_surface_without_cir(tmp_path):
+    text = "RDM\nEPD 10; WL 587.56\nSO 0 1e10\nS 50 6 NBK7_SCHOTT\n  STO\nS -50 45\nSI 0 0\n"
+    lens = nl.Lens.load(write(tmp_path, text, "s.seq"))
+    assert [s.label for s in lens.surfaces] == ["STO", "1", "2"] and lens.stop.semi_diameter == pytest.approx(5.0)
+    est = lens.metadata["codev"]["estimated_semi_diameters"]
+    assert set(est) == {"1", "2"} and est["1"] == pytest.approx(1.02 * 5.0)    # on axis: the marginal ray
+
+
 def test_codev_radius_mode_option():
     rel = "codev/tests/singlet.seq"
     with pytest.raises(LensError) as ei:                            # curvatures given, but no stop
@@ -775,7 +783,6 @@ def test_codev_radius_mode_option():
 
 # ----------------------------------------------------------------------------------------- the table
 if __name__ == "__main__":  # `PYTHONPATH=. python3 tests/test_zemax.py`: the table in docs/lens-format.md
-    import logging
     import tempfile
 
     class _Factory:

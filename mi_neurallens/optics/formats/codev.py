@@ -468,15 +468,20 @@ def _glass_code(code: str) -> tuple[float, float]:
 
 
 def _default_semi_diameters(ctx, seq, object_medium, ap, wavelength, fields, scale, object_distance):
-    """Fill in the semi-diameter of surfaces without CIR: 1.05 × (|marginal| + |chief|) paraxial heights,
-    capped at 99.9 % of what the surface allows.  Returns {surface: semi-diameter}."""
-    missing = [s for s in seq if s.semi_diameter is None and not s.stop]
+    """Fill in the semi-diameter of surfaces without CIR: 1.02 × the largest paraxial height of the
+    fields' beams (chief ray ± the marginal height shrunk by VUY/VLY), for an object at infinity,
+    capped at 99.9 % of what the surface allows.  A flat stop between equal media needs none (its
+    radius comes from the aperture).  Returns {surface: semi-diameter}."""
+    before, missing = object_medium, []
+    for s in seq:
+        if s.semi_diameter is None and not (s.stop and s.is_plain and s.medium == before):
+            missing.append(s)
+        before = s.medium
     if not missing:
         return {}
     # paraxial y-nu trace with the file's thicknesses; the stop sits at its surface's vertex
     n0 = float(object_medium.index(wavelength))
     ns = [float(s.medium.index(wavelength)) for s in seq]
-    zs = np.concatenate([[0.0], np.cumsum([s.thickness for s in seq[:-1]])])
     si = next(i for i, s in enumerate(seq) if s.stop)
 
     def trace(y, nu):
@@ -492,7 +497,6 @@ def _default_semi_diameters(ctx, seq, object_medium, ap, wavelength, fields, sca
     # unit rays to locate the entrance pupil (image of the stop in object space)
     ya, yb = trace(1.0, 0.0), trace(0.0, n0)
     # a ray (y0, u0) at z=0 crosses the stop at ya[si]*y0 + yb[si]*u0 = 0 for the chief ray
-    u_chief_per_deg = 0.0
     kind, value = ap
     epr = None
     if ya[si] != 0.0:
@@ -523,11 +527,8 @@ def _default_semi_diameters(ctx, seq, object_medium, ap, wavelength, fields, sca
         lo = 1.0 - (vly[j] if j < len(vly) else 0.0)
         rim = np.maximum(rim, np.maximum(np.abs(yc + up * ym), np.abs(yc - lo * ym)))
     out = {}
-    before = object_medium
     for i, s in enumerate(seq):
-        dummy_stop = s.stop and s.is_plain and s.medium == before   # its radius comes from the aperture
-        before = s.medium
-        if s.semi_diameter is None and not dummy_stop:
+        if s in missing:
             sd = 1.02 * rim[i]
             lim = max_semi_diameter(s.curvature, s.conic)
             sd = min(sd, 0.999 * lim)

@@ -28,7 +28,7 @@ import os
 from pathlib import Path
 import re
 
-from ...errors import GlassError, LensError
+from ...errors import GlassError
 from ..glass import AIR, CATALOGS, Medium, catalog_glass, constant, model_glass
 from ..prescription import Lens
 from ._common import Ctx, resolve
