@@ -278,7 +278,7 @@ def test_reader_option_for_wrong_format(tmp_path):
         F.load_lens(p, layout="axpos")
     where_ok(e, p, field="layout")
     with pytest.raises(LensError, match="unknown format"):
-        F.load_lens(p, format="zemax")
+        F.load_lens(p, format="oslo")
 
 
 # ============================================================================ project JSON

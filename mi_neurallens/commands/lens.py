@@ -1,11 +1,13 @@
 """``mi-neurallens lens``: inspect, list and draw lens prescriptions.
 
   lens info PATH [--json] [--wavelength NM]   the prescription and every paraxial number
-  lens plot PATH [-o layout.png] [--fields DEG ...] [--wavelengths NM ...] [--rays N]
+  lens plot PATH [-o layout.png] [--fields DEG ...] [--wavelengths NM ...] [--rays N] [--dpi N]
   lens list [--json]                          the bundled lenses with EFL and f-number
+  lens convert IN OUT.json [--name NAME] [--glass NAME=SPEC ...] [--stop-radius MM]
+                                              any readable lens file -> project JSON (atomic write)
 
-PATH is a lens file (project JSON, pbrt .dat, Open Optical Designer JSON, LensVisualizer JSON) or
-the name of a bundled lens (``lens list``).  Lengths are in mm; ``*_z`` are lens-space positions
+PATH is a lens file (project JSON, pbrt .dat, Open Optical Designer JSON, LensVisualizer JSON,
+Zemax .zmx, CODE V .seq) or the name of a bundled lens (``lens list``).  Lengths are in mm; ``*_z`` are lens-space positions
 (first vertex at z = 0, +z toward the sensor).
 """
 from __future__ import annotations
@@ -43,11 +45,28 @@ def add_parser(subparsers):
                     default=[LAMBDA_F, LAMBDA_D, LAMBDA_C], help="wavelengths in nm (default F, d, C lines)")
     pp.add_argument("--rays", type=int, default=11, metavar="N", help="rays per fan (default 11)")
     pp.add_argument("--title", help="extra first title line")
+    pp.add_argument("--dpi", type=int, default=150, help="resolution of raster output (default 150)")
     pp.set_defaults(func=run_plot)
 
     pl = sub.add_parser("list", help="list the bundled lenses with EFL and f-number")
     pl.add_argument("--json", action="store_true", help="print JSON instead of text")
     pl.set_defaults(func=run_list)
+
+    pc = sub.add_parser("convert", help="convert any readable lens file to project JSON",
+                        description="Read IN in any supported format and write project JSON to OUT "
+                                    "(atomically: a temporary file renamed over OUT), so that a converted "
+                                    "lens can be checked into a scene's folder.")
+    pc.add_argument("input", metavar="IN", help="lens file (any supported format) or bundled lens name")
+    pc.add_argument("output", metavar="OUT", help="project JSON file to write")
+    pc.add_argument("--name", help="lens name to store (default: the reader's, usually the file name)")
+    pc.add_argument("--glass", action="append", default=[], metavar="NAME=SPEC",
+                    help="Zemax/CODE V: replace the file's glass NAME by SPEC: a catalogue glass (N-BK7), a "
+                         "constant index (1.5), nd/Vd of a model glass (1.5891/61.16) or a JSON medium "
+                         "('{\"nd\": 1.5891, \"vd\": 61.16}'); repeatable")
+    pc.add_argument("--stop-radius", type=float, metavar="MM",
+                    help="Zemax/CODE V/Open Optical Designer: the stop radius in mm instead of the file's "
+                         "aperture")
+    pc.set_defaults(func=run_convert)
 
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
     return p
@@ -230,7 +249,7 @@ def run_plot(args) -> int:
     lens = _load(args.path)
     out = args.output or f"{lens.name}-layout.png"
     path = plot_lens(lens, out, fields_deg=args.fields, wavelengths_nm=tuple(args.wavelengths),
-                     rays_per_fan=args.rays, title=args.title)
+                     rays_per_fan=args.rays, title=args.title, dpi=args.dpi)
     print(f"wrote {path} ({os.path.getsize(path)} bytes)")
     return 0
 
@@ -254,4 +273,43 @@ def run_list(args) -> int:
         desc = desc if len(desc) <= 70 else desc[:69] + "…"
         print(f"{r['name']:<{w}}  {r['efl']:>9.3f}  {r['fnumber']:>6.2f}  {r['surfaces']:>4}  {desc}")
     print("(paraxial at 587.56 nm, stop fully open; `mi-neurallens lens info NAME` for details)")
+    return 0
+
+
+def glass_spec(text: str):
+    """``--glass NAME=SPEC`` -> (NAME, medium spec for ``resolve_medium``)."""
+    from ..errors import LensError
+    name, sep, spec = text.partition("=")
+    name, spec = name.strip(), spec.strip()
+    if not sep or not name or not spec:
+        raise LensError(f"--glass {text!r}: expected NAME=SPEC, e.g. D-ZK3M=D-ZK3 or B270=1.5231/58.5",
+                        field="--glass")
+    if spec.startswith("{"):
+        try:
+            return name, json.loads(spec)
+        except json.JSONDecodeError as e:
+            raise LensError(f"--glass {text!r}: not valid JSON: {e.msg}", field="--glass") from None
+    parts = spec.split("/")
+    try:
+        nums = [float(x) for x in parts]
+    except ValueError:
+        return name, spec
+    if len(nums) == 1:
+        return name, nums[0]
+    if len(nums) == 2:
+        return name, {"nd": nums[0], "vd": nums[1]}
+    raise LensError(f"--glass {text!r}: SPEC is a glass name, a number, nd/Vd or a JSON object", field="--glass")
+
+
+def run_convert(args) -> int:
+    from ..optics.formats import convert_file
+    opts = {}
+    if args.glass:
+        opts["glasses"] = dict(glass_spec(g) for g in args.glass)
+    if args.stop_radius is not None:
+        opts["stop_radius"] = args.stop_radius
+    lens = convert_file(args.input, args.output, name=args.name, **opts)
+    p = lens.paraxial()
+    print(f"wrote {args.output}: {lens.name}, {len(lens.surfaces)} surfaces, EFL {p.efl:.4f} mm, f/{p.fnumber:.3f} "
+          f"(fingerprint {lens.fingerprint()})")
     return 0

@@ -217,8 +217,8 @@ class Lens:
     # ------------------------------------------------------------------ I/O, optics (thin wrappers)
     @staticmethod
     def load(path, **kw) -> "Lens":
-        """Read a prescription: project JSON, pbrt ``.dat`` or Open Optical Designer JSON
-        (detected from the content), or the name of a bundled lens (see ``lenses/``)."""
+        """Read a prescription: project JSON, pbrt ``.dat``, Open Optical Designer or LensVisualizer JSON,
+        Zemax ``.zmx`` (detected from the content), or the name of a bundled lens (see ``lenses/``)."""
         from .formats import load_lens
         return load_lens(path, **kw)
 

@@ -145,7 +145,7 @@ def load_lens(spec: str, plugin: str = "realistic_lens", prop: str = "lens"):
     looks_like_file = os.path.exists(path) or os.sep in spec or "." in os.path.basename(spec)
     if not os.path.exists(path) and spec not in names and looks_like_file:
         raise SensorPropertyError(plugin, prop, f"lens file {spec!r} not found; give a path to a lens "
-                                  f"file (project JSON, pbrt .dat, OOD .json) or one of the bundled "
+                                  f"file (project JSON, pbrt .dat, OOD .json, Zemax .zmx) or one of the bundled "
                                   f"lenses: {', '.join(names) or '(none installed)'}")
     try:
         return Lens.load(path)

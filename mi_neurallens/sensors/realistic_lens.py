@@ -21,8 +21,8 @@ Realistic lens camera (:monosp:`realistic_lens`)
 
  * - lens
    - |string|
-   - Lens prescription: a file (project JSON, pbrt ``.dat``, Open Optical Designer ``.json``; relative
-     paths are resolved like other scene files) or the name of a bundled lens (``wide-22mm``,
+   - Lens prescription: a file (project JSON, pbrt ``.dat``, Open Optical Designer ``.json``, Zemax
+     ``.zmx``; relative paths are resolved like other scene files) or the name of a bundled lens (``wide-22mm``,
      ``ood-59mm``, ``canon-ef-24mm-f1.4l``, ``dgauss-50mm``, ``fisheye-10mm``, ``telephoto-250mm``).
      (Default: ``wide-22mm``)
 

@@ -7,6 +7,8 @@
 * Open Optical Designer JSON (``{"surfaces": [{"radius_of_curvature": ...}], "env_...": ...}``) — :mod:`.ood`
 * LensVisualizer JSON (``{"surfaces": [{"label", "R", "d", "nd", "elemId", "sd"}], "elements": [...]}``)
   — :mod:`.lensvisualizer`
+* Zemax OpticStudio sequential ``.zmx`` (UTF-16 or UTF-8; ``SURF n`` blocks) — :mod:`.zemax`
+* CODE V sequence files ``.seq`` (``SO``/``S``/``SI`` commands) — :mod:`.codev`
 * a bundled lens name (a file ``lenses/<name>.json``) — :func:`bundled_lens_path`
 
 :func:`convert_bundled` regenerates the bundled lenses from the shared lens data
@@ -22,9 +24,11 @@ from typing import Any, Callable
 from ...errors import LensError
 from ..prescription import Lens
 from ._common import Ctx, loads_json, sha256_file
+from .codev import looks_like_codev, read_codev
 from .lensvisualizer import looks_like_lensvisualizer, read_lensvisualizer
 from .ood import looks_like_ood, read_ood
 from .pbrt import looks_like_pbrt, read_pbrt
+from .zemax import decode as _decode_zemax, looks_like_zemax, read_zemax
 from .project_json import (FORMAT_ID, is_project_json, lens_from_dict, lens_to_dict, load_project_json,
                            save_lens)
 
@@ -37,6 +41,8 @@ FORMATS = {
     "pbrt": "pbrt lens file (.dat: rows of radius, thickness, eta, aperture diameter in mm; '#' comments)",
     "ood": "Open Optical Designer JSON (surfaces with radius_of_curvature/aperture_radius/material, env_* settings)",
     "lensvisualizer": "LensVisualizer JSON (surfaces {label, R, d, nd, elemId, sd} + elements[] + asph)",
+    "zemax": "Zemax OpticStudio sequential .zmx (UTF-16 or UTF-8 text: SURF blocks with TYPE STANDARD/EVENASPH)",
+    "codev": "CODE V sequence file .seq (RDM, DIM, EPD/FNO, WL, then SO / S ... / SI commands)",
 }
 
 
@@ -73,14 +79,24 @@ def _format_list() -> str:
 
 
 # ------------------------------------------------------------------------------------------ detection
-def _read_text(ctx: Ctx, path: Path) -> str:
+def _read_text(ctx: Ctx, path: Path) -> tuple[str, str]:
+    """The file as text: UTF-16 (with a byte-order mark, or the zero bytes of ASCII in UTF-16, as
+    OpticStudio writes ``.zmx`` files), UTF-8 or Latin-1; anything else with zero bytes is binary.
+    Returns the text and the encoding."""
     raw = path.read_bytes()
-    if b"\x00" in raw[:4096]:
+    head = raw[:4096]
+    utf16 = head[:2] in (b"\xff\xfe", b"\xfe\xff") or (len(head) >= 4 and (
+        head[1:4:2] == b"\x00\x00" or head[0:4:2] == b"\x00\x00"))
+    if utf16:
+        text, enc = _decode_zemax(ctx, raw)
+        if "\x00" not in text[:2048]:
+            return text, enc
+    if b"\x00" in head:
         raise ctx.error(f"binary file, not a lens prescription; supported formats: {_format_list()}")
     try:
-        return raw.decode("utf-8-sig")
+        return raw.decode("utf-8-sig"), "utf-8"
     except UnicodeDecodeError:
-        return raw.decode("latin-1")
+        return raw.decode("latin-1"), "latin-1"
 
 
 def _detect_doc(ctx: Ctx, doc: Any) -> str:
@@ -103,7 +119,7 @@ def _detect_doc(ctx: Ctx, doc: Any) -> str:
 def detect_format(path: str | os.PathLike) -> str:
     """The format id (a key of :data:`FORMATS`) of the file at ``path``, from its content."""
     ctx = Ctx(str(path))
-    text = _read_text(ctx, Path(path))
+    text, _ = _read_text(ctx, Path(path))
     return _detect_text(ctx, text)[0]
 
 
@@ -112,9 +128,15 @@ def _detect_text(ctx: Ctx, text: str):
     if s[:1] in ("{", "["):
         doc = loads_json(ctx, text)
         return _detect_doc(ctx, doc), doc
+    if looks_like_zemax(text):
+        return "zemax", text
+    if looks_like_codev(text):
+        return "codev", text
     if looks_like_pbrt(text):
         return "pbrt", text
-    raise ctx.error(f"not a recognised lens file (neither JSON nor rows of numbers); supported formats: "
+    raise ctx.error(f"not a recognised lens file (not JSON, not Zemax SURF blocks, not CODE V SO/S/SI commands, "
+                    f"not rows of numbers); "
+                    f"supported formats: "
                     f"{_format_list()}")
 
 
@@ -123,13 +145,17 @@ _READERS: dict[str, Callable[..., Lens]] = {
     "pbrt": lambda text, file, **kw: read_pbrt(text, file=file, **kw),
     "ood": lambda doc, file, **kw: read_ood(doc, file=file, **kw),
     "lensvisualizer": lambda doc, file, **kw: read_lensvisualizer(doc, file=file, **kw),
+    "zemax": lambda text, file, **kw: read_zemax(text, file=file, **kw),
+    "codev": lambda text, file, **kw: read_codev(text, file=file, **kw),
 }
-_OPTIONS = {"project": lens_from_dict, "pbrt": read_pbrt, "ood": read_ood, "lensvisualizer": read_lensvisualizer}
+_OPTIONS = {"project": lens_from_dict, "pbrt": read_pbrt, "ood": read_ood, "lensvisualizer": read_lensvisualizer,
+            "zemax": read_zemax, "codev": read_codev}
+_TEXT_FORMATS = ("pbrt", "zemax", "codev")
 
 
 def _check_options(ctx: Ctx, fmt: str, kw: dict) -> None:
     params = inspect.signature(_OPTIONS[fmt]).parameters
-    allowed = [p for p, v in params.items() if v.kind == v.KEYWORD_ONLY and p not in ("file", "path")]
+    allowed = [p for p, v in params.items() if v.kind == v.KEYWORD_ONLY and p not in ("file", "path", "encoding")]
     for k in kw:
         if k not in allowed:
             raise ctx.error(f"option '{k}' does not apply to a {fmt} file; its options: "
@@ -139,9 +165,10 @@ def _check_options(ctx: Ctx, fmt: str, kw: dict) -> None:
 def load_lens(path_or_name, *, format: str | None = None, **kw) -> Lens:
     """Read a lens: a file in any supported format (detected from the content) or a bundled name.
 
-    ``format`` forces a reader (``"project"``, ``"pbrt"``, ``"ood"``, ``"lensvisualizer"``).  Other
-    keyword options go to the reader: pbrt ``layout=``; Open Optical Designer ``stop_radius=``;
-    LensVisualizer ``focus=``, ``zoom=``; pbrt/OOD/LensVisualizer ``name=``.
+    ``format`` forces a reader (``"project"``, ``"pbrt"``, ``"ood"``, ``"lensvisualizer"``, ``"zemax"``,
+    ``"codev"``).  Other keyword options go to the reader: pbrt ``layout=``; Open Optical Designer
+    ``stop_radius=``; LensVisualizer ``focus=``, ``zoom=``; Zemax and CODE V ``glasses=``,
+    ``stop_radius=``; CODE V ``radius_mode=``; every reader but the project one ``name=``.
     A :class:`Lens` is returned as is; a ``dict`` is read as a parsed JSON document.
     """
     if isinstance(path_or_name, Lens):
@@ -151,8 +178,8 @@ def load_lens(path_or_name, *, format: str | None = None, **kw) -> Lens:
     if isinstance(path_or_name, dict):
         ctx = Ctx(None)
         fmt = format or _detect_doc(ctx, path_or_name)
-        if fmt == "pbrt":
-            raise LensError("a pbrt lens is text, not a dict: pass the file path", field="format")
+        if fmt in _TEXT_FORMATS:
+            raise LensError(f"a {fmt} lens is text, not a dict: pass the file path", field="format")
         _check_options(ctx, fmt, kw)
         return _READERS[fmt](path_or_name, None, **kw)
     if not isinstance(path_or_name, (str, os.PathLike)):
@@ -161,23 +188,47 @@ def load_lens(path_or_name, *, format: str | None = None, **kw) -> Lens:
     if not p.is_file():
         s = str(path_or_name)
         looks_like_path = isinstance(path_or_name, os.PathLike) or "/" in s or os.sep in s or p.suffix.lower() in (
-            ".json", ".dat", ".txt", ".len")
+            ".json", ".dat", ".txt", ".len", ".zmx", ".seq")
         if looks_like_path and not (lenses_dir() / f"{s}.json").is_file():
             names = bundled_lenses()
             raise LensError(f"file not found: {s} (bundled lenses: {', '.join(names) or 'none'})", file=s)
         p = bundled_lens_path(s)
     ctx = Ctx(str(p))
-    text = _read_text(ctx, p)
+    text, encoding = _read_text(ctx, p)
     if format is None:
         fmt, payload = _detect_text(ctx, text)
     else:
         fmt = format
-        payload = text if fmt == "pbrt" else loads_json(ctx, text)
+        payload = text if fmt in _TEXT_FORMATS else loads_json(ctx, text)
     _check_options(ctx, fmt, kw)
+    if fmt == "zemax":
+        kw["encoding"] = encoding
     return _READERS[fmt](payload, str(p), **kw)
 
 
 # ------------------------------------------------------------------------------------------ conversion
+def convert_file(src: str | os.PathLike, dst: str | os.PathLike, *, name: str | None = None, **options) -> Lens:
+    """Read ``src`` in any supported format (reader ``options`` as for :func:`load_lens`) and write it as
+    project JSON to ``dst``, atomically.  The source file's name, format and SHA-256 go into
+    ``source``; the reader's decisions stay in ``metadata``.  Returns the lens written."""
+    src_p = Path(src)
+    lens = load_lens(src_p, **options)
+    if not src_p.is_file():  # a bundled name
+        src_p = bundled_lens_path(str(src))
+    md = dict(lens.metadata)
+    source = dict(md.get("source", {}))
+    source.setdefault("file", src_p.name)
+    source["sha256"] = sha256_file(src_p)
+    conv = list(source.get("conversion", []))
+    conv.append("converted by mi_neurallens.optics.formats.convert_file"
+                + (f" with reader options {sorted(options)}" if options else ""))
+    source["conversion"] = conv
+    md["source"] = source
+    lens = lens.replace(metadata=md, path=None, **({"name": name} if name else {}))
+    save_lens(lens, dst)
+    return lens
+
+
 _PBRT_REPO = "mmp/pbrt-v4-scenes"
 _MLD = "W. J. Smith, Modern Lens Design (1992)"
 
@@ -286,5 +337,5 @@ def _conversion_notes(lens: Lens) -> list[str]:
 
 
 __all__ = ["load_lens", "save_lens", "lens_to_dict", "lens_from_dict", "load_project_json", "bundled_lenses",
-           "bundled_lens_path", "lenses_dir", "detect_format", "convert_bundled", "FORMATS", "BUNDLED",
-           "read_pbrt", "read_ood", "read_lensvisualizer"]
+           "bundled_lens_path", "lenses_dir", "detect_format", "convert_bundled", "convert_file", "FORMATS", "BUNDLED",
+           "read_pbrt", "read_ood", "read_lensvisualizer", "read_zemax", "read_codev"]

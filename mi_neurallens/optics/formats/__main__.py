@@ -10,7 +10,7 @@ import argparse
 import sys
 
 from ...errors import LensError
-from . import BUNDLED, bundled_lenses, convert_bundled, lenses_dir, load_lens, save_lens
+from . import BUNDLED, bundled_lenses, convert_bundled, convert_file, lenses_dir
 
 
 def main(argv=None) -> int:
@@ -31,10 +31,7 @@ def main(argv=None) -> int:
             for name, path in convert_bundled(a.source_dir, a.out).items():
                 print(f"{name:22s} <- {BUNDLED[name]['file']:48s} -> {path}")
         elif a.cmd == "convert":
-            lens = load_lens(a.input)
-            if a.name:
-                lens = lens.replace(name=a.name)
-            save_lens(lens.replace(path=None), a.output)
+            convert_file(a.input, a.output, name=a.name)
             print(f"wrote {a.output}")
         else:
             print("\n".join(bundled_lenses()))
