@@ -490,7 +490,7 @@ def _medium(ctx: Ctx, s: _Surf, subst: dict, used: set, cats: list[str], table: 
 
 def _catalog(name: str, cats: list[str]) -> Medium:
     """The file's GCAT catalogues first (exact spelling), then every catalogue (any spelling we accept)."""
-    from ..glass import _norm
+    from ..catalogs import _norm
     for c in cats:
         try:
             m = catalog_glass(name, c)
