@@ -327,18 +327,24 @@ def validate(lens: Lens) -> None:
     _check_sags(lens)
 
 
+def surfaces_cross(a: Surface, za: float, b: Surface, zb: float):
+    """Where surface ``b`` (vertex at ``zb``) lies in front of the surface ``a`` before it (vertex at
+    ``za``) within their common semi-diameter: ``(r, depth)`` in mm of the first such radius (65 samples,
+    1 nm tolerance), or None when they do not cross."""
+    r = np.linspace(0.0, min(a.semi_diameter, b.semi_diameter), 65)
+    gap = (zb + b.sag(r)) - (za + a.sag(r))
+    bad = np.nonzero(~(gap >= -1e-6))[0]
+    return (float(r[bad[0]]), float(-gap[bad[0]])) if bad.size else None
+
+
 def _check_sags(lens: Lens) -> None:
     z = lens.vertex_z
     surfs = lens.surfaces
     for i in range(len(surfs) - 1):
-        a, b = surfs[i], surfs[i + 1]
-        rmax = min(a.semi_diameter, b.semi_diameter)
-        r = np.linspace(0.0, rmax, 65)
-        gap = (z[i + 1] + b.sag(r)) - (z[i] + a.sag(r))
-        bad = np.nonzero(~(gap >= -1e-6))[0]
-        if bad.size:
-            k = bad[0]
-            raise LensError(f"surfaces {i} and {i + 1} cross: at r = {r[k]:.4g} mm surface {i + 1} lies "
-                            f"{-gap[k]:.4g} mm in front of surface {i} (increase thickness {i} or reduce "
+        a = surfs[i]
+        hit = surfaces_cross(a, z[i], surfs[i + 1], z[i + 1])
+        if hit is not None:
+            raise LensError(f"surfaces {i} and {i + 1} cross: at r = {hit[0]:.4g} mm surface {i + 1} lies "
+                            f"{hit[1]:.4g} mm in front of surface {i} (increase thickness {i} or reduce "
                             f"the semi-diameters)", file=lens.path, surface=i, label=a.label or None,
                             field="thickness")

@@ -32,9 +32,9 @@ import math
 
 import numpy as np
 
-from ...errors import LensError
+from ...errors import GlassError, LensError
 from ..glass import AIR, Medium
-from ..prescription import MAX_ASPHERIC, Lens, Surface
+from ..prescription import MAX_ASPHERIC, Lens, Surface, surfaces_cross
 from ._common import Ctx
 
 #: our Surface field -> a description used when the format gives no keyword for it
@@ -267,16 +267,11 @@ def _check_semi_diameter(ctx: Ctx, s: SeqSurface, kw: dict) -> None:
 def _check_crossing(ctx: Ctx, out: list[Surface], numbers: list[int], roles: list[str], kw: dict) -> None:
     z = np.concatenate([[0.0], np.cumsum([s.thickness for s in out[:-1]])])
     for i in range(len(out) - 1):
-        a, b = out[i], out[i + 1]
-        rmax = min(a.semi_diameter, b.semi_diameter)
-        r = np.linspace(0.0, rmax, 65)
-        gap = (z[i + 1] + b.sag(r)) - (z[i] + a.sag(r))
-        bad = np.nonzero(~(gap >= -1e-6))[0]
-        if bad.size:
-            k = bad[0]
+        hit = surfaces_cross(out[i], z[i], out[i + 1], z[i + 1])
+        if hit is not None:
             na = "the stop" if roles[i] == "inserted stop" else f"surface {numbers[i]}"
             nb = "the stop" if roles[i + 1] == "inserted stop" else f"surface {numbers[i + 1]}"
-            raise ctx.error(f"{na} and {nb} cross: at r = {r[k]:.4g} mm {nb} lies {-gap[k]:.4g} mm in front of "
+            raise ctx.error(f"{na} and {nb} cross: at r = {hit[0]:.4g} mm {nb} lies {hit[1]:.4g} mm in front of "
                             f"{na} (the thickness between them is too small for their semi-diameters)",
                             surface=numbers[i], field=kw["thickness"])
 
@@ -291,3 +286,21 @@ def _construct(ctx, out, numbers, roles, kw, object_medium, name) -> Lens:
         i = e.surface
         what = e.what + (" (the stop inserted at this surface's vertex)" if roles[i] == "inserted stop" else "")
         raise ctx.error(what, surface=numbers[i], field=kw.get(e.field, e.field)) from None
+
+
+def substitute_glass(ctx: Ctx, name: str, subst: dict, used: set, table: dict, *, surface: int,
+                     field: str):
+    """The medium the caller substituted for glass ``name`` (``glasses=``/``--glass``), or None when
+    none was given.  Records the use (an unused substitute is an error later) and the source in
+    ``table``; a substitute that does not resolve is an error naming the surface and ``field``."""
+    key = name.upper()
+    if key not in subst:
+        return None
+    from ._common import resolve
+    used.add(key)
+    try:
+        m = resolve(ctx, subst[key], surface=surface, field=field)
+    except GlassError as e:
+        raise ctx.error(f"glasses={{{name!r}: …}}: {e.what}", surface=surface, field=field) from None
+    table.setdefault(name, {"from": "glasses= option", "medium": m.name})
+    return m

@@ -42,7 +42,7 @@ from ...errors import GlassError
 from ..glass import AIR, CATALOGS, Medium, catalog_glass, model_glass, table_glass
 from ..prescription import Lens
 from ._common import Ctx
-from ._sequential import SeqSurface, build_lens, max_semi_diameter
+from ._sequential import SeqSurface, build_lens, max_semi_diameter, substitute_glass
 from .zemax import _aperture as _zmx_aperture, _glass_subst
 
 UNITS = {"M": 1.0, "MM": 1.0, "C": 10.0, "CM": 10.0, "I": 25.4, "IN": 25.4}
@@ -420,14 +420,8 @@ def _medium(ctx: Ctx, s: _S, subst: dict, used: set, private: dict, table: dict)
     g = s.glass
     where = dict(surface=s.number, field="S")
     key = g.upper()
-    if key in subst:
-        from ._common import resolve
-        used.add(key)
-        try:
-            m = resolve(ctx, subst[key], surface=s.number, field="S")
-        except GlassError as e:
-            raise ctx.error(f"glasses={{{g!r}: …}}: {e.what}", **where) from None
-        table.setdefault(g, {"from": "glasses= option", "medium": m.name})
+    m = substitute_glass(ctx, g, subst, used, table, surface=s.number, field="S")
+    if m is not None:
         return m
     if key in private:
         table.setdefault(g, {"from": "private glass (PRV)"})

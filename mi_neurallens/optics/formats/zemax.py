@@ -31,8 +31,8 @@ import re
 from ...errors import GlassError
 from ..glass import AIR, CATALOGS, Medium, catalog_glass, constant, model_glass
 from ..prescription import Lens
-from ._common import Ctx, resolve
-from ._sequential import SeqSurface, build_lens
+from ._common import Ctx
+from ._sequential import SeqSurface, build_lens, substitute_glass
 
 #: mm per file length unit
 UNITS = {"MM": 1.0, "CM": 10.0, "IN": 25.4, "INCH": 25.4, "INCHES": 25.4, "M": 1000.0, "METER": 1000.0,
@@ -434,13 +434,8 @@ def _medium(ctx: Ctx, s: _Surf, subst: dict, used: set, cats: list[str], table: 
     gname = args[0]
     where = dict(surface=s.number, field="GLAS")
     key = gname.upper()
-    if key in subst:
-        used.add(key)
-        try:
-            m = resolve(ctx, subst[key], surface=s.number, field="GLAS")
-        except GlassError as e:
-            raise ctx.error(f"glasses={{{gname!r}: …}}: {e.what}", **where) from None
-        table.setdefault(gname, {"from": "glasses= option", "medium": m.name})
+    m = substitute_glass(ctx, gname, subst, used, table, surface=s.number, field="GLAS")
+    if m is not None:
         return m
     if key == "___BLANK":
         if len(args) < 5:
