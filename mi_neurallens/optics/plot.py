@@ -12,12 +12,12 @@
   :meth:`Lens.trace` (``record=True``).  The fan of each field and wavelength is real-ray aimed: it
   spans the rays that cross the stop plane between −0.999 and +0.999 of the stop radius, i.e. it
   fills the real entrance pupil at that field.  Rays that are blocked (vignetted by a rim,
-  housing or the stop) end with a × where they die.
+  housing or the stop) end with a × where the tracer's record of them ends.
 
 The half field of view (when ``fields_deg`` is not given) is the smaller of
 (a) the largest field angle whose real chief ray still reaches the image plane, and
 (b) the field angle whose real chief ray lands ``image_radius_mm`` from the axis
-(default 21.63 mm, the half diagonal of a 36 × 24 mm frame; a lens's ``metadata`` may set
+(default 21.6333 mm, the half diagonal of a 36 × 24 mm frame; a lens's ``metadata`` may set
 ``image_radius_mm``/``image_circle_radius_mm``, or give ``half_fov_deg``).
 
 Matplotlib is used through the object API with the Agg canvas: no pyplot, no global state.
@@ -30,11 +30,9 @@ import os
 
 import numpy as np
 
-from ..constants import LAMBDA_C, LAMBDA_D, LAMBDA_F
+from ..constants import FULL_FRAME_HALF_DIAGONAL_MM, LAMBDA_C, LAMBDA_D, LAMBDA_F
 from ..errors import LensError
 
-#: 36 × 24 mm half diagonal (mm), the default image radius used to pick the full field
-FULL_FRAME_HALF_DIAGONAL = 0.5 * math.hypot(36.0, 24.0)
 FIELD_FRACTIONS = (0.0, 0.7, 1.0)
 FIELD_COLORS = ("#1f6fb4", "#1a9850", "#d7301f")
 PRIMARY_WAVELENGTH = LAMBDA_D
@@ -44,7 +42,7 @@ STOP_FILL = 0.999
 
 # ------------------------------------------------------------------------------ geometry helpers
 def _n_d(medium) -> float:
-    return float(medium.index(PRIMARY_WAVELENGTH))
+    return float(medium.index(LAMBDA_D))
 
 
 def _is_glass(medium) -> bool:
@@ -87,28 +85,6 @@ def _elements(lens):
     return groups
 
 
-def _aperture_radius(lens, i) -> float:
-    """Clear radius of optical surface i for a forward ray: its semi-diameter, tightened by the
-    housing of the gaps on either side (the tracer's rule)."""
-    s = lens.surfaces
-    r = s[i].semi_diameter
-    for g in (i - 1, i):
-        if 0 <= g < len(s) and s[g].housing_radius is not None:
-            r = min(r, s[g].housing_radius)
-    return r
-
-
-def _stop_ok(lens, x, y):
-    st = lens.stop
-    if not st.blades:
-        return np.hypot(x, y) <= st.semi_diameter * (1 + 1e-9)
-    ok = np.ones_like(x, dtype=bool)
-    for k in range(st.blades):
-        a = math.radians(st.blade_rotation_deg) + 2 * math.pi * k / st.blades
-        ok &= x * math.cos(a) + y * math.sin(a) <= st.semi_diameter * (1 + 1e-9)
-    return ok
-
-
 # ------------------------------------------------------------------------------ tracing
 # Every trace below is batched over (field, wavelength) pairs and never uses a single ray: Dr.Jit
 # bakes width-1 arrays into the kernel as literals, which would compile a new kernel per call.
@@ -133,12 +109,8 @@ def _pad(*arrays):
 
 
 def _raw_points(lens, o, d, wl):
-    """Every recorded hit of the transmit path, computed WITHOUT masking blocked rays.
-
-    ``Lens.trace(record=True)`` hides the whole polyline of a blocked ray (all NaN), so the point
-    where it dies and the stop heights of vignetted rays (needed for ray aiming) come from the
-    tracer's unmasked geometry; which rays survive is always taken from ``Lens.trace``.
-    """
+    """Every recorded hit of the transmit path, also those after a ray is blocked (which
+    ``Lens.trace(record=True)`` hides): ray aiming needs the stop heights of vignetted rays."""
     from ..trace.api import float_type, tracer_for
     wl = np.broadcast_to(np.asarray(wl, dtype=np.float64), (len(o),))
     (o, d, wl), n = _pad(o, d, wl)
@@ -161,52 +133,17 @@ def _on_surface(lens, i, p):
         return (r <= rmax) & (np.abs(p[:, 2] - lens.vertex_z[i] - sag) <= 1e-6 * (1 + abs(lens.vertex_z[i])))
 
 
-def _geometric_death(lens, pts):
-    """Index into ``pts[:, k]`` of the first hit where each ray is blocked (−1: never), from the
-    unmasked hits: a miss or a point off the surface, a step backwards, a rim/housing or the stop."""
-    N = pts.shape[0]
-    death = np.full(N, -1)
-    alive = np.ones(N, dtype=bool)
-    for i, s in enumerate(lens.surfaces):
-        k = i + 1
-        p = pts[:, k]
-        with np.errstate(invalid="ignore"):
-            bad = ~np.all(np.isfinite(p), axis=1) | ~_on_surface(lens, i, p)
-            bad |= p[:, 2] < pts[:, k - 1, 2] - 1e-9
-            if s.is_stop:
-                bad |= ~_stop_ok(lens, p[:, 0], p[:, 1])
-            else:
-                bad |= np.hypot(p[:, 0], p[:, 1]) > _aperture_radius(lens, i) * (1 + 1e-9)
-        death[alive & bad] = k
-        alive &= ~bad
-    return death
-
-
 def _trace_fans(lens, thetas, heights, wls, z0):
-    """Trace rays (one per entry of the broadcast ``thetas``/``heights``/``wls``).
+    """Trace rays (one per entry of the broadcast ``thetas``/``heights``/``wls``) exactly.
 
-    Returns (points (N, M, 3) with blocked rays cut after the point where they die, valid (N,)).
+    Returns (points (N, M, 3), NaN after the point where a blocked ray dies, valid (N,)).
     """
     o, d = _rays(thetas, heights, z0)
     wl = np.broadcast_to(np.asarray(wls, dtype=np.float64), np.broadcast_shapes(
         np.shape(thetas), np.shape(heights), np.shape(wls))).ravel()
-    (o2, d2, wl2), n = _pad(o, d, wl)
-    pub = lens.trace(o2, d2, wl2, record=True, fresnel=False, precision="float64")
-    valid = np.asarray(pub.valid, dtype=bool)[:n]
-    pts = np.array(pub.points, dtype=np.float64)[:n]
-    bad = np.nonzero(~valid)[0]
-    if bad.size:
-        raw = _raw_points(lens, o[bad], d[bad], wl[bad])
-        geo = _geometric_death(lens, raw)
-        for jj, j in enumerate(bad):
-            fin = np.nonzero(np.all(np.isfinite(pts[j]), axis=1))[0]
-            if fin.size > 1:                 # the tracer kept the hits up to the death point
-                k = int(fin[-1])
-            else:                            # cut the unmasked polyline at the geometric death
-                k = int(geo[jj]) if geo[jj] >= 0 else raw.shape[1] - 1
-                pts[j] = raw[jj]
-            pts[j, k + 1:] = np.nan
-    return pts, valid
+    (o, d, wl), n = _pad(o, d, wl)
+    res = lens.trace(o, d, wl, record=True, fresnel=False, precision="float64")
+    return res.points[:n], res.valid[:n]
 
 
 def _stop_heights(lens, thetas, wls, z0, h):
@@ -299,7 +236,7 @@ def _metadata_float(lens, *keys):
     return None
 
 
-def half_field_deg(lens, wavelength_nm: float = PRIMARY_WAVELENGTH, image_radius_mm: float | None = None):
+def half_field_deg(lens, wavelength_nm: float = LAMBDA_D, image_radius_mm: float | None = None):
     """The half field of view (degrees) used by :func:`plot_lens` when no fields are given: the
     smaller of the largest angle whose real chief ray reaches the image plane and the angle whose
     real chief ray lands ``image_radius_mm`` off axis (see the module docstring)."""
@@ -307,7 +244,7 @@ def half_field_deg(lens, wavelength_nm: float = PRIMARY_WAVELENGTH, image_radius
     if v is not None:
         return min(v, 89.0)
     rimg = image_radius_mm or _metadata_float(lens, "image_radius_mm", "image_circle_radius_mm") \
-        or FULL_FRAME_HALF_DIAGONAL
+        or FULL_FRAME_HALF_DIAGONAL_MM
     z0 = _start_z(lens)
     thetas = np.concatenate([np.arange(0.5, 10.0, 0.5), np.arange(10.0, 89.01, 1.0)])
     hs = _aim(lens, thetas, wavelength_nm, z0, [0.0], n_scan=401)[:, 0]
@@ -339,7 +276,7 @@ def _glass_color(n):
 
 def _line_styles(wavelengths):
     styles = ["-", "--", ":", "-."]
-    prim = int(np.argmin([abs(w - PRIMARY_WAVELENGTH) for w in wavelengths]))
+    prim = int(np.argmin([abs(w - LAMBDA_D) for w in wavelengths]))
     out, k = {}, 1
     for i, w in enumerate(wavelengths):
         if i == prim:
@@ -446,10 +383,10 @@ def plot_lens(lens, path_or_ax, fields_deg=None, wavelengths_nm=(LAMBDA_F, LAMBD
     rays_per_fan = int(rays_per_fan)
     if rays_per_fan < 1:
         raise LensError(f"rays_per_fan must be ≥ 1, got {rays_per_fan}")
-    wavelengths = [float(w) for w in (wavelengths_nm or (PRIMARY_WAVELENGTH,))]
+    wavelengths = [float(w) for w in (wavelengths_nm or (LAMBDA_D,))]
     if any(not (math.isfinite(w) and w > 0) for w in wavelengths):
         raise LensError(f"wavelengths must be positive numbers of nm, got {list(wavelengths_nm)}")
-    wl_prim = wavelengths[int(np.argmin([abs(w - PRIMARY_WAVELENGTH) for w in wavelengths]))]
+    wl_prim = wavelengths[int(np.argmin([abs(w - LAMBDA_D) for w in wavelengths]))]
     par = lens.paraxial(wl_prim)
     if fields_deg is None:
         hf = half_field_deg(lens, wl_prim, image_radius_mm)
