@@ -11,6 +11,9 @@ LAMBDA_F = 486.1327
 LAMBDA_C = 656.2725
 LAMBDA_E = 546.0740
 
+#: width and height of the 35 mm full-frame film (mm): the default sensor of the cameras
+FULL_FRAME_MM = (36.0, 24.0)
+
 #: half diagonal of the 36 × 24 mm full-frame film, √(18² + 12²) = 21.63331 mm, as used for fields of
 #: view, ghost ranking and spot-diagram extents (mm)
 FULL_FRAME_HALF_DIAGONAL_MM = 21.6333
@@ -20,3 +23,7 @@ LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
 
 #: arcseconds per radian (180 · 3600 / π)
 ARCSEC_PER_RAD = 180.0 * 3600.0 / 3.141592653589793
+
+#: the visible range (nm) over which wavelengths are sampled (CIE 1931 observer tabulation) and glass
+#: indices are checked; spectral quantities outside it are never asked for
+VISIBLE_RANGE_NM = (360.0, 830.0)

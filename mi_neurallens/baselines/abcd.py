@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..constants import VISIBLE_RANGE_NM
 from .common import LAM0_NM, LAM_SCALE_NM, LensSpacePolyMap, fresnel_normal_R
 from .poly import SparsePoly
 
@@ -86,7 +87,7 @@ class ABCDMap(LensSpacePolyMap):
     angles = "slopes"
 
     def __init__(self, lens, path="transmit", direction="forward", z_in=None, z_out=None, *,
-                 throughput: str = "normal", aperture: str = "none", lam_range=(360.0, 830.0),
+                 throughput: str = "normal", aperture: str = "none", lam_range=VISIBLE_RANGE_NM,
                  lam_nodes: int = 13):
         super().__init__(lens, path, direction, z_in, z_out)
         if throughput not in ("normal", "one"):

@@ -41,6 +41,7 @@ import math
 
 import numpy as np
 
+from ..constants import VISIBLE_RANGE_NM
 from .common import LAM0_NM, LAM_SCALE_NM, LensSpacePolyMap
 from .poly import TPS, SparsePoly, basis, compose
 
@@ -55,7 +56,7 @@ def _cos(a):
     return a.cos() if isinstance(a, TPS) else math.cos(a)
 
 
-def _index_poly(medium, degree: int, lam_range=(360.0, 830.0), nodes: int = 41):
+def _index_poly(medium, degree: int, lam_range=VISIBLE_RANGE_NM, nodes: int = 41):
     """Least-squares polynomial coefficients (low → high) of n(λ) in l = (λ − 550)/100."""
     lo, hi = lam_range
     k = np.arange(nodes)

@@ -16,10 +16,8 @@ import json
 import math
 import os
 
-from ..constants import LAMBDA_C, LAMBDA_D, LAMBDA_F
+from ..constants import FULL_FRAME_MM, LAMBDA_C, LAMBDA_D, LAMBDA_F
 
-#: sensor used for the FOV line of ``lens info`` (36 × 24 mm, "full frame")
-FULL_FRAME = (36.0, 24.0)
 
 
 def add_parser(subparsers):
@@ -138,7 +136,7 @@ def info_dict(lens, wavelength_nm=LAMBDA_D) -> dict:
     }
     d.update(p.to_dict())
     try:
-        fov = p.fov_deg(*FULL_FRAME)
+        fov = p.fov_deg(*FULL_FRAME_MM)
         d["fov_36x24_deg"] = {"horizontal": fov.horizontal, "vertical": fov.vertical,
                               "diagonal": fov.diagonal, "model": "paraxial, tan-based"}
     except Exception:  # an object-space-telecentric lens has no chief-ray angle
@@ -222,7 +220,7 @@ def _text_info(lens, wavelength_nm) -> str:
         ("in focus on the image plane (from first vertex)", focus_s),
     ]
     try:
-        fov = p.fov_deg(*FULL_FRAME)
+        fov = p.fov_deg(*FULL_FRAME_MM)
         rows.append(("FOV on 36x24 mm, paraxial tan (h / v / diag)",
                      f"{fov.horizontal:.2f}° / {fov.vertical:.2f}° / {fov.diagonal:.2f}°"))
     except Exception:

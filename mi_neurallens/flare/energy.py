@@ -20,6 +20,7 @@ import math
 
 import numpy as np
 
+from ..constants import FULL_FRAME_MM
 from ..transport.planning import select_ghosts  # noqa: F401 (the one selection rule, re-exported)
 
 
@@ -60,7 +61,8 @@ def trivial_ghost(lens, a: int, b: int) -> bool:
     return False
 
 
-def ghost_energy_ranking(lens, *, sensor_width_mm: float = 36.0, sensor_height_mm: float = 24.0,
+def ghost_energy_ranking(lens, *, sensor_width_mm: float = FULL_FRAME_MM[0],
+                         sensor_height_mm: float = FULL_FRAME_MM[1],
                          fresnel: bool = True, n_rays: int = 1 << 14, n_angles: int = 5, seed: int = 0,
                          ghosts=None):
     """Rank the forward ghosts of ``lens`` (configured: its last thickness is the sensor distance)

@@ -46,9 +46,8 @@ import numbers
 
 import numpy as np
 
+from ..constants import LAMBDA_C, LAMBDA_D, LAMBDA_E, LAMBDA_F, VISIBLE_RANGE_NM
 from ..errors import GlassError
-
-from ..constants import LAMBDA_C, LAMBDA_D, LAMBDA_E, LAMBDA_F
 
 FORMULAS = ("constant", "sellmeier", "power_n2", "table", "buchdahl")
 
@@ -186,7 +185,7 @@ AIR = constant(1.0, "air")
 
 # ====================================================================== plausibility checks
 #: Wavelength range (nm) over which model, line and table glasses must be physically plausible.
-CHECK_RANGE_NM = (360.0, 830.0)
+CHECK_RANGE_NM = VISIBLE_RANGE_NM
 
 
 def _implausibility(m: Medium, strict: bool = True) -> str | None:

@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import math
 
+from ..constants import FULL_FRAME_MM
+
 import drjit as dr
 import mitsuba as mi
 
@@ -38,7 +40,7 @@ class LensSensorBase(mi.Sensor):
         focus = rd.float("focus_distance", None, allow_inf=True)
         sdist = rd.float("sensor_distance", None)
         fstop = rd.float("fstop", None)
-        width = rd.float("sensor_width", 36.0, positive=True)
+        width = rd.float("sensor_width", FULL_FRAME_MM[0], positive=True)
         unit = rd.float("scene_unit_mm", 1000.0, positive=True)
         fresnel = rd.bool("fresnel", True)
         mode = rd.string("pupil_sampling", EXIT_PUPIL, choices=MODES)

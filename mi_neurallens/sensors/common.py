@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import math
 import os
 
+from ..constants import FULL_FRAME_MM
 from ..constants import LAMBDA_D
 from ..errors import LensError, NeuralLensError
 
@@ -256,7 +257,7 @@ class LensSetup:
 
 
 def configure_lens(base_lens, *, fstop=None, focus_distance_mm=None, sensor_distance_mm=None,
-                   sensor_width_mm=36.0, film_size=(1, 1), scene_unit_mm=1000.0, fresnel=True,
+                   sensor_width_mm=FULL_FRAME_MM[0], film_size=(1, 1), scene_unit_mm=1000.0, fresnel=True,
                    plugin="realistic_lens") -> LensSetup:
     """Stop down (``fstop``) and focus (``focus_distance_mm`` from the sensor plane XOR
     ``sensor_distance_mm`` behind the last vertex; default: infinity) a loaded lens."""

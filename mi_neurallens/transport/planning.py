@@ -17,9 +17,11 @@ import math
 
 import numpy as np
 
+from ..constants import VISIBLE_RANGE_NM
+
 
 #: Mitsuba's visible-range importance curve (``sample_rgb_spectrum``, CIE 1931 on [360, 830] nm)
-CIE_MIN_NM, CIE_MAX_NM = 360.0, 830.0
+CIE_MIN_NM, CIE_MAX_NM = VISIBLE_RANGE_NM
 _CIE_A, _CIE_B, _CIE_C, _CIE_K = 0.8569106254698279, 1.8275019724092267, 138.88888888888889, 0.0072
 _CIE_PDF = 0.003939804229326285
 
