@@ -42,6 +42,7 @@ import math
 import numpy as np
 
 from ..constants import VISIBLE_RANGE_NM
+from ..trace.interactions import coated_reflectance, fresnel_reflectance
 from .common import LAM0_NM, LAM_SCALE_NM, LensSpacePolyMap
 from .poly import TPS, SparsePoly, basis, compose
 
@@ -88,32 +89,6 @@ class _Ctx:
 
     def lam(self):
         return self.lam_nm if self.l_var is None else self.l_var * LAM_SCALE_NM + LAM0_NM
-
-
-def _fresnel_R(n1, n2, cos_i, cos_t):
-    a, b = n1 * cos_i, n2 * cos_t
-    c, e = n2 * cos_i, n1 * cos_t
-    sa, sc = a + b, c + e
-    rs, rp = (a - b) / sa, (c - e) / sc
-    return 0.5 * (rs * rs + rp * rp)
-
-
-def _coated_R(n1, n2, cos_i, cos_t, lam, nc, h):
-    sin2_c = (n1 / nc) * (n1 / nc) * (1.0 - cos_i * cos_i)
-    cos_c = _sqrt(1.0 - sin2_c)
-
-    def rs_rp(na, ca, nb, cb):
-        return (na * ca - nb * cb) / (na * ca + nb * cb), (nb * ca - na * cb) / (nb * ca + na * cb)
-
-    rs12, rp12 = rs_rp(n1, cos_i, nc, cos_c)
-    rs23, rp23 = rs_rp(nc, cos_c, n2, cos_t)
-    cos2b = _cos((4.0 * math.pi * nc * h) * cos_c / lam)
-
-    def airy(a, b):
-        ab2 = 2.0 * a * b * cos2b
-        return (a * a + b * b + ab2) / (1.0 + a * a * b * b + ab2)
-
-    return 0.5 * (airy(rs12, rs23) + airy(rp12, rp23))
 
 
 def surface_step(lens, step, state, h: int, z_p: float, ctx: _Ctx, fresnel: bool = True):
@@ -206,10 +181,11 @@ def surface_step(lens, step, state, h: int, z_p: float, ctx: _Ctx, fresnel: bool
 
 
 def _reflectance(surf, n1, n2, cos_i, cos_t, ctx):
+    """The tracer's Fresnel formulas (trace/interactions.py), evaluated on series."""
     if surf.coating is None:
-        return _fresnel_R(n1, n2, cos_i, cos_t)
+        return fresnel_reflectance(n1, n2, cos_i, cos_t)
     cz = surf.coating
-    return _coated_R(n1, n2, cos_i, cos_t, ctx.lam(), cz.index, cz.thickness_nm)
+    return coated_reflectance(n1, n2, cos_i, cos_t, ctx.lam(), cz.index, cz.thickness_nm, sqrt=_sqrt, cos=_cos)
 
 
 def _end_step(state, h, z_p, z_out):

@@ -41,7 +41,8 @@ def _rs_rp(na, ca, nb, cb):
 
 
 def fresnel_reflectance(n1, n2, cos_i, cos_t):
-    """Unpolarised power reflectance of a bare interface (valid outside TIR).
+    """Unpolarised power reflectance of a bare interface (valid outside TIR).  Plain arithmetic, so
+    any number type works (Dr.Jit arrays, floats, the Taylor baseline's power series).
 
     Written with a single division: r_s = (a−b)/(a+b), r_p = (c−e)/(c+e) with a = n1 cos_i,
     b = n2 cos_t, c = n2 cos_i, e = n1 cos_t.
@@ -54,13 +55,21 @@ def fresnel_reflectance(n1, n2, cos_i, cos_t):
     return 0.5 * (rs_num * rs_num + rp_num * rp_num) * (inv * inv)
 
 
-def coated_reflectance(n1, n2, cos_i, cos_t, lam_nm, n_c: float, h_nm: float):
-    """Unpolarised reflectance of an interface carrying one thin layer (index ``n_c``, ``h_nm`` thick)."""
+def _dr_sqrt0(a):
+    return dr.sqrt(dr.maximum(a, 0.0))
+
+
+def coated_reflectance(n1, n2, cos_i, cos_t, lam_nm, n_c: float, h_nm: float, *, sqrt=_dr_sqrt0,
+                       cos=dr.cos):
+    """Unpolarised reflectance of an interface carrying one thin layer (index ``n_c``, ``h_nm`` thick).
+
+    Plain arithmetic apart from ``sqrt`` and ``cos``, so other number types (the Taylor baseline's
+    truncated power series) evaluate the same formula by passing theirs."""
     sin2_c = (n1 / n_c) * (n1 / n_c) * (1.0 - cos_i * cos_i)
-    cos_c = dr.sqrt(dr.maximum(1.0 - sin2_c, 0.0))
+    cos_c = sqrt(1.0 - sin2_c)
     rs12, rp12 = _rs_rp(n1, cos_i, n_c, cos_c)
     rs23, rp23 = _rs_rp(n_c, cos_c, n2, cos_t)
-    cos2b = dr.cos((4.0 * math.pi * n_c * h_nm) * cos_c / lam_nm)
+    cos2b = cos((4.0 * math.pi * n_c * h_nm) * cos_c / lam_nm)
 
     def airy(a, b):
         ab2 = 2.0 * a * b * cos2b
