@@ -63,6 +63,17 @@ def undo(x, y, dx, dy, frame):
     return (dr.fma(c, x, -s * y), dr.fma(s, x, c * y), dr.fma(c, dx, -s * dy), dr.fma(s, dx, c * dy))
 
 
+def undo_point(x, y, frame):
+    """Map a reduced-frame point (x, y) on any plane z = const (e.g. a stop-plane crossing) back:
+    reflect, then rotate (the position part of :func:`undo`)."""
+    c, s, sgn = frame
+    y = y * sgn
+    if _is_np(x):
+        return c * x - s * y, s * x + c * y
+    import drjit as dr
+    return dr.fma(c, x, -s * y), dr.fma(s, x, c * y)
+
+
 def reduced_ray(r, wx, wy, heading: int):
     """The reduced ray as lens-space numpy/Dr.Jit components: position (r, 0) and the unit direction
     (wx, wy, heading·√(1 − wx² − wy²)).  ``heading`` = +1 (forward, toward the sensor) or −1."""

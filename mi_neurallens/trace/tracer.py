@@ -14,11 +14,11 @@ image spaces are both air for camera lenses).
 from __future__ import annotations
 
 from dataclasses import dataclass
-import math
 
 import drjit as dr
 
 from .interactions import coated_reflectance, fresnel_reflectance, reflect, refract
+from .iris import Iris
 from .paths import FORWARD, PathSpec, resolve_path
 from .surfaces import SurfaceGeometry
 
@@ -44,6 +44,10 @@ class TraceResult:
     #: surface, total internal reflection, turns back) before any aperture blocks it;
     #: ``valid == ~hard_fail & (margin >= 0)``.
     hard_fail: object = None
+    #: (x, y) where the ray crosses the stop plane (lens space, mm), one per stop step of the path in
+    #: path order (the transmit path crosses once, a ghost one to three times); lazily evaluated, so
+    #: free unless used
+    stop_points: list | None = None
 
 
 class LensTracer:
@@ -61,6 +65,8 @@ class LensTracer:
         self.fresnel = fresnel
         z = lens.vertex_z
         self.geom = [SurfaceGeometry(s, z[i]) for i, s in enumerate(lens.surfaces)]
+        #: the aperture stop's shape (the lens's stop surface)
+        self.iris = Iris.of_lens(lens)
         self._paths: dict = {}
 
     def path(self, path="transmit", direction: str = FORWARD) -> PathSpec:
@@ -74,32 +80,6 @@ class LensTracer:
     def default_output_z(self, direction: str) -> float:
         """Forward: the image plane.  Backward: the plane of the first vertex (z = 0)."""
         return self.lens.image_z if direction == FORWARD else 0.0
-
-    # ------------------------------------------------------------------------------ helpers
-    def _stop_ok(self, x, y):
-        stop = self.lens.stop
-        r = stop.semi_diameter
-        if not stop.blades:
-            return dr.fma(x, x, y * y) <= r * r
-        ok = None
-        for k in range(stop.blades):
-            a = math.radians(stop.blade_rotation_deg) + 2.0 * math.pi * k / stop.blades
-            inside = dr.fma(x, math.cos(a), y * math.sin(a)) <= r
-            ok = inside if ok is None else ok & inside
-        return ok
-
-    def _stop_margin(self, x, y):
-        """The stop's aperture margin (see :attr:`TraceResult.margin`)."""
-        stop = self.lens.stop
-        r = stop.semi_diameter
-        if not stop.blades:
-            return 1.0 - dr.fma(x, x, y * y) / (r * r)
-        m = None
-        for k in range(stop.blades):
-            a = math.radians(stop.blade_rotation_deg) + 2.0 * math.pi * k / stop.blades
-            mk = 2.0 * (1.0 - dr.fma(x, math.cos(a), y * math.sin(a)) / r)
-            m = mk if m is None else dr.minimum(m, mk)
-        return m
 
     # ------------------------------------------------------------------------------ trace
     def trace(self, o, d, lam_nm, path="transmit", direction: str = FORWARD, *,
@@ -129,6 +109,7 @@ class LensTracer:
         valid = dr.full(dr.mask_t(x), True, dr.width(x)) & active
         T = None
         pts = [(x, y, z)] if record else None
+        stop_points = []
         alive = [valid] if record else None
         # margin mode: `soft` = alive as far as non-aperture failures go; `m` = smallest aperture
         # margin met while soft (later values of a failed ray are meaningless and ignored); `hard` =
@@ -159,9 +140,10 @@ class LensTracer:
                 pts.append((x, y, z))
                 alive.append(valid)
             if step.kind == "stop":
-                valid = valid & (self._stop_ok(x, y))
+                stop_points.append((x, y))
+                valid = valid & self.iris.contains_dr(x, y)
                 if margin:
-                    note(self._stop_margin(x, y))
+                    note(self.iris.margin_dr(x, y))
                 continue
             rad = step.clear_radius
             valid = valid & (dr.fma(x, x, y * y) <= rad * rad)
@@ -218,8 +200,8 @@ class LensTracer:
         if T is None:
             T = x * 0.0 + 1.0
         if margin:
-            return TraceResult((x, y, z), (dx, dy, dz), T, valid, pts, alive, m, hard)
-        return TraceResult((x, y, z), (dx, dy, dz), T, valid, pts, alive)
+            return TraceResult((x, y, z), (dx, dy, dz), T, valid, pts, alive, m, hard, stop_points)
+        return TraceResult((x, y, z), (dx, dy, dz), T, valid, pts, alive, stop_points=stop_points)
 
     @staticmethod
     def _reflectance(surf, n1, n2, cos_i, cos_t, lam_nm):

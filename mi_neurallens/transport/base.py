@@ -17,7 +17,9 @@ Evaluation (:meth:`TransportMap.eval_dr`) is written once, here:
    built for;
 4. evaluate the map's **core** — the only thing a map provides (:meth:`TransportMap.core_dr` in lens
    space, or :meth:`TransportMap.core_reduced_dr` in the reduced frame);
-5. **undo** the reduction and rebuild ``dz`` from the heading (when the core does not give it).
+5. **undo** the reduction and rebuild ``dz`` from the heading (when the core does not give it);
+6. with an :attr:`TransportMap.iris` set (learned maps at render time), **test the iris** on every
+   stop-plane crossing the core predicted (:mod:`mi_neurallens.trace.iris`).
 
 :meth:`TransportMap.eval_np` is the numpy face of the same code: numpy in, Dr.Jit ``Float64`` on the
 LLVM backend (independent of any Mitsuba variant, as :func:`mi_neurallens.trace.api.trace`), numpy
@@ -47,7 +49,7 @@ class MapResult:
     From :meth:`TransportMap.eval_dr`: ``position``/``direction`` are ``(x, y, z)`` tuples of the
     input's Dr.Jit float type, ``throughput`` a float, ``valid`` a mask; nothing is evaluated.
     From :meth:`TransportMap.eval_np`: float64 numpy arrays ``position`` (N, 3), ``direction`` (N, 3)
-    unit, ``throughput`` (N,), ``valid`` (N,) bool.
+    unit, ``throughput`` (N,), ``valid`` (N,) bool, ``stop`` (N, crossings, 2) or None.
 
     ``position`` lies on the map's output plane ``z_out``; ``direction`` is the exit direction (its z
     has the sign of the heading).  Values of invalid rays are unspecified.
@@ -59,7 +61,8 @@ class MapResult:
     throughput: object
     #: learned maps: the classifier's logit (valid ⇔ in domain and logit > 0); None for other maps
     logit: object = None
-    #: where the ray crosses the aperture-stop plane (x, y), for maps that provide it; else None
+    #: where the ray crosses the aperture-stop plane: a list of ``(x, y)`` in lens space (mm), one per
+    #: crossing in path order, for maps that provide them (:attr:`TransportMap.stop_crossings`); else None
     stop: object = None
 
 
@@ -68,16 +71,23 @@ class TransportMap:
     (and ``domain`` when ``reduced``) and implements one core:
 
     * ``reduced = False``: :meth:`core_dr` ``(p, d, lam, active)`` with ``p = (x, y)`` on ``z_in``
-      and ``d`` the unit direction → ``(valid, (X, Y), (DX, DY, DZ or None), T)`` in lens space;
+      and ``d`` the unit direction → ``(valid, (X, Y), (DX, DY, DZ or None), T)`` in lens space, or
+      the same with a fifth item, the list of stop-plane crossings ``(x, y)``;
     * ``reduced = True``: :meth:`core_reduced_dr` ``(x, active)`` with ``x = (r, ωx, ωy, λ)`` →
-      ``(valid, [X, Y, DX, DY, T], logit or None)`` in the reduced frame.
+      ``(valid, [X, Y, DX, DY, T, sx₁, sy₁, …], logit or None)`` in the reduced frame: the five
+      outputs, then ``(sx, sy)`` of each stop-plane crossing the map provides.
 
     ``domain`` (a :class:`~mi_neurallens.transport.planning.Domain`, reduced maps only): rays
-    outside it are invalid.
+    outside it are invalid.  ``stop_crossings``: how many stop-plane crossings the core returns (0:
+    none).  ``iris`` (an :class:`~mi_neurallens.trace.iris.Iris` or None): when set, a ray is valid only
+    if every crossing passes it — how a map learned at the widest opening renders any smaller or
+    bladed aperture.
     """
 
     method = "?"
     reduced = False
+    stop_crossings = 0
+    iris = None
     path_id: int
     direction: str
     z_in: float
@@ -131,11 +141,19 @@ class TransportMap:
             valid, y, logit = self.core_reduced_dr(x, ok)
             X, Y, DX, DY = symmetry.undo(y[0], y[1], y[2], y[3], frame)
             T, DZ = y[4], None
+            stop = [symmetry.undo_point(y[k], y[k + 1], frame) for k in range(5, len(y) - 1, 2)] or None
         else:
-            valid, (X, Y), (DX, DY, DZ), T = self.core_dr((px, py), (dx, dy, dz), lam, ok)
+            valid, (X, Y), (DX, DY, DZ), T, *rest = self.core_dr((px, py), (dx, dy, dz), lam, ok)
+            stop = rest[0] if rest else None
         if DZ is None:
             DZ = self.heading * dr.sqrt(dr.maximum(1.0 - dr.fma(DX, DX, DY * DY), 0.0))
-        return MapResult(valid, (X, Y, X * 0.0 + self.z_out), (DX, DY, DZ), T, logit)
+        if self.iris is not None:
+            if not stop:
+                raise NeuralLensError(f"{self.method} map {self.key} gives no stop-plane crossing, so it "
+                                      "cannot apply an iris")
+            for sx, sy in stop:
+                valid &= self.iris.contains_dr(sx, sy)
+        return MapResult(valid, (X, Y, X * 0.0 + self.z_out), (DX, DY, DZ), T, logit, stop)
 
     def eval_np(self, o, d, lam_nm) -> MapResult:
         """The same evaluation on numpy rays, in Dr.Jit ``Float64``: ``o``, ``d`` (N, 3), ``lam_nm``
@@ -151,8 +169,8 @@ class TransportMap:
         return to_numpy(res, n)
 
     def core_reduced_np(self, x):
-        """Reduced inputs (N, 4) numpy → ``(valid, outputs (N, 5), logit or None)`` of the core in
-        the reduced frame (float64; no domain check), through the same Dr.Jit code."""
+        """Reduced inputs (N, 4) numpy → ``(valid, outputs (N, 5 + 2·crossings), logit or None)`` of the
+        core in the reduced frame (float64; no domain check, no iris), through the same Dr.Jit code."""
         import drjit as dr
         F = float64_type()
         x = np.asarray(x, np.float64)
@@ -174,11 +192,13 @@ def float64_type():
 def to_numpy(res: MapResult, n: int) -> MapResult:
     """Evaluate a Dr.Jit :class:`MapResult` of ``n`` rays and return it as float64 numpy arrays."""
     import drjit as dr
-    arrays = [*res.position, *res.direction, res.throughput] + ([res.logit] if res.logit is not None else [])
+    stop = [c for p in (res.stop or []) for c in p]
+    arrays = [*res.position, *res.direction, res.throughput] + ([res.logit] if res.logit is not None else []) + stop
     dr.eval(res.valid, arrays)
     col = lambda a: np.broadcast_to(np.asarray(a.numpy(), np.float64), (n,))
     return MapResult(valid=np.broadcast_to(res.valid.numpy().astype(bool), (n,)).copy(),
                      position=np.stack([col(a) for a in res.position], 1),
                      direction=np.stack([col(a) for a in res.direction], 1),
                      throughput=col(res.throughput).copy(),
-                     logit=None if res.logit is None else col(res.logit).copy())
+                     logit=None if res.logit is None else col(res.logit).copy(),
+                     stop=None if not res.stop else np.stack([np.stack([col(x), col(y)], 1) for x, y in res.stop], 1))

@@ -16,7 +16,9 @@ class ExactMap(TransportMap):
 
     The tracer is frame independent, so :meth:`eval_dr` traces in lens space; :meth:`core_reduced_dr`
     traces the reduced ray (position (r, 0), direction (ωx, ωy)) for samplers that work in the reduced
-    frame.  ``domain``: optional, the reduced domain for :meth:`core_reduced_dr`'s callers.
+    frame.  ``domain``: optional, the reduced domain for :meth:`core_reduced_dr`'s callers.  Both give
+    the path's stop-plane crossings too (:attr:`stop_crossings` of them); the iris itself is the lens's
+    stop, tested by the tracer.
     """
 
     method = "exact"
@@ -32,6 +34,8 @@ class ExactMap(TransportMap):
         self.z_in = float(z_in)
         self.z_out = float(self.tracer.default_output_z(direction) if z_out is None else z_out)
         self.domain = domain
+        #: stop-plane crossings of this path (the steps through the stop surface)
+        self.stop_crossings = sum(1 for st in self.spec.steps if st.kind == "stop")
 
     @property
     def fresnel(self) -> bool:
@@ -42,7 +46,7 @@ class ExactMap(TransportMap):
         res = self.tracer.trace((px, py, px * 0.0 + self.z_in), d, lam, self.spec, self.direction,
                                 z_out=self.z_out, active=active)
         X, Y, _ = res.position
-        return res.valid, (X, Y), res.direction, res.throughput
+        return res.valid, (X, Y), res.direction, res.throughput, res.stop_points
 
     def trace_reduced(self, x, margin: bool = False, active=True):
         """Reduced inputs ``x = (r, ωx, ωy, λ)`` → the tracer's
@@ -55,4 +59,4 @@ class ExactMap(TransportMap):
     def core_reduced_dr(self, x, active):
         res = self.trace_reduced(x, active=active)
         return res.valid, [res.position[0], res.position[1], res.direction[0], res.direction[1],
-                           res.throughput], None
+                           res.throughput] + [c for p in res.stop_points for c in p], None
