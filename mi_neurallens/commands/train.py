@@ -22,8 +22,9 @@ def add_parser(subparsers):
     p.add_argument("--out", default=None, help="output folder (default: lenses/models)")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config value, e.g. --set seed=3 --set regressor.max_steps=2000 (JSON values)")
-    p.add_argument("--keep", choices=("regressor", "classifier"),
-                   help="train only the other network of each selected map; keep this one from --base")
+    p.add_argument("--keep", choices=("regressor", "classifier", "both"),
+                   help="keep this network of each selected map from --base and train the rest; 'both': train "
+                        "only the stop heads (a render-time aperture for an existing model)")
     p.add_argument("--base", help="model file the --keep networks come from (default: the output model file "
                                   "when it exists, else the bundled model of the lens)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -72,7 +73,8 @@ def run(args):
     base = None
     if args.keep:
         base = args.base or (out if os.path.exists(out) else bundled_model_path(lens.name))
-        print(f"keeping the {args.keep}s of {base}", file=sys.stderr)
+        what = "classifiers and regressors (training stop heads only)" if args.keep == "both" else f"{args.keep}s"
+        print(f"keeping the {what} of {base}", file=sys.stderr)
     elif args.base:
         from ..errors import NeuralLensError
         raise NeuralLensError("--base names where --keep takes its networks from; give --keep too")

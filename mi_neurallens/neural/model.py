@@ -17,12 +17,15 @@ A `safetensors <https://huggingface.co/docs/safetensors>`_ file (never pickle). 
                "classifier": {"layers": [4, 32, 32, 1], "activation": "tanh"},
                "regressor": {"layers": [4, 32, 32, 32, 32, 32, 5], "activation": "tanh",
                              "outputs": ["x", "y", "dx", "dy", "throughput"]},
+               "stop": {"layers": [4, 32, 32, 32, 2k], "activation": "tanh",   # optional: the
+                        "crossings": k, "odd_y": true, "training": {...}, "metrics": {...}},  # stop head
                "training": {...}, "metrics": {...}}, ...],
      "ghost_ranking": [...], "created": ..., "software": ...}
 
 Tensors of map ``K`` (float32): ``K.classifier.{i}.weight`` (out, in), ``K.classifier.{i}.bias``,
 ``K.regressor.{i}.weight``, ``K.regressor.{i}.bias``, ``K.regressor.skip.weight`` (5, 4) and
-``K.regressor.out_scale`` / ``K.regressor.out_shift`` (5,).
+``K.regressor.out_scale`` / ``K.regressor.out_shift`` (5,); with a stop head ``K.stop.{i}.weight`` /
+``.bias``, ``K.stop.skip.weight`` (2k, 4), ``K.stop.out_scale`` / ``K.stop.out_shift`` (2k,).
 
 Evaluation of one map on reduced inputs x = (r, ωx, ωy, λ) (see :mod:`mi_neurallens.trace.symmetry`):
 ``xn = (x − center)/scale``; valid iff ``classifier(xn) > 0`` (a logit) and x lies in the domain;
@@ -32,6 +35,13 @@ the reduced frame, undone to lens space by :func:`~mi_neurallens.trace.symmetry.
 except for maps whose regressor metadata says ``"odd_y": true``: there the y and dy outputs are
 multiplied by ωy / s_max, which makes them exactly odd under the mirror reduction ωy → −ωy (y = dy = 0
 on the mirror plane, as the exact tracer gives), so the undo leaves no seam across that plane.
+
+The optional **stop head** (:class:`StopHead`) predicts, from the same normalised inputs, where the ray
+crosses the aperture-stop plane — ``k`` crossings ``(sx, sy)`` in the reduced frame, ``sy`` odd like
+``y`` — with the iris at the widest opening the classifier learned.  At render time
+:attr:`NeuralMap.iris` tests those crossings against any smaller or bladed iris
+(:mod:`mi_neurallens.trace.iris`), so one map renders every aperture.  Files without it load as before
+(the aperture is then fixed at the trained one).
 """
 from __future__ import annotations
 
@@ -53,13 +63,87 @@ FORMAT_VERSION = 1
 OUTPUTS = ("x", "y", "dx", "dy", "throughput")
 
 
+def _fold(layers, out_scale, out_shift):
+    """``layers`` (float64) with the output transform ``shift + scale·y`` folded into the last layer."""
+    layers = [(np.asarray(W, np.float64), np.asarray(b, np.float64)) for W, b in layers]
+    W, b = layers[-1]
+    sc, sh = np.asarray(out_scale, np.float64), np.asarray(out_shift, np.float64)
+    layers[-1] = (W * sc[:, None], b * sc + sh)
+    return layers
+
+
+def _add_skip(y, xn, skip):
+    """``y + skip·xn`` on lists of Dr.Jit floats (zero coefficients skipped): the linear skip term."""
+    import drjit as dr
+    A = np.asarray(skip, np.float64)
+    for j in range(len(y)):
+        for i in range(len(xn)):
+            if A[j, i] != 0.0:
+                y[j] = dr.fma(xn[i], float(A[j, i]), y[j])
+    return y
+
+
+@dataclass
+class StopHead:
+    """Where a learned map's rays cross the aperture-stop plane: ``crossings`` = k points, an MLP on the
+    map's normalised inputs with a linear skip, outputs ``M·(out_shift + out_scale·net(xn) + skip·xn)``
+    = (sx₁, sy₁, …, sx_k, sy_k) in the reduced frame (mm on the stop plane, lens space z = the stop's
+    vertex), ``M`` = ωy/s_max on the sy columns when ``odd_y``.  ``layers``: (W, b) numpy layers."""
+
+    crossings: int
+    layers: list
+    skip: np.ndarray
+    out_scale: np.ndarray
+    out_shift: np.ndarray
+    activation: str = "tanh"
+    odd_y: bool = True
+    training: dict = field(default_factory=dict)
+    metrics: dict = field(default_factory=dict)
+
+    def _folded(self):
+        if getattr(self, "_fold", None) is None:
+            self._fold = _fold(self.layers, self.out_scale, self.out_shift)
+        return self._fold
+
+    def eval_dr(self, x, xn, s_max: float):
+        """Reduced inputs ``x`` and their normalised ``xn`` (Dr.Jit) → the 2k outputs (Dr.Jit list)."""
+        y = _add_skip(mlp_dr(xn, self._folded(), self.activation), xn, self.skip)
+        if self.odd_y:
+            m = x[2] * (1.0 / float(s_max))
+            for j in range(1, len(y), 2):
+                y[j] = y[j] * m
+        return y
+
+    def flops(self) -> int:
+        return sum(2 * np.shape(W)[0] * np.shape(W)[1] + (24 * np.shape(W)[0] if i < len(self.layers) - 1 else 0)
+                   for i, (W, _) in enumerate(self.layers)) + 2 * 4 * 2 * self.crossings
+
+    def meta(self) -> dict:
+        return {"layers": _widths(self.layers), "activation": self.activation, "crossings": int(self.crossings),
+                "odd_y": bool(self.odd_y), "training": self.training, "metrics": self.metrics}
+
+    def tensors(self, key: str) -> dict:
+        t = {}
+        for i, (W, b) in enumerate(self.layers):
+            t[f"{key}.stop.{i}.weight"] = np.ascontiguousarray(W, np.float32)
+            t[f"{key}.stop.{i}.bias"] = np.ascontiguousarray(b, np.float32)
+        t[f"{key}.stop.skip.weight"] = np.ascontiguousarray(self.skip, np.float32)
+        t[f"{key}.stop.out_scale"] = np.ascontiguousarray(self.out_scale, np.float32)
+        t[f"{key}.stop.out_shift"] = np.ascontiguousarray(self.out_shift, np.float32)
+        return t
+
+
 @dataclass
 class NeuralMap(TransportMap):
     """One learned (path, direction) map: a :class:`~mi_neurallens.transport.base.TransportMap` whose
     core, in the symmetry-reduced frame, is the classifier (valid iff its logit > 0) then the regressor.
     ``classifier``/``regressor``: lists of (W, b) numpy layers.
 
-    Render-time options (not stored in the file): ``use_classifier`` (``False``: the paper's ablation,
+    ``stop_head``: optional :class:`StopHead` (the stop-plane crossings, appended to the core's outputs).
+
+    Render-time options (not stored in the file): ``iris`` (an :class:`~mi_neurallens.trace.iris.Iris`
+    inside the trained opening, tested on the stop head's crossings; None: the trained aperture),
+    ``use_classifier`` (``False``: the paper's ablation,
     every in-domain ray is valid and the classifier is not evaluated at all) and ``mlp`` (``"fused"``:
     weights as kernel literals, rational tanh in float32, exact tanh in float64; ``"coopvec"``: Dr.Jit
     cooperative vectors, :mod:`mi_neurallens.neural.coopvec`)."""
@@ -81,8 +165,10 @@ class NeuralMap(TransportMap):
     odd_y: bool = False            # y, dy outputs multiplied by ωy / s_max (see the module docstring)
     training: dict = field(default_factory=dict)
     metrics: dict = field(default_factory=dict)
+    stop_head: StopHead | None = None
     use_classifier: bool = field(default=True, compare=False)
     mlp: str = field(default="fused", compare=False)
+    iris: object = field(default=None, compare=False)
 
     method = "neural"
     reduced = True
@@ -90,14 +176,14 @@ class NeuralMap(TransportMap):
     def __post_init__(self):
         self.domain = Domain.from_dict(self.domain)
 
+    @property
+    def stop_crossings(self) -> int:
+        return self.stop_head.crossings if self.stop_head is not None else 0
+
     def _folded(self):
         """Regressor layers with out_scale/out_shift folded into the last layer (float64)."""
         if getattr(self, "_fold", None) is None:
-            layers = [(np.asarray(W, np.float64), np.asarray(b, np.float64)) for W, b in self.regressor]
-            W, b = layers[-1]
-            s, m = np.asarray(self.out_scale, np.float64), np.asarray(self.out_shift, np.float64)
-            layers[-1] = (W * s[:, None], b * s + m)
-            self._fold = layers
+            self._fold = _fold(self.regressor, self.out_scale, self.out_shift)
         return self._fold
 
     def flops(self) -> int:
@@ -107,6 +193,7 @@ class NeuralMap(TransportMap):
         for layers in (self.classifier, self.regressor):
             for i, (W, _) in enumerate(layers):
                 f += 2 * np.shape(W)[0] * np.shape(W)[1] + (24 * np.shape(W)[0] if i < len(layers) - 1 else 0)
+        f += self.stop_head.flops() if (self.stop_head is not None and self.iris is not None) else 0
         return f + 40 + 2 * 5 * 4
 
     # ------------------------------------------------------------------ reduced-frame core
@@ -114,8 +201,9 @@ class NeuralMap(TransportMap):
         return (np.asarray(x, np.float64) - self.input_center) / self.input_scale
 
     def eval_reduced_dr(self, x, mlp: str | None = None):
-        """Reduced inputs (4 Dr.Jit floats) → (logit, [5 outputs]) fused into one kernel.
-        ``mlp``: ``"fused"`` or ``"coopvec"`` (default: :attr:`mlp`)."""
+        """Reduced inputs (4 Dr.Jit floats) → (logit, [5 outputs, then 2k stop outputs when the map has
+        a stop head]) fused into one kernel.  ``mlp``: ``"fused"`` or ``"coopvec"`` (default:
+        :attr:`mlp`; the stop head is always fused)."""
         import drjit as dr
         mlp = self.mlp if mlp is None else mlp
         xn = [dr.fma(v, 1.0 / float(s), -float(c) / float(s))
@@ -129,14 +217,12 @@ class NeuralMap(TransportMap):
             y = reg(xn)
         else:
             raise ModelError(f"unknown MLP evaluation {mlp!r}: use 'fused' or 'coopvec'")
-        A = np.asarray(self.skip, np.float64)
-        for j in range(len(y)):
-            for i in range(len(xn)):
-                if A[j, i] != 0.0:
-                    y[j] = dr.fma(xn[i], float(A[j, i]), y[j])
+        y = _add_skip(y, xn, self.skip)
         if self.odd_y:
             m = x[2] * (1.0 / float(self.domain.s_max))
             y[1], y[3] = y[1] * m, y[3] * m
+        if self.stop_head is not None:
+            y = list(y) + self.stop_head.eval_dr(x, xn, self.domain.s_max)
         return logit, y
 
     def core_reduced_dr(self, x, active):
@@ -145,7 +231,7 @@ class NeuralMap(TransportMap):
         return valid, y, logit
 
     def eval_reduced_np(self, x):
-        """Reduced inputs (N, 4) → (logit (N,), outputs (N, 5)), float64, through the Dr.Jit core."""
+        """Reduced inputs (N, 4) → (logit (N,), outputs (N, 5 + 2k)), float64, through the Dr.Jit core."""
         _, y, logit = self.core_reduced_np(x)
         return logit, y
 
@@ -169,7 +255,8 @@ class NeuralMap(TransportMap):
                 "classifier": {"layers": _widths(self.classifier), "activation": self.classifier_activation},
                 "regressor": {"layers": _widths(self.regressor), "activation": self.regressor_activation,
                               "outputs": list(OUTPUTS), "odd_y": bool(self.odd_y)},
-                "training": self.training, "metrics": self.metrics}
+                "training": self.training, "metrics": self.metrics,
+                **({"stop": self.stop_head.meta()} if self.stop_head is not None else {})}
 
     def _tensors(self) -> dict:
         t = {}
@@ -180,6 +267,8 @@ class NeuralMap(TransportMap):
         t[f"{self.key}.regressor.skip.weight"] = np.ascontiguousarray(self.skip, np.float32)
         t[f"{self.key}.regressor.out_scale"] = np.ascontiguousarray(self.out_scale, np.float32)
         t[f"{self.key}.regressor.out_shift"] = np.ascontiguousarray(self.out_shift, np.float32)
+        if self.stop_head is not None:
+            t.update(self.stop_head.tensors(self.key))
         return t
 
 
@@ -356,7 +445,8 @@ def load_model(path, lens=None) -> NeuralLensModel:
                 out_shift=get(f"{key}.regressor.out_shift", (len(OUTPUTS),)),
                 classifier_activation=ac, regressor_activation=ar,
                 odd_y=bool(mm["regressor"].get("odd_y", False)),
-                training=mm.get("training", {}), metrics=mm.get("metrics", {}))
+                training=mm.get("training", {}), metrics=mm.get("metrics", {}),
+                stop_head=_load_stop_head(path, key, mm.get("stop"), get))
             if tm.direction not in ("forward", "backward") or tm.key != key:
                 raise ModelError(f"{path}: map {key}: inconsistent key/direction/path id")
             if tm.input_center.shape != (4,) or tm.input_scale.shape != (4,) or np.any(tm.input_scale == 0):
@@ -372,6 +462,23 @@ def load_model(path, lens=None) -> NeuralLensModel:
                            z_front=float(planes["z_front_mm"]), z_rear=float(planes["z_rear_mm"]),
                            z_last_vertex=float(planes.get("z_last_vertex_mm", math.nan)),
                            sensor_distance_range=srange, maps=maps, extra=extra, path=path)
+
+
+def _load_stop_head(path, key, meta, get):
+    if meta is None:
+        return None
+    w, k = meta["layers"], int(meta["crossings"])
+    act = meta.get("activation", "tanh")
+    if act not in ACTIVATIONS:
+        raise ModelError(f"{path}: map {key}: unknown stop-head activation {act!r}; known: {ACTIVATIONS}")
+    if k < 1 or w[0] != 4 or w[-1] != 2 * k:
+        raise ModelError(f"{path}: map {key}: stop head {w} does not map 4 inputs to 2 × {k} crossing coordinates")
+    layers = [(get(f"{key}.stop.{i}.weight", (w[i + 1], w[i])), get(f"{key}.stop.{i}.bias", (w[i + 1],)))
+              for i in range(len(w) - 1)]
+    return StopHead(crossings=k, layers=layers, skip=get(f"{key}.stop.skip.weight", (2 * k, 4)),
+                    out_scale=get(f"{key}.stop.out_scale", (2 * k,)), out_shift=get(f"{key}.stop.out_shift", (2 * k,)),
+                    activation=act, odd_y=bool(meta.get("odd_y", True)), training=meta.get("training", {}),
+                    metrics=meta.get("metrics", {}))
 
 
 def bundled_model_path(lens_name: str) -> str:

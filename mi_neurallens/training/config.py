@@ -59,6 +59,13 @@ def classifier_defaults() -> NetConfig:
                      direction_loss="none", pool=1_500_000)
 
 
+def stop_defaults() -> NetConfig:
+    """The stop head (where rays cross the stop plane): smooth and nearly linear, so a small network."""
+    return NetConfig(hidden=2, width=32, lr=3e-3, max_steps=60000, max_minutes=4.0, patience=12,
+                     residual="linear", loss_weights="uniform", direction_loss="none", odd_y=True,
+                     pool=1_000_000)
+
+
 PAPER = dict(schedule="paper", lr=1e-4, decay=0.95, decay_every=10000, batch=8192, warmup_steps=0,
              residual="none", direction_loss="cosine", loss_weights="uniform", odd_y=False, target="label")
 
@@ -86,8 +93,10 @@ class TrainConfig:
     device: str = "auto"                # "auto": CUDA if available, else CPU
     regressor: NetConfig = field(default_factory=regressor_defaults)
     classifier: NetConfig = field(default_factory=classifier_defaults)
+    stop: NetConfig = field(default_factory=stop_defaults)  # the stop head (max_minutes = 0: none)
     forward_regressor: dict = field(default_factory=dict)   # overrides for forward maps
     forward_classifier: dict = field(default_factory=dict)
+    forward_stop: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -96,8 +105,9 @@ class TrainConfig:
         return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()[:12]
 
     def net(self, kind: str, direction: str) -> NetConfig:
-        base = self.regressor if kind == "regressor" else self.classifier
-        over = self.forward_regressor if kind == "regressor" else self.forward_classifier
+        """The network settings of ``kind`` (``regressor``, ``classifier`` or ``stop``) for maps in
+        ``direction`` (forward maps apply the ``forward_<kind>`` overrides)."""
+        base, over = getattr(self, kind), getattr(self, f"forward_{kind}")
         return _apply(base, over, f"forward_{kind}") if direction == "forward" and over else base
 
 
@@ -143,7 +153,7 @@ def load_config(path: str | None = None, lens: str | None = None, overrides: dic
     if bad:
         raise NeuralLensError(f"training config {path or ''}: unknown key(s) {bad}; known: {sorted(names)}")
     for k, v in data.items():
-        if k in ("regressor", "classifier"):
+        if k in ("regressor", "classifier", "stop"):
             setattr(cfg, k, _apply(getattr(cfg, k), v, k))
         else:
             setattr(cfg, k, v)

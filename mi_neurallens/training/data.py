@@ -34,11 +34,12 @@ class PathSampler:
     """Traces unit-cube samples ``u`` of one (lens, path, direction) map from ``z_in`` to ``z_out``.
 
     ``precision``: ``"float32"`` for training data (≈ 0.01 µm / 0.02″ rounding), ``"float64"`` for
-    held-out reference sets.
+    held-out reference sets.  ``stops``: the outputs also hold the path's stop-plane crossings
+    (sx, sy per crossing, reduced frame, mm) after the five of :data:`OUTPUT_NAMES`.
     """
 
     def __init__(self, lens, path_id: int, direction: str, z_in: float, z_out: float, domain: Domain,
-                 fresnel: bool = True, precision: str = "float32"):
+                 fresnel: bool = True, precision: str = "float32", stops: bool = False):
         from ..trace.api import float_type
         from ..transport.exact import ExactMap
         self.lens, self.path_id, self.direction = lens, int(path_id), direction
@@ -52,6 +53,8 @@ class PathSampler:
         self.rays_traced = 0
         #: optional :class:`~mi_neurallens.training.bounds.ValidBounds` used by :meth:`random_valid`
         self.bounds = None
+        #: output columns: the five, plus two per stop-plane crossing when ``stops``
+        self.n_out = len(OUTPUT_NAMES) + (2 * self.map.stop_crossings if stops else 0)
 
     # -- Dr.Jit core ---------------------------------------------------------------------------
     def u_to_x_dr(self, u):
@@ -64,10 +67,11 @@ class PathSampler:
         return d.r_max * u[0], rho * c, rho * s, lam
 
     def trace_dr(self, r, wx, wy, lam):
-        """Reduced inputs (Dr.Jit) → (valid, [x, y, dx, dy, T]) (Dr.Jit, reduced frame): the exact
+        """Reduced inputs (Dr.Jit) → (valid, [x, y, dx, dy, T (, sx, sy, …)]) (Dr.Jit, reduced frame): the exact
         map's reduced core, with rays whose outputs are not finite made invalid."""
         import drjit as dr
         valid, outs, _ = self.map.core_reduced_dr((r, wx, wy, lam), True)
+        outs = outs[:self.n_out]
         for o in outs:
             valid &= dr.isfinite(o)
         return valid, outs
@@ -87,7 +91,7 @@ class PathSampler:
         return [self.F(np.ascontiguousarray(a[:, i], dtype=self.np_dtype)) for i in range(4)]
 
     def trace_x(self, x: np.ndarray):
-        """Reduced inputs (N, 4) → (valid (N,), outputs (N, 5) float64, NaN where invalid)."""
+        """Reduced inputs (N, 4) → (valid (N,), outputs (N, :attr:`n_out`) float64, NaN where invalid)."""
         valid, outs = self.trace_dr(*self._columns(x))
         return self._to_np(valid, outs, len(x))
 
@@ -113,7 +117,7 @@ class PathSampler:
 
     def random_valid(self, n_rays: int, seed: int, bounds: bool = True):
         """Trace ``n_rays`` random samples drawn with Dr.Jit's PCG32 (stream ``seed``) and return only
-        the valid ones, compacted inside Dr.Jit: (u (K, 4), y (K, 5)), float64 arrays.
+        the valid ones, compacted inside Dr.Jit: (u (K, 4), y (K, :attr:`n_out`)), float64 arrays.
 
         Uniform over the unit cube, or, when :attr:`bounds` (a
         :class:`~mi_neurallens.training.bounds.ValidBounds`) is set and ``bounds`` is true, uniform
@@ -173,7 +177,7 @@ def rejection_sample(ps: PathSampler, n: int, rng: np.random.Generator, chunk: i
         ys.append(y)
         got += len(u)
     u = np.concatenate(us)[:n] if us else np.zeros((0, 4))
-    y = np.concatenate(ys)[:n] if ys else np.zeros((0, 5))
+    y = np.concatenate(ys)[:n] if ys else np.zeros((0, ps.n_out))
     dt = time.perf_counter() - t0
     stats = {"rays": traced, "valid": int(got), "acceptance": got / max(traced, 1), "seconds": dt,
              "valid_per_s": got / max(dt, 1e-9), "rays_per_s": traced / max(dt, 1e-9)}

@@ -38,11 +38,22 @@ def regression_errors(y_pred: np.ndarray, y_true: np.ndarray, heading: int) -> d
             "throughput_rel_median": q(rel, 50), "throughput_rel_p99": q(rel, 99)}
 
 
+def stop_errors(s_pred: np.ndarray, s_true: np.ndarray) -> dict:
+    """Stop-plane crossing errors (µm): per ray the largest over its crossings; columns (sx, sy, …)."""
+    k = s_true.shape[1] // 2
+    e = np.max([np.hypot(s_pred[:, 2 * i] - s_true[:, 2 * i], s_pred[:, 2 * i + 1] - s_true[:, 2 * i + 1])
+                for i in range(k)], axis=0) * 1000.0
+    return {"n": int(len(e)), "crossings": int(k), "stop_um_median": float(np.median(e)),
+            "stop_um_p99": float(np.percentile(e, 99)), "stop_um_max": float(e.max())}
+
+
 def heldout_valid(lens, tm_or_spec, domain, n: int, seed: int, mcmc_threshold: float = 0.02,
-                  fresnel: bool = True):
-    """(x, y) float64 valid held-out samples of a map (independent seed)."""
+                  fresnel: bool = True, stops: bool = False):
+    """(x, y) float64 valid held-out samples of a map (independent seed); ``stops``: y also holds the
+    stop-plane crossings (:class:`~mi_neurallens.training.data.PathSampler`)."""
     path_id, direction, z_in, z_out = tm_or_spec
-    ps = PathSampler(lens, path_id, direction, z_in, z_out, domain, fresnel=fresnel, precision="float64")
+    ps = PathSampler(lens, path_id, direction, z_in, z_out, domain, fresnel=fresnel, precision="float64",
+                     stops=stops)
     rng = np.random.default_rng(seed)
     if valid_fraction(ps, rng, 1 << 18) >= mcmc_threshold:
         _, x, y, _ = rejection_sample(ps, n, rng)
@@ -93,12 +104,15 @@ def evaluate_map(lens, tm, n: int = 200_000, seed: int = 999, mcmc_threshold: fl
     from .data import Domain
     dom = Domain.from_dict(tm.domain)
     rng = np.random.default_rng(seed)
+    k = tm.stop_crossings
     if reg_data is None:
         reg_data = heldout_valid(lens, (tm.path_id, tm.direction, tm.z_in, tm.z_out), dom, n, seed + 1,
-                                 mcmc_threshold, fresnel)
+                                 mcmc_threshold, fresnel, stops=k > 0)
     x, y = reg_data
     _, yp = tm.eval_reduced_np(x)
-    m = {"regressor": regression_errors(yp, y, tm.heading)}
+    m = {"regressor": regression_errors(yp[:, :5], y[:, :5], tm.heading)}
+    if k and y.shape[1] >= 5 + 2 * k:
+        m["stop"] = stop_errors(yp[:, 5:5 + 2 * k], y[:, 5:5 + 2 * k])
     # classifier on the natural (uniform-domain) mix
     ps = PathSampler(lens, tm.path_id, tm.direction, tm.z_in, tm.z_out, dom, fresnel=fresnel, precision="float64")
     xu = dom.u_to_x(rng.random((n, 4)))
@@ -139,14 +153,16 @@ def meets_goals(m: dict) -> dict:
 
 def markdown_table(model, rows) -> str:
     hdr = ("| map | path | pos µm med | pos µm p99 | dir ″ med | dir ″ p99 | T rel med | misclass | "
-           "false-valid | false-blocked | wrong: boundary dist med |\n|---|---|---|---|---|---|---|---|---|---|---|\n")
+           "false-valid | false-blocked | wrong: boundary dist med | stop µm med | stop µm p99 |\n"
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n")
     lines = []
     for key, m in rows:
-        r, c = m["regressor"], m["classifier"]
+        r, c, st = m["regressor"], m["classifier"], m.get("stop")
         bd = c.get("wrong_boundary_distance_median")
+        stop = (f"{st['stop_um_median']:.3g} | {st['stop_um_p99']:.3g}" if st else "— | —")
         lines.append(f"| {key} | {m.get('describe', '')} | {r['position_um_median']:.3g} | {r['position_um_p99']:.3g} | "
                      f"{r['direction_arcsec_median']:.3g} | {r['direction_arcsec_p99']:.3g} | "
                      f"{100 * r['throughput_rel_median']:.3g}% | {100 * c['misclassification']:.3g}% | "
                      f"{100 * c['false_valid']:.3g}% | {100 * c['false_blocked']:.3g}% | "
-                     f"{'—' if bd is None else f'{bd:.3g}'} |")
+                     f"{'—' if bd is None else f'{bd:.3g}'} | {stop} |")
     return hdr + "\n".join(lines) + "\n"

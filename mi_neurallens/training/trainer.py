@@ -555,8 +555,9 @@ def calibrate_classifier(lens, tm, n: int = 200_000, seed: int = 0, fresnel: boo
 
 
 # ----------------------------------------------------------------------------- one map
-#: the networks of a map that :func:`train_map` can keep from an earlier map instead of training them
-NETWORKS = ("regressor", "classifier")
+#: what :func:`train_map` can keep from an earlier map instead of training it: one network, or
+#: ``"both"`` (train only the stop head)
+NETWORKS = ("regressor", "classifier", "both")
 
 
 def _check_keep(keep: str | None, base, path_id: int, direction: str, z_in: float, z_out: float, domain: Domain):
@@ -565,7 +566,7 @@ def _check_keep(keep: str | None, base, path_id: int, direction: str, z_in: floa
     if keep is None:
         return
     if keep not in NETWORKS:
-        raise NeuralLensError(f"keep = {keep!r}: choose one of {list(NETWORKS)} (or None to train both)")
+        raise NeuralLensError(f"keep = {keep!r}: choose one of {list(NETWORKS)} (or None to train all)")
     if base is None:
         raise NeuralLensError(f"keep = {keep!r} needs the map whose {keep} is kept (base)")
     want = (int(path_id), direction)
@@ -600,9 +601,13 @@ def _kept(base, network: str) -> dict:
 def train_map(lens, path_id: int, direction: str, z_in: float, z_out: float, domain: Domain, cfg: TrainConfig,
               workdir: str | None = None, progress: bool = True, log=None, evaluate: bool = True,
               eval_n: int | None = None, keep: str | None = None, base=None):
-    """Train the classifier and regressor of one map; returns a :class:`~mi_neurallens.neural.model.NeuralMap` with held-out
-    metrics.
+    """Train the classifier, regressor and stop head of one map; returns a
+    :class:`~mi_neurallens.neural.model.NeuralMap` with held-out metrics.
 
+    The stop head (:mod:`~mi_neurallens.training.stop_head`) is trained when the path crosses the stop
+    plane and ``cfg.stop.max_minutes > 0``; with ``keep``, a stop head the base map has is kept.
+    ``keep = "both"`` keeps the classifier and the regressor and trains only the stop head (what adds a
+    render-time aperture to a shipped map without changing anything else it outputs).
     ``keep = "regressor"`` (or ``"classifier"``) takes that network unchanged from ``base`` (a
     :class:`~mi_neurallens.neural.model.NeuralMap` of the same path, planes and domain) and trains only
     the other one: e.g. a longer or wider classifier for a ghost whose flare error sits on its edge,
@@ -613,6 +618,8 @@ def train_map(lens, path_id: int, direction: str, z_in: float, z_out: float, dom
     _check_keep(keep, base, path_id, direction, z_in, z_out, domain)
     key = f"{direction}.{path_id}"
     seed = int(cfg.seed) * 1_000_003 + int(path_id) * 2 + (direction == "forward")
+    if keep == "both":
+        return _add_stop_head(lens, base, cfg, seed, progress, log)
     rc, cc = cfg.net("regressor", direction), cfg.net("classifier", direction)
     ps = PathSampler(lens, path_id, direction, z_in, z_out, domain, fresnel=cfg.fresnel)
     stream = RegressorStream(ps, seed, cfg.mcmc_threshold, cfg.mcmc_chains, cfg.mcmc_p_large, cfg.mcmc_sigma)
@@ -668,9 +675,41 @@ def train_map(lens, path_id: int, direction: str, z_in: float, z_out: float, dom
                       regressor_activation=reg.get("activation", rc.activation), training=training)
     if keep != "classifier":
         calibrate_classifier(lens, tm, min(cfg.heldout, 200_000), seed + 13, cfg.fresnel)
+    tm.stop_head = base.stop_head if (keep is not None and base.stop_head is not None) else \
+        _stop_head_of(lens, tm, cfg, seed, progress, log)
     if evaluate:
         tm.metrics = evaluate_map(lens, tm, n=eval_n or cfg.heldout, seed=seed + 99,
                                   mcmc_threshold=cfg.mcmc_threshold, fresnel=cfg.fresnel)
+    return tm
+
+
+def _stop_head_of(lens, tm, cfg: TrainConfig, seed: int, progress: bool, log):
+    """The stop head of ``tm`` trained with ``cfg.stop`` (None when disabled or the path never crosses
+    the stop plane)."""
+    from ..transport.exact import ExactMap
+    nc = cfg.net("stop", tm.direction)
+    if nc.max_minutes <= 0 or ExactMap(lens, tm.path_id, tm.direction, tm.z_in, tm.z_out).stop_crossings == 0:
+        return None
+    from .stop_head import train_stop_head
+    return train_stop_head(lens, tm, nc, seed=seed + 17, fresnel=cfg.fresnel, mcmc_threshold=cfg.mcmc_threshold,
+                           threads=cfg.threads, device=cfg.device, progress=progress, log=log)
+
+
+def _add_stop_head(lens, base, cfg: TrainConfig, seed: int, progress: bool, log):
+    """``keep = "both"``: ``base`` with a (new) stop head and its held-out stop metrics; the classifier,
+    regressor and their metrics are unchanged."""
+    import dataclasses
+    from .evaluate import heldout_valid, stop_errors
+    head = _stop_head_of(lens, base, cfg, seed, progress, log)
+    if head is None:
+        raise NeuralLensError(f"map {base.key}: no stop head to train (its path does not cross the stop plane, "
+                              "or stop.max_minutes = 0)")
+    tm = dataclasses.replace(base, stop_head=head)
+    x, y = heldout_valid(lens, (tm.path_id, tm.direction, tm.z_in, tm.z_out), tm.domain, cfg.heldout, seed + 101,
+                         cfg.mcmc_threshold, cfg.fresnel, stops=True)
+    _, yp = tm.eval_reduced_np(x)
+    head.metrics = stop_errors(yp[:, 5:], y[:, 5:])
+    tm.metrics = {**tm.metrics, "stop": head.metrics}
     return tm
 
 
@@ -700,8 +739,9 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
     """Plan, train and save every selected map of ``lens`` to ``out_path`` (re-saved atomically after each
     map, so an interruption loses at most the map in progress — whose networks resume from checkpoints).
 
-    ``keep`` ("regressor" or "classifier"): train only the other network of each selected map and keep
-    this one from the same map of the model file ``base_path`` (see :func:`train_map`)."""
+    ``keep`` ("regressor", "classifier" or "both"): keep that network (both: train only the stop
+    heads) of each selected map from the same map of the model file ``base_path`` (see
+    :func:`train_map`); the base model's maps that are not selected are carried over unchanged."""
     from ..neural.model import NeuralLensModel, load_model
     from . import plan
     from ..transport.planning import select_ghosts
@@ -749,15 +789,21 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
                 ranking = plan.rank_ghosts(lens, z_front, fwd_domain, lens.surfaces[-1].thickness,
                                            cfg.film_half_diagonal_mm, cfg.ghost_rank_rays, cfg.seed)
                 atomic_write_text(rk_path, json.dumps(ranking))
-            keep = select_ghosts(ranking, cfg.ghost_energy_fraction, cfg.max_ghosts)
+            selected = select_ghosts(ranking, cfg.ghost_energy_fraction, cfg.max_ghosts)
             model.extra["ghost_ranking"] = ranking
-            model.extra["ghosts_selected"] = keep
-            model.extra["ghosts_trained"] = keep[:cfg.ship_ghosts]
-            for pid in keep[:cfg.ship_ghosts]:
+            model.extra["ghosts_selected"] = selected
+            model.extra["ghosts_trained"] = selected[:cfg.ship_ghosts]
+            for pid in selected[:cfg.ship_ghosts]:
                 todo.append((pid, "forward", z_front, z_rear, fwd_domain))
         else:
             pid = 0 if p == "transmit" else int(p)
             todo.append((pid, "forward", z_front, z_rear, fwd_domain))
+    if base_model is not None:
+        model.extra = {**base_model.extra, **model.extra}
+        wanted = {f"{d}.{pid}" for pid, d, *_ in todo}
+        for k, m in base_model.maps.items():
+            if k not in wanted:
+                model.maps.setdefault(k, m)
     for pid, d, zi, zo, dom in todo:
         key = f"{d}.{pid}"
         if key in model.maps:
