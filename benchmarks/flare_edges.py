@@ -1,7 +1,7 @@
 """Where a ghost map's flare error sits: inside the ghost or on its edge.
 
     python benchmarks/flare_edges.py wide-22mm 192 [288 ...|all] [--model FILE] [--samples 24]
-                                     [--reference 28] [--json OUT]
+                                     [--reference 28] [--json OUT] [--set fstop=5.4 --set blades=6]
 
 Renders each ghost of ``scenes/night_point.xml`` alone, exactly and with its neural map *with the same samples*
 (``pilot_with = "exact"``, same seed: common random numbers, so Monte Carlo noise cancels), then splits
@@ -14,7 +14,9 @@ Because the noise cancels, the paired MAPE converges to the map's own error as t
 it is the per-ghost number of the goal "each shipped ghost ≤ 0.01 against a converged exact reference"
 once it no longer falls with 4× the samples.  ``--reference K`` also renders an exact reference with
 2^K samples (another seed) and reports the plain (independent) MAPE of the neural and of the exact
-render against it: the exact one is the test budget's noise floor.
+render against it: the exact one is the test budget's noise floor.  ``--set KEY=VALUE`` sets a property
+of the scene's ``neural_lens`` (e.g. ``fstop``, ``blades``: the learned ghosts then test the iris on
+their predicted stop crossings).  ``--combined`` adds one row with every listed ghost at once.
 """
 from __future__ import annotations
 
@@ -35,6 +37,9 @@ def main(argv=None):
     ap.add_argument("--samples", type=int, default=24, help="log2 samples")
     ap.add_argument("--reference", type=int, default=0, help="log2 samples of an independent exact reference (0: none)")
     ap.add_argument("--json", help="write the rows here")
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                    help="neural_lens property (repeatable), e.g. --set fstop=5.4 --set blades=6")
+    ap.add_argument("--combined", action="store_true", help="also render all listed ghosts together")
     ap.add_argument("--attribute", action="store_true",
                     help="also render the two hybrids (exact validity + learned exit rays, learned validity + exact "
                          "exit rays) that split the error between the regressor and the classifier")
@@ -52,12 +57,13 @@ def main(argv=None):
     model = a.model or bundled_model_path(a.lens)
     ghosts = load_model(model).ghost_ids if a.ghosts == ["all"] else [int(g) for g in a.ghosts]
     scene = load_scene(os.path.join(ROOT, "scenes", "night_point.xml"), variant="llvm_ad_rgb", lens=a.lens,
-                       sensor_type="neural_lens", sets=[f"model={model}"])
+                       sensor_type="neural_lens", sets=[f"model={model}"] + a.sets)
     n = 1 << a.samples
     rows = []
-    for g in ghosts:
-        ex = render_flare(scene, seed=1, ghosts=[g], samples=n, mode="exact").total
-        ne = render_flare(scene, seed=1, ghosts=[g], samples=n, mode="neural", pilot_with="exact").total
+    for g in ghosts + (["all"] if a.combined else []):
+        gl = ghosts if g == "all" else [g]
+        ex = render_flare(scene, seed=1, ghosts=gl, samples=n, mode="exact").total
+        ne = render_flare(scene, seed=1, ghosts=gl, samples=n, mode="neural", pilot_with="exact").total
         rel, mask = flare_error_map(ne, ex)
         yn, ye = ne[..., :3] @ LUMINANCE, ex[..., :3] @ LUMINANCE
         inner = binary_erosion(mask, iterations=2) & mask
@@ -69,7 +75,7 @@ def main(argv=None):
         attribution = ""
         if a.attribute:
             for which, label in (("regressor", "learned exit rays"), ("classifier", "learned validity")):
-                hy = HybridFlare(scene, 0, FlareOptions(ghosts=[g], samples=n, mode="neural", pilot_with="exact"),
+                hy = HybridFlare(scene, 0, FlareOptions(ghosts=gl, samples=n, mode="neural", pilot_with="exact"),
                                  learned=which).render(seed=1).total
                 r2, m2 = flare_error_map(hy, ex)
                 row[which] = dict(mape=float(r2[m2].mean()), interior=float(r2[inner & m2].mean()),
@@ -78,13 +84,13 @@ def main(argv=None):
                                 f"edge {row[which]['edge']:.4f})")
         line = attribution
         if a.reference:
-            ref = render_flare(scene, seed=101, ghosts=[g], samples=1 << a.reference, mode="exact").total
+            ref = render_flare(scene, seed=101, ghosts=gl, samples=1 << a.reference, mode="exact").total
             row.update(reference_log2_samples=a.reference, independent=float(mape_masked(ne, ref)),
                        exact_floor=float(mape_masked(ex, ref)))
             line += (f"; independent vs a 2^{a.reference} exact reference: neural {row['independent']:.4f}, "
                     f"exact (noise floor) {row['exact_floor']:.4f}")
         rows.append(row)
-        print(f"{a.lens} ghost {g}, 2^{a.samples} samples, paired: MAPE {row['mape']:.4f} over {row['pixels']} px; "
+        print(f"{a.lens} ghost {g}{' '.join([''] + a.sets)}, 2^{a.samples} samples, paired: MAPE {row['mape']:.4f} over {row['pixels']} px; "
               f"interior {row['interior']:.4f} ({row['interior_pixels']} px), edge {row['edge']:.4f} "
               f"({row['edge_pixels']} px), edge share of the error {row['edge_share']:.2f}; flux ratio "
               f"neural/exact {row['flux_ratio']:.4f}" + line, flush=True)

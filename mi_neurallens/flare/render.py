@@ -36,6 +36,7 @@ samples the whole disk (the "before" pass fraction).
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 import math
 import time
@@ -45,6 +46,7 @@ import numpy as np
 
 from ..constants import LUMINANCE_WEIGHTS
 from ..errors import ModelError
+from ..trace.iris import Iris
 from .energy import front_radius, ghost_energy_ranking, input_plane, select_ghosts, trivial_ghost
 from .lights import scene_lights
 from .options import BASELINE_MODES, FlareError, FlareOptions
@@ -151,7 +153,6 @@ def sensor_model(sensor, opts: FlareOptions):
 def flare_lens(setup, opts: FlareOptions):
     """The sensor's configured lens with the flare options (coatings, blades) applied."""
     from ..optics.prescription import Coating
-    import dataclasses
     lens = setup.lens
     if opts.coating == "none":
         lens = lens.with_coating(None)
@@ -182,6 +183,11 @@ def flare_lens(setup, opts: FlareOptions):
     return lens
 
 
+def _stop_fields(lens) -> dict:
+    st = lens.stop
+    return {"semi_diameter": st.semi_diameter, "blades": st.blades, "blade_rotation_deg": st.blade_rotation_deg}
+
+
 def _u32_to_unit(mi, dr, x):
     return mi.Float(x >> 8) * (1.0 / 16777216.0)
 
@@ -201,7 +207,12 @@ class FlareRenderer:
                              f"got {sensor.class_().name() if hasattr(sensor, 'class_') else type(sensor).__name__}")
         self.scene, self.sensor, self.setup = scene, sensor, setup
         self.lens = flare_lens(setup, self.opts)
-        self.lens_modified = self.lens != setup.lens
+        #: the flare changes the lens beyond its iris (coatings): the learned maps do not apply
+        self.lens_modified = self.lens.with_surface(self.lens.stop_index, **_stop_fields(setup.lens)) != setup.lens
+        #: the iris the learned ghost maps must test: None when it is the one they were trained with
+        trained, iris = Iris.of_lens(setup.base_lens), Iris.of_lens(self.lens)
+        self.iris = None if iris.same_as(trained) else iris
+        self._iris_ok = not trained.blades and iris.within(trained)
         self.fresnel = bool(setup.fresnel)
         from ..sensors.wavelengths import LAMBDA_NONE, LAMBDA_SAMPLE1
         lam_dep = (any(not m.is_constant for m in [self.lens.object_medium] + [s.medium for s in self.lens.surfaces])
@@ -277,18 +288,32 @@ class FlareRenderer:
                 raise ModelError("lens_flare: mode='neural' needs a neural model: use a neural_lens sensor "
                                  "or give the integrator a 'model' file")
             if self.lens_modified:
-                raise FlareError("lens_flare: mode='neural' cannot change the lens (coating/blades options): "
-                                 "the learned maps were trained for the lens as it is; use mode='exact'")
+                raise FlareError("lens_flare: mode='neural' cannot change the lens's coatings: the learned "
+                                 "maps were trained for the lens as it is; use mode='exact'")
             if not m.has(pid, "forward"):
                 raise ModelError(f"lens_flare: the model {m.path or ''} has no forward map for path {pid}; "
                                  f"it has ghost maps {m.ghost_ids}; use mode='auto' (exact for missing ghosts) "
                                  f"or restrict 'ghosts'")
-            tmap = m.map(pid, "forward")
+            tmap = self._learned(m.map(pid, "forward"), strict=True)
         elif m is not None and not self.lens_modified and m.has(pid, "forward"):
-            tmap = m.map(pid, "forward")
+            tmap = self._learned(m.map(pid, "forward"), strict=False) or self.exact_map(pid)
         else:
             tmap = self.exact_map(pid)
         return GhostEvaluator(tmap, self.z_img, self.fresnel)
+
+    def _learned(self, tm, strict: bool):
+        """The learned map ``tm`` with this flare's iris (None, or an error when ``strict``, if it cannot
+        apply it: no stop head, or an iris outside the trained one)."""
+        if self.iris is None:
+            return tm
+        if tm.stop_head is not None and self._iris_ok:
+            return dataclasses.replace(tm, iris=self.iris)
+        if strict:
+            why = "has no stop head" if tm.stop_head is None else "was trained with a smaller or bladed iris"
+            raise FlareError(f"lens_flare: mode='neural': the learned map of ghost {tm.path_id} {why}, so it "
+                             f"cannot render the iris {self.iris.describe()}; use mode='auto' (exact where "
+                             f"a map cannot) or add stop heads (`mi-neurallens train LENS --keep both`)")
+        return None
 
     # -------------------------------------------------------------- sampling core
     def _region_radius(self, light):

@@ -95,9 +95,9 @@ sensor must be ``realistic_lens`` or ``neural_lens``.
 
  * - blades
    - |int|
-   - Polygonal aperture for the flare: the number of straight blades (0: circular).  Needs
-     ``mode = exact`` or ``auto`` (the learned maps were trained with the lens's own stop).
-     (Default: the lens's stop)
+   - Polygonal aperture for the flare: the number of straight blades (0: circular).  Learned ghost
+     maps with a stop head test it on their predicted stop-plane crossings (exactly as the tracer);
+     in ``auto`` mode a map without one falls back to the tracer.  (Default: the sensor's iris)
 
  * - blade_rotation
    - |float|

@@ -3,7 +3,7 @@
 :class:`LensSensorBase` is a ``mi.Sensor`` subclass of the Mitsuba variant that was set when this
 module was (re-)imported (:func:`mi_neurallens.sensors.register` re-imports it per variant, as
 Mitsuba's own Python plugins are); it reads the shared properties (``lens``, ``focus_distance`` XOR
-``sensor_distance``, ``fstop``, ``sensor_width``, ``scene_unit_mm``, ``fresnel``,
+``sensor_distance``, ``fstop``, ``blades``, ``blade_rotation``, ``sensor_width``, ``scene_unit_mm``, ``fresnel``,
 ``pupil_sampling``), focuses and stops down the lens (:func:`.common.configure_lens`), samples a film
 point, a point on the exit-pupil bound (:class:`.pupil.PupilBounds`) and one wavelength
 (:mod:`.wavelengths`), and turns the lens-space ray that leaves the front of the lens into a world
@@ -21,11 +21,10 @@ from __future__ import annotations
 
 import math
 
-from ..constants import FULL_FRAME_MM
-
 import drjit as dr
 import mitsuba as mi
 
+from ..constants import FULL_FRAME_MM
 from .common import PropertyReader, SensorPropertyError, configure_lens, film_to_sensor, lens_to_camera
 from .pupil import EXIT_PUPIL, MODES, PupilBounds
 from .wavelengths import prepare_shutter, sample_wavelength
@@ -40,6 +39,8 @@ class LensSensorBase(mi.Sensor):
         focus = rd.float("focus_distance", None, allow_inf=True)
         sdist = rd.float("sensor_distance", None)
         fstop = rd.float("fstop", None)
+        blades = rd.int("blades", None)
+        rotation = rd.float("blade_rotation", None)
         width = rd.float("sensor_width", FULL_FRAME_MM[0], positive=True)
         unit = rd.float("scene_unit_mm", 1000.0, positive=True)
         fresnel = rd.bool("fresnel", True)
@@ -59,13 +60,13 @@ class LensSensorBase(mi.Sensor):
         base = self._load_lens(rd)
         # the wavelength mode must be known before the base class reads the shutter
         probe = configure_lens(base, fstop=fstop, sensor_distance_mm=base.surfaces[-1].thickness,
-                               fresnel=fresnel, plugin=plugin)
+                               blades=blades, blade_rotation_deg=rotation, fresnel=fresnel, plugin=plugin)
         lambda_mode = prepare_shutter(mi, props, self._lambda_dependent(probe))
         super().__init__(props)
         self.lambda_mode = lambda_mode
         size = self.film().size()
         self.setup = configure_lens(
-            base, fstop=fstop, sensor_distance_mm=sdist,
+            base, fstop=fstop, blades=blades, blade_rotation_deg=rotation, sensor_distance_mm=sdist,
             focus_distance_mm=None if focus is None else focus * unit,
             sensor_width_mm=width, film_size=(int(size[0]), int(size[1])), scene_unit_mm=unit,
             fresnel=fresnel, plugin=plugin)

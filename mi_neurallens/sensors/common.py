@@ -24,8 +24,7 @@ from dataclasses import dataclass
 import math
 import os
 
-from ..constants import FULL_FRAME_MM
-from ..constants import LAMBDA_D
+from ..constants import FULL_FRAME_MM, LAMBDA_D
 from ..errors import LensError, NeuralLensError
 
 #: an fstop this much (relative) below the lens's widest f-number (e.g. the rounded value 2.68 for
@@ -257,10 +256,11 @@ class LensSetup:
 
 
 def configure_lens(base_lens, *, fstop=None, focus_distance_mm=None, sensor_distance_mm=None,
-                   sensor_width_mm=FULL_FRAME_MM[0], film_size=(1, 1), scene_unit_mm=1000.0, fresnel=True,
-                   plugin="realistic_lens") -> LensSetup:
-    """Stop down (``fstop``) and focus (``focus_distance_mm`` from the sensor plane XOR
-    ``sensor_distance_mm`` behind the last vertex; default: infinity) a loaded lens."""
+                   blades=None, blade_rotation_deg=None, sensor_width_mm=FULL_FRAME_MM[0], film_size=(1, 1),
+                   scene_unit_mm=1000.0, fresnel=True, plugin="realistic_lens") -> LensSetup:
+    """Stop down (``fstop``), shape the iris (``blades`` straight blades, 0 = circular, rotated by
+    ``blade_rotation_deg``; None keeps the lens file's) and focus (``focus_distance_mm`` from the
+    sensor plane XOR ``sensor_distance_mm`` behind the last vertex; default: infinity) a loaded lens."""
     if focus_distance_mm is not None and sensor_distance_mm is not None:
         raise SensorPropertyError(plugin, "focus_distance",
                                   "give either 'focus_distance' (scene units from the sensor plane) or "
@@ -278,6 +278,12 @@ def configure_lens(base_lens, *, fstop=None, focus_distance_mm=None, sensor_dist
                                       f"EFL {px0.efl:.4g} mm); use fstop >= {n_max:.3g}")
         if fstop > n_max:   # within FSTOP_TOLERANCE of the widest aperture: wide open
             lens = lens.with_stop_radius(lens.stop.semi_diameter * n_max / fstop)
+    if blades is not None and blades != 0 and blades < 3:
+        raise SensorPropertyError(plugin, "blades", f"must be 0 (circular) or >= 3, got {blades}")
+    iris = {k: v for k, v in (("blades", blades), ("blade_rotation_deg", blade_rotation_deg)) if v is not None}
+    if iris:
+        lens = lens.with_surface(lens.stop_index, **{k: (int(v) if k == "blades" else float(v))
+                                                     for k, v in iris.items()})
     if sensor_distance_mm is not None:
         if not (sensor_distance_mm > 0 and math.isfinite(sensor_distance_mm)):
             raise SensorPropertyError(plugin, "sensor_distance",

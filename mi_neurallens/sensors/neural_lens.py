@@ -13,8 +13,9 @@ import os
 
 from ..errors import ModelError
 from ..neural.model import bundled_model_path, load_model
+from ..trace.iris import Iris
 from .base import LensSensorBase
-from .common import FSTOP_TOLERANCE, SensorPropertyError, load_lens
+from .common import SensorPropertyError, load_lens
 
 PLUGIN = "neural_lens"
 
@@ -63,13 +64,16 @@ Neural lens camera (:monosp:`neural_lens`)
      (Taylor polynomial optics), ``fitted`` (sparse polynomials fitted to traced rays; built when the
      scene loads, ~20–40 s).  See docs/baselines.md.  (Default: ``neural``)
 
- * - focus_distance, sensor_distance, fstop, sensor_width, scene_unit_mm, fresnel, pupil_sampling,
-     to_world, film, sampler, shutter_open, shutter_close
+ * - focus_distance, sensor_distance, fstop, blades, blade_rotation, sensor_width, scene_unit_mm,
+     fresnel, pupil_sampling, to_world, film, sampler, shutter_open, shutter_close
    - 
    - As for :ref:`realistic_lens <sensor-realistic_lens>`, so the two sensors are interchangeable in a
      scene.  Manual focusing (``sensor_distance`` / ``focus_distance``) moves the sensor with the same
      model, within the sensor-distance range the model was trained for (a clear error outside it).
-     ``fstop`` must be the aperture the model was trained at (the stop is part of the learned map);
+     ``fstop`` (any value from the widest up) and ``blades``/``blade_rotation`` work without retraining
+     when the model has a stop head: the map was learned wide open and also predicts where each ray
+     crosses the stop plane, and that crossing is tested against the requested iris, exactly as the
+     tracer tests it (a model without one is fixed at its trained aperture, with a clear error).
      ``fresnel=false`` replaces the learned throughput by 1.
 
 The evaluation order per camera ray: film point and pupil sample (as ``realistic_lens``), then the
@@ -156,12 +160,27 @@ class NeuralLens(LensSensorBase):
         self.model = probe
         return lens
 
+    def _iris(self, tm):
+        """The iris the learned map must test (None: the one it was trained with)."""
+        st = self.setup
+        trained, want = Iris.of_lens(st.base_lens), Iris.of_lens(st.lens)
+        if want.same_as(trained):
+            return None
+        prop = "fstop" if want.blades == trained.blades else "blades"
+        if tm.stop_head is None:
+            raise SensorPropertyError(
+                PLUGIN, prop, f"model {self.model_path} was trained wide open (f/{st.max_fnumber:.3g}, "
+                f"{trained.describe()}) and has no stop head, so its aperture is fixed; add one with "
+                f"`mi-neurallens train {st.base_lens.name} --paths backward-transmit --keep both` or use "
+                f"realistic_lens")
+        if trained.blades or not want.within(trained):
+            raise SensorPropertyError(
+                PLUGIN, prop, f"the requested iris ({want.describe()}) is not inside the one model "
+                f"{self.model_path} was trained with ({trained.describe()})")
+        return want
+
     def _make_map(self):
         st = self.setup
-        if st.fnumber > st.max_fnumber * (1 + FSTOP_TOLERANCE):
-            raise SensorPropertyError(
-                PLUGIN, "fstop", f"the model was trained wide open (f/{st.max_fnumber:.3g}); the stop is "
-                f"part of the learned map, so f/{st.fnumber:.3g} needs a model trained at that aperture")
         try:
             self.model.check_sensor_distance(st.sensor_distance_mm)
         except ModelError as e:
@@ -169,7 +188,7 @@ class NeuralLens(LensSensorBase):
             raise SensorPropertyError(PLUGIN, which, str(e)) from e
         tm = self.model.map("transmit", "backward")
         if self.method == "neural":
-            return dataclasses.replace(tm, use_classifier=self.use_classifier, mlp=self.mlp)
+            return dataclasses.replace(tm, use_classifier=self.use_classifier, mlp=self.mlp, iris=self._iris(tm))
         # a baseline between the same planes (docs/baselines.md); the map starts on its input
         # plane: the pupil sample only gives the direction
         from ..transport import make_map
@@ -177,5 +196,7 @@ class NeuralLens(LensSensorBase):
                         **({"fresnel": st.fresnel} if self.method == "exact" else {}))
 
     def _describe(self):
+        iris = getattr(self.tmap, "iris", None)
         return (f"model='{self.model_spec}' ({os.path.basename(self.model_path)}), lens={self.setup.lens.name}, "
+                f"iris={'as trained' if iris is None else iris.describe()}, "
                 f"use_classifier={self.use_classifier}, mlp={self.mlp}, method={self.method}")

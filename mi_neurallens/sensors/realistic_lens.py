@@ -42,6 +42,16 @@ Realistic lens camera (:monosp:`realistic_lens`)
    - Stop down to this f-number (paraxial, object at infinity: EFL / entrance-pupil diameter).  It
      must not be smaller than the lens's own f-number.  (Default: the lens's widest aperture)
 
+ * - blades
+   - |int|
+   - Number of straight iris blades: the stop becomes the regular polygon inscribed in its circle
+     (0: circular).  (Default: the lens file's, usually 0)
+
+ * - blade_rotation
+   - |float|
+   - Rotation of the blades in degrees (normal of the first blade from +x, counter-clockwise seen from
+     the sensor).  (Default: the lens file's, usually 0)
+
  * - sensor_width
    - |float|
    - Sensor width in mm; the height follows from the film's aspect ratio.  (Default: 36)

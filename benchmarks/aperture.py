@@ -1,0 +1,91 @@
+"""The aperture at render time: neural vs exact images from the widest aperture to 8× its f-number.
+
+For every bundled scene, each of the paper's three lenses and f-numbers k × N_widest (k = 1, 2, 4, 8),
+renders a converged ``realistic_lens`` reference (``--reference-spp``, its own seed), then
+``realistic_lens`` and ``neural_lens`` at ``--spp`` with the same seed, and reports
+
+* MAPE(neural, reference) / MAPE(realistic, reference) — goal ≤ 1.1 (equal spp is equal work: the
+  pupil bounds follow the aperture for both sensors);
+* MAPE(neural, realistic), same seeds — goal ≤ 0.02.
+
+    python benchmarks/aperture.py [--res 96x72] [--spp 64] [--reference-spp 1024]
+                                  [--lenses wide-22mm,...] [--scenes still_life,...] [--mults 1,2,4,8]
+
+Prints a Markdown table and writes ``benchmarks/results/aperture.json``.  The neural models must have
+stop heads (``mi-neurallens train LENS --paths backward-transmit --keep both``); scenes whose focus is
+closer than a model supports are rendered at its closest focus (``bokeh``: 0.35 m).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+LENSES = ("wide-22mm", "ood-59mm", "canon-ef-24mm-f1.4l")
+SCENES = ("still_life", "chart", "bokeh", "night", "night_point")
+#: XML parameters per scene: focus within every model's range; a modest flare budget for night.xml
+PARAMS = {"bokeh": ["focus=0.35"], "night": ["flare_samples=1000000"]}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--res", default="96x72")
+    ap.add_argument("--spp", type=int, default=64)
+    ap.add_argument("--reference-spp", type=int, default=1024)
+    ap.add_argument("--lenses", default=",".join(LENSES))
+    ap.add_argument("--scenes", default=",".join(SCENES))
+    ap.add_argument("--mults", default="1,2,4,8")
+    ap.add_argument("--variant", default="llvm_ad_rgb")
+    ap.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "aperture.json"))
+    args = ap.parse_args(argv)
+    import mitsuba as mi
+    import numpy as np
+    from mi_neurallens.commands.render import load_scene
+    from mi_neurallens.fileio import atomic_write_json
+    from mi_neurallens.metrics import mape
+    from mi_neurallens.optics.prescription import Lens
+    w, h = (int(v) for v in args.res.lower().split("x"))
+    rows = []
+
+    def render(path, lens, kind, fstop, spp, seed, params):
+        sets = [f"fstop={fstop!r}"] + ([f"model={lens}"] if kind == "neural_lens" else [])
+        scene = load_scene(path, variant=args.variant, sets=sets, lens=lens, resolution=(w, h), spp=spp,
+                           params=params, sensor_type=kind)
+        t = time.perf_counter()
+        img = np.array(mi.render(scene, seed=seed), dtype=np.float64)
+        return img, time.perf_counter() - t
+
+    for lens in args.lenses.split(","):
+        n0 = Lens.load(lens).paraxial(587.5618).fnumber
+        for name in args.scenes.split(","):
+            path = os.path.join(ROOT, "scenes", f"{name}.xml")
+            params = PARAMS.get(name, [])
+            for k in (float(v) for v in args.mults.split(",")):
+                N = k * n0
+                ref, t_ref = render(path, lens, "realistic_lens", N, args.reference_spp, 1000, params)
+                real, t_real = render(path, lens, "realistic_lens", N, args.spp, 1, params)
+                neur, t_neur = render(path, lens, "neural_lens", N, args.spp, 1, params)
+                m_r, m_n = mape(real, ref), mape(neur, ref)
+                row = {"lens": lens, "scene": name, "mult": k, "fstop": N, "mape_realistic": m_r,
+                       "mape_neural": m_n, "ratio": m_n / m_r, "mape_neural_vs_realistic": mape(neur, real),
+                       "seconds_realistic": t_real, "seconds_neural": t_neur}
+                rows.append(row)
+                print(f"{lens:20s} {name:12s} {k:g}x f/{N:5.2f}: MAPE real {m_r:.4f} neural {m_n:.4f} "
+                      f"ratio {m_n / m_r:.3f}  neural-vs-real {row['mape_neural_vs_realistic']:.4f}", flush=True)
+    print("\n| lens | scene | f-number | MAPE realistic | MAPE neural | ratio | MAPE(neural, realistic) |")
+    print("|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['lens']} | {r['scene']} | {r['mult']:g}× (f/{r['fstop']:.2f}) | {r['mape_realistic']:.4f} | "
+              f"{r['mape_neural']:.4f} | {r['ratio']:.3f} | {r['mape_neural_vs_realistic']:.4f} |")
+    ok = [r["ratio"] <= 1.1 and r["mape_neural_vs_realistic"] <= 0.02 for r in rows]
+    print(f"\ngoals met in {sum(ok)} of {len(ok)} configurations")
+    atomic_write_json(args.out, {"machine": platform.processor() or platform.machine(), "argv": sys.argv[1:],
+                                 "res": [w, h], "spp": args.spp, "reference_spp": args.reference_spp, "rows": rows})
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
