@@ -101,7 +101,7 @@ sensor must be ``realistic_lens`` or ``neural_lens``.
 
  * - blade_rotation
    - |float|
-   - Rotation of the blades in degrees.  (Default: the lens's)
+   - Rotation of the blades in degrees.  (Default: the sensor's)
 
  * - visibility
    - |bool|

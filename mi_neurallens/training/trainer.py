@@ -815,6 +815,9 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
             base = base_model.maps[key]
         tm = train_map(lens, pid, d, zi, zo, dom, cfg, workdir, progress=progress, log=log, keep=keep, base=base)
         model.maps[key] = tm
+        if base_model is not None:      # the base's order (ghosts: strongest first), new maps after
+            order = list(base_model.maps) + [k for k in model.maps if k not in base_model.maps]
+            model.maps = {k: model.maps[k] for k in order if k in model.maps}
         model.save(out_path)
     model.save(out_path)
     return model
