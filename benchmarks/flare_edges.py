@@ -16,7 +16,8 @@ once it no longer falls with 4× the samples.  ``--reference K`` also renders an
 2^K samples (another seed) and reports the plain (independent) MAPE of the neural and of the exact
 render against it: the exact one is the test budget's noise floor.  ``--set KEY=VALUE`` sets a property
 of the scene's ``neural_lens`` (e.g. ``fstop``, ``blades``: the learned ghosts then test the iris on
-their predicted stop crossings).  ``--combined`` adds one row with every listed ghost at once.
+their predicted stop crossings).  ``--combined`` adds one row with every listed ghost at once
+(``--combined-only``: just that row).
 """
 from __future__ import annotations
 
@@ -40,6 +41,7 @@ def main(argv=None):
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                     help="neural_lens property (repeatable), e.g. --set fstop=5.4 --set blades=6")
     ap.add_argument("--combined", action="store_true", help="also render all listed ghosts together")
+    ap.add_argument("--combined-only", action="store_true", help="only the row with all listed ghosts together")
     ap.add_argument("--attribute", action="store_true",
                     help="also render the two hybrids (exact validity + learned exit rays, learned validity + exact "
                          "exit rays) that split the error between the regressor and the classifier")
@@ -60,11 +62,17 @@ def main(argv=None):
                        sensor_type="neural_lens", sets=[f"model={model}"] + a.sets)
     n = 1 << a.samples
     rows = []
-    for g in ghosts + (["all"] if a.combined else []):
+    for g in ([] if a.combined_only else ghosts) + (["all"] if a.combined or a.combined_only else []):
         gl = ghosts if g == "all" else [g]
         ex = render_flare(scene, seed=1, ghosts=gl, samples=n, mode="exact").total
         ne = render_flare(scene, seed=1, ghosts=gl, samples=n, mode="neural", pilot_with="exact").total
         rel, mask = flare_error_map(ne, ex)
+        if not mask.any():      # the stop blocks this ghost entirely (or it leaves the film): nothing to compare
+            rows.append(dict(ghost=g, log2_samples=a.samples, pixels=0,
+                             exact_flux=float(ex[..., :3].sum()), neural_flux=float(ne[..., :3].sum())))
+            print(f"{a.lens} ghost {g}{' '.join([''] + a.sets)}: no pixel above the threshold in the exact "
+                  f"render (flux exact {rows[-1]['exact_flux']:.3g}, neural {rows[-1]['neural_flux']:.3g})", flush=True)
+            continue
         yn, ye = ne[..., :3] @ LUMINANCE, ex[..., :3] @ LUMINANCE
         inner = binary_erosion(mask, iterations=2) & mask
         edge = mask & ~inner

@@ -203,6 +203,7 @@ def test_tiny_training_run_learns(tmp_path):
     cfg = load_config(overrides={"regressor": dict(small, max_steps=600, lr=1e-2),
                                  "classifier": dict(small, hidden=2, width=32, max_steps=1000, lr=1e-2,
                                                     target="label"),
+                                 "stop": dict(small, hidden=2, width=16, max_steps=300, lr=1e-2, residual="linear"),
                                  "heldout": 20000, "threads": 1})
     tm = train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, str(tmp_path), progress=False, eval_n=20000)
     m = tm.metrics
@@ -221,10 +222,14 @@ def test_tiny_training_run_learns(tmp_path):
     cfgm = load_config(overrides={"regressor": dict(small, max_steps=600, lr=1e-2),
                                   "classifier": dict(small, hidden=2, width=32, max_steps=1000, lr=1e-2,
                                                      target="margin"),
+                                  "stop": dict(small, max_minutes=0.0),      # no stop head: none is needed here
                                   "heldout": 20000, "threads": 1})
     tmm = train_map(lens, 0, "backward", z_rear, z_front, dom, cfgm, str(tmp_path / "margin"), progress=False,
                     eval_n=20000)
     mm = tmm.metrics["classifier"]
+    # a stop head trains with the map (here a tiny one), unless its time budget is 0
+    assert tm.stop_head is not None and tmm.stop_head is None and "stop" not in tmm.metrics
+    assert tm.metrics["stop"]["stop_um_median"] < 300.0       # < 5 % of the 7 mm stop radius after 300 steps
     assert tmm.training["classifier"]["target"] == "margin"
     assert mm["misclassification"] < 0.3 * min(mm["valid_fraction"], 1 - mm["valid_fraction"])
     # checkpoints exist and a rerun resumes (finished networks are not retrained)
@@ -283,7 +288,7 @@ def test_tiny_training_run_learns(tmp_path):
         train_map(lens, 0, "backward", z_rear, z_front, data.Domain(dom.r_max * 2, dom.s_max), cfg, None,
                   keep="regressor", base=tb)
     with pytest.raises(NeuralLensError, match="choose one of"):
-        train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, None, keep="both", base=tb)
+        train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, None, keep="weights", base=tb)
     with pytest.raises(NeuralLensError, match="needs the map"):
         train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, None, keep="regressor")
 
