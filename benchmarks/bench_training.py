@@ -22,7 +22,7 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from mi_neurallens.constants import FULL_FRAME_HALF_DIAGONAL_MM
+from mi_neurallens.flare.energy import ghost_energy_ranking  # noqa: E402
 from mi_neurallens import Lens  # noqa: E402
 from mi_neurallens.training import data, plan  # noqa: E402
 from mi_neurallens.training.evaluate import GOALS, regression_errors  # noqa: E402
@@ -70,7 +70,7 @@ def bench_generation(lens, zf, zr, seconds=6.0):
                 rows[name + label].update(bounds_seconds=t_bounds, bounds_missed=b.missed,
                                           bounds_volume_fraction=b.volume_fraction(dom))
     # a rare ghost: the least-often-valid ghost that still reaches the film
-    ranking = plan.rank_ghosts(lens, zf, fdom, lens.surfaces[-1].thickness, FULL_FRAME_HALF_DIAGONAL_MM, n_rays=1 << 18)
+    ranking = ghost_energy_ranking(lens)
     rare = [g for g in ranking if 0 < g["valid_fraction"] < 0.01 and g["energy"] > 0]
     g = min(rare, key=lambda g: g["valid_fraction"]) if rare else ranking[-1]
     ps = data.PathSampler(lens, g["path_id"], "forward", zf, zr, fdom)
@@ -199,7 +199,7 @@ def ablations(lens, zf, zr, seconds=75.0, figdir=None):
     fdom = plan.forward_domain(lens, zf, plan.default_field_half_angle(lens))
     bdom = plan.backward_domain(lens, 0, zr, zf, rng, n=1 << 20)
     # --- tanh vs ReLU on the brightest ghost (a flare), same budget
-    ranking = plan.rank_ghosts(lens, zf, fdom, lens.surfaces[-1].thickness, FULL_FRAME_HALF_DIAGONAL_MM, n_rays=1 << 18)
+    ranking = ghost_energy_ranking(lens)
     gid = ranking[0]["path_id"]
     ps = data.PathSampler(lens, gid, "forward", zf, zr, fdom)
     stream = data.RegressorStream(ps, 3)

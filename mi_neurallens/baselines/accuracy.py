@@ -182,16 +182,14 @@ def _f(v, fmt="{:.3g}"):
 
 
 # ----------------------------------------------------------------------------------- ghosts
-def ghost_ranking(lens, model=None, n_rays: int = 1 << 16):
-    """Ghosts by energy: the bundled model's stored ranking, or :func:`plan.rank_ghosts` (cheap setting)."""
+def ghost_ranking(lens, model=None, n_rays: int = 1 << 14):
+    """Ghosts by energy: the bundled model's stored ranking, or the render-time one
+    (:func:`~mi_neurallens.flare.energy.ghost_energy_ranking`, ``n_rays`` per field angle)."""
     model = bundled_model(lens) if model is None else model
     if model is not None and model.extra.get("ghost_ranking"):
         return model.extra["ghost_ranking"]
-    from ..training import plan
-    zf, zr = default_map_planes(lens, "forward", model)
-    dom = default_domain(lens, 0, "forward", model)
-    return plan.rank_ghosts(lens, zf, dom, lens.surfaces[-1].thickness, FULL_FRAME_HALF_DIAGONAL_MM,
-                           n_rays=n_rays)
+    from ..flare.energy import ghost_energy_ranking
+    return ghost_energy_ranking(lens, n_rays=n_rays)
 
 
 def pick_ghosts(lens, k: int, model=None):

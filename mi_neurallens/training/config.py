@@ -79,7 +79,6 @@ class TrainConfig:
     max_ghosts: int = 32                # keep the top-K ghosts carrying energy_fraction of ghost energy…
     ghost_energy_fraction: float = 0.99
     ship_ghosts: int = 32               # …but train at most this many (CPU budget)
-    ghost_rank_rays: int = 1 << 20
     close_focus_mm: float = 300.0       # nearest object distance (from the first vertex) to support
     film_half_diagonal_mm: float = FULL_FRAME_HALF_DIAGONAL_MM
     field_margin: float = 1.1

@@ -88,22 +88,3 @@ def default_field_half_angle(lens, film_half_diagonal_mm: float = FULL_FRAME_HAL
     return min(math.degrees(math.atan(film_half_diagonal_mm / abs(px.efl))) * margin, 80.0)
 
 
-def rank_ghosts(lens, z_front: float, domain: Domain, sensor_distance: float, film_half_diagonal_mm: float,
-                n_rays: int = 1 << 20, seed: int = 0):
-    """Energy each ghost carries to the film: mean Fresnel throughput over rays uniform over the forward
-    domain (a bright light anywhere in the field, over the whole front aperture, CIE wavelengths) that
-    land on the film (radius ``film_half_diagonal_mm`` on the sensor plane ``sensor_distance`` behind
-    the last vertex).  Returns a list of dicts sorted by energy (largest first), with each ghost's share
-    of the total ghost energy and the transmit path's energy for scale."""
-    from ..trace.paths import rank_ghosts_by_energy
-    rng = np.random.default_rng(seed)
-    u = rng.random((n_rays, 4))
-    z_s = lens.total_track + sensor_distance
-
-    def energy(pid):
-        ps = PathSampler(lens, pid, "forward", z_front, z_s, domain)
-        v, y = ps.trace_u(u)
-        hit = v & (np.hypot(y[:, 0], y[:, 1]) <= film_half_diagonal_mm)
-        return float(np.where(hit, y[:, 4], 0.0).sum() / n_rays), float(hit.mean())
-
-    return rank_ghosts_by_energy(lens, energy)

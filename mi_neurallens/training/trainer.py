@@ -786,8 +786,10 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
             if os.path.exists(rk_path):
                 ranking = json.load(open(rk_path))
             else:
-                ranking = plan.rank_ghosts(lens, z_front, fwd_domain, lens.surfaces[-1].thickness,
-                                           cfg.film_half_diagonal_mm, cfg.ghost_rank_rays, cfg.seed)
+                # the render-time ranking (flare/energy.py), so the ghosts trained are the ones a flare
+                # render selects, and a neural flare selects the same ghosts as an exact one
+                from ..flare.energy import ghost_energy_ranking
+                ranking = ghost_energy_ranking(lens, fresnel=cfg.fresnel)
                 atomic_write_text(rk_path, json.dumps(ranking))
             selected = select_ghosts(ranking, cfg.ghost_energy_fraction, cfg.max_ghosts)
             model.extra["ghost_ranking"] = ranking
