@@ -52,7 +52,11 @@ def main(argv=None):
     ap.add_argument("--mults", default="1,2,4,8")
     ap.add_argument("--variant", default="llvm_ad_rgb")
     ap.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "aperture.json"))
+    ap.add_argument("--speed", action="store_true",
+                    help="only the cost of the iris: camera rays/s of both sensors at each f-number (idle machine)")
     args = ap.parse_args(argv)
+    if args.speed:
+        return speed(args)
     import mitsuba as mi
     import numpy as np
     from mi_neurallens.commands.render import load_scene
@@ -96,6 +100,40 @@ def main(argv=None):
     print(f"\ngoals met in {sum(ok)} of {len(ok)} configurations")
     atomic_write_json(args.out, {"machine": platform.processor() or platform.machine(), "argv": sys.argv[1:],
                                  "res": [w, h], "spp": args.spp, "reference_spp": args.reference_spp, "rows": rows})
+    return 0
+
+
+def speed(args, n: int = 1 << 20, repeats: int = 5):
+    """Camera-ray generation (``sample_ray`` on ``n`` rays, best of ``repeats``) of ``realistic_lens`` and
+    ``neural_lens`` at each f-number, round and with 6 blades: what the stop head and the iris test cost
+    (the neural map skips both at the trained aperture)."""
+    import drjit as dr
+    import mitsuba as mi
+    from mi_neurallens.optics.prescription import Lens
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    from bench_render import time_rays
+    import mi_neurallens
+    mi.set_variant(args.variant)
+    mi_neurallens.register()
+    rows = []
+    for lens in args.lenses.split(","):
+        n0 = Lens.load(lens).paraxial(587.5618).fnumber
+        for k in (float(v) for v in args.mults.split(",")):
+            for blades in (0, 6):
+                rate = {}
+                for kind in ("realistic_lens", "neural_lens"):
+                    d = {"type": kind, "lens": lens, "fstop": k * n0, "blades": blades,
+                         "film": {"type": "hdrfilm", "width": 320, "height": 240}}
+                    if kind == "neural_lens":
+                        d["model"] = lens
+                    rate[kind] = time_rays(mi, dr, mi.load_dict(d), n, repeats)
+                rows.append({"lens": lens, "mult": k, "blades": blades, "rays_per_s": rate})
+                print(f"{lens:20s} {k:g}x blades={blades}: realistic {rate['realistic_lens'] / 1e6:6.2f} M rays/s, "
+                      f"neural {rate['neural_lens'] / 1e6:6.2f} M rays/s", flush=True)
+    out = os.path.splitext(args.out)[0] + "_speed.json"
+    from mi_neurallens.fileio import atomic_write_json
+    atomic_write_json(out, {"machine": platform.processor() or platform.machine(), "n": n, "repeats": repeats,
+                            "rows": rows})
     return 0
 
 

@@ -237,9 +237,10 @@ class FlareRenderer:
 
     # -------------------------------------------------------------- ghost selection
     def ranking(self):
-        """Ghost energy ranking: the model's stored ranking when neural maps are used and the lens is
-        unmodified, else :func:`~mi_neurallens.flare.energy.ghost_energy_ranking` with the tracer."""
-        if self.model is not None and not self.lens_modified and self.opts.mode != "exact":
+        """Ghost energy ranking: the model's stored ranking when neural maps are used and the lens and
+        iris are those it was trained with, else :func:`~mi_neurallens.flare.energy.ghost_energy_ranking`
+        of the configured lens (as the exact flare ranks it: stopping down changes which ghosts matter)."""
+        if self.model is not None and not self.lens_modified and self.iris is None and self.opts.mode != "exact":
             rk = self.model.extra.get("ghost_ranking")
             if rk:
                 return [dict(d) for d in rk]
