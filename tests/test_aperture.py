@@ -279,9 +279,10 @@ def test_neural_ghosts_take_the_iris(tmp_path):
 
 def test_neural_and_exact_flares_select_the_same_ghosts():
     """An automatic flare (no ``ghosts`` list) draws the same ghosts with learned maps as with the
-    tracer: at the trained aperture from the ranking stored in the model (the flare's own ranking,
-    computed at training), and stopped down from the ranking of the configured lens, as the exact flare
-    does (at 4× the widest f-number a third of ood-59mm's 32 strongest ghosts are others than wide open)."""
+    tracer: on the lens as trained from the ranking stored in the model (the flare's own ranking,
+    computed at training), refocused or stopped down from the ranking of the configured lens, as the
+    exact flare does (at 4× the widest f-number a third of ood-59mm's 32 strongest ghosts are others
+    than wide open)."""
     mi = _mitsuba()
     from mi_neurallens.commands.render import load_scene
     from mi_neurallens.flare.render import FlareOptions, FlareRenderer
@@ -295,3 +296,16 @@ def test_neural_and_exact_flares_select_the_same_ghosts():
             picked[k, kind] = FlareRenderer(sc, 0, FlareOptions()).ghost_ids()
         assert picked[k, "neural_lens"] == picked[k, "realistic_lens"], k
     assert picked[1.0, "neural_lens"] != picked[4.0, "neural_lens"]
+    # night_point.xml keeps the trained focus, so the neural flare read the stored ranking ...
+    sc = load_scene(path, variant="llvm_ad_rgb", lens="wide-22mm", sensor_type="neural_lens",
+                    sets=["model=wide-22mm"])
+    fr = FlareRenderer(sc, 0, FlareOptions())
+    assert fr.ranking() == fr.model.extra["ghost_ranking"]
+    # ... night.xml focuses at 6 m, where ood-59mm's 32nd ghost by energy is another one than at the
+    # model's focus: ranked on the configured lens, the selections still agree
+    night = os.path.join(os.path.dirname(path), "night.xml")
+    ids = {kind: FlareRenderer(load_scene(night, variant="llvm_ad_rgb", lens="ood-59mm", sensor_type=kind,
+                                          sets=["model=ood-59mm"] if kind == "neural_lens" else []),
+                               0, FlareOptions()).ghost_ids()
+           for kind in ("realistic_lens", "neural_lens")}
+    assert ids["neural_lens"] == ids["realistic_lens"]

@@ -44,7 +44,7 @@ import zlib
 
 import numpy as np
 
-from ..constants import LUMINANCE_WEIGHTS
+from ..constants import FULL_FRAME_MM, LUMINANCE_WEIGHTS
 from ..errors import ModelError
 from ..trace.iris import Iris
 from .energy import front_radius, ghost_energy_ranking, input_plane, select_ghosts, trivial_ghost
@@ -237,10 +237,14 @@ class FlareRenderer:
 
     # -------------------------------------------------------------- ghost selection
     def ranking(self):
-        """Ghost energy ranking: the model's stored ranking when neural maps are used and the lens and
-        iris are those it was trained with, else :func:`~mi_neurallens.flare.energy.ghost_energy_ranking`
-        of the configured lens (as the exact flare ranks it: stopping down changes which ghosts matter)."""
-        if self.model is not None and not self.lens_modified and self.iris is None and self.opts.mode != "exact":
+        """Ghost energy ranking: the model's stored ranking when neural maps are used on the lens exactly
+        as it was trained (same focus, iris and coatings) with a full-frame film, else
+        :func:`~mi_neurallens.flare.energy.ghost_energy_ranking` of the configured lens and film, as
+        the exact flare ranks it: stopping down or refocusing changes which ghosts matter, and a ghost
+        near the selection cut-off may swap with its neighbour."""
+        as_trained = (self.lens == self.setup.base_lens
+                      and (self.setup.sensor_width_mm, self.setup.sensor_height_mm) == FULL_FRAME_MM)
+        if self.model is not None and as_trained and self.opts.mode != "exact":
             rk = self.model.extra.get("ghost_ranking")
             if rk:
                 return [dict(d) for d in rk]
