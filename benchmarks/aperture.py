@@ -27,8 +27,11 @@ import time
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 LENSES = ("wide-22mm", "ood-59mm", "canon-ef-24mm-f1.4l")
 SCENES = ("still_life", "chart", "bokeh", "night")
-#: XML parameters per scene: a modest flare budget for night.xml (bokeh's focus: see closest_focus_m)
-PARAMS = {"night": ["flare_samples=1000000"]}
+#: XML parameters per scene: for night.xml a modest flare budget, planned by the tracer in both sensors
+#: (``pilot_with=exact``) so that the flare, like the camera rays, uses the same samples in the neural
+#: and the realistic render and MAPE(neural, realistic) is the maps' error, not the pilots' noise
+#: (bokeh's focus: see closest_focus_m)
+PARAMS = {"night": ["flare_samples=1000000", "pilot_with=exact"]}
 
 
 def closest_focus_m(lens: str, want_m: float = 0.35) -> float:
