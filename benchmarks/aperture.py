@@ -129,10 +129,17 @@ def speed(args, n: int = 1 << 20, repeats: int = 5):
                          "film": {"type": "hdrfilm", "width": 320, "height": 240}}
                     if kind == "neural_lens":
                         d["model"] = lens
-                    rate[kind] = time_rays(mi, dr, mi.load_dict(d), n, repeats)
+                    try:
+                        sensor = mi.load_dict(d)
+                    except Exception as e:   # e.g. blades near wide open (docs/neural_lens.md): n/a
+                        rate[kind] = None
+                        print(f"  {lens} {k:g}x blades={blades} {kind}: n/a ({str(e).splitlines()[-1][:160]})")
+                        continue
+                    rate[kind] = time_rays(mi, dr, sensor, n, repeats)
                 rows.append({"lens": lens, "mult": k, "blades": blades, "rays_per_s": rate})
-                print(f"{lens:20s} {k:g}x blades={blades}: realistic {rate['realistic_lens'] / 1e6:6.2f} M rays/s, "
-                      f"neural {rate['neural_lens'] / 1e6:6.2f} M rays/s", flush=True)
+                fmt = {kk: "n/a" if v is None else f"{v / 1e6:6.2f} M rays/s" for kk, v in rate.items()}
+                print(f"{lens:20s} {k:g}x blades={blades}: realistic {fmt['realistic_lens']}, "
+                      f"neural {fmt['neural_lens']}", flush=True)
     out = os.path.splitext(args.out)[0] + "_speed.json"
     from mi_neurallens.fileio import atomic_write_json
     atomic_write_json(out, {"machine": platform.processor() or platform.machine(), "n": n, "repeats": repeats,

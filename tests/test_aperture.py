@@ -38,7 +38,11 @@ def test_iris_polygon_is_inscribed_and_rotates():
     for iris in (Iris(1.0), hexa, Iris(0.8, 5, 17.0)):
         dr_ok = iris.contains_dr(F(pts[:, 0]), F(pts[:, 1])).numpy()
         assert (dr_ok == iris.contains_np(pts[:, 0], pts[:, 1])).all()
-        assert iris.within(Iris(1.0))
+        # within a circle exactly when no point of the polygon is outside it (its corners)
+        inside = iris.contains_np(pts[:, 0], pts[:, 1])
+        for R in (1.0, 1.2):
+            assert iris.within(Iris(R)) == bool((np.hypot(*pts[inside].T) <= R).all()), (iris, R)
+    assert not hexa.within(Iris(1.0)) and hexa.within(Iris(1.0 / math.cos(math.pi / 6)))
 
 
 def test_tracer_blocks_by_the_iris_rule():
@@ -154,6 +158,30 @@ def test_a_model_without_stop_head_keeps_the_clear_error(tmp_path):
     with pytest.raises(Exception, match="widest aperture is f/"):
         mi.load_dict({**s, "model": "wide-22mm", "fstop": 1.0})
     assert "iris=r = " in str(mi.load_dict({**s, "model": "wide-22mm", "blades": 6}))
+
+
+def test_blades_near_wide_open_are_a_clear_error_where_they_cannot_be_rendered():
+    """A polygon of inscribed radius R reaches R / cos(π/n) at its corners.  Near wide open that is
+    outside the circle the learned map was trained with (neural_lens: a clear error naming the f-number
+    from which it works), and on ood-59mm even past the next surface's sag (realistic_lens too: before,
+    the pupil bounds crashed on a lens validation error)."""
+    mi = pytest.importorskip("mitsuba")
+    import mi_neurallens as nl
+    mi.set_variant("llvm_ad_rgb")
+    nl.register()
+    film = {"type": "hdrfilm", "width": 8, "height": 8}
+    n0 = Lens.load("wide-22mm").paraxial(587.5618).fnumber
+    n6 = n0 / math.cos(math.pi / 6)
+    s = {"type": "neural_lens", "model": "wide-22mm", "lens": "wide-22mm", "blades": 6, "film": film}
+    with pytest.raises(Exception, match=f"fstop >= {n6 * (1 + 1e-6):.4g} with 6 blades"):
+        mi.load_dict({**s, "fstop": 1.1 * n0})
+    mi.load_dict({**s, "fstop": 1.001 * n6})
+    mi.load_dict({**s, "fstop": 1.1 * n0, "blades": 0})
+    mi.load_dict({"type": "realistic_lens", "lens": "wide-22mm", "blades": 6, "fstop": 1.1 * n0,
+                  "film": film})                                          # wide-22mm: the corners fit its gap
+    n0 = Lens.load("ood-59mm").paraxial(587.5618).fnumber
+    with pytest.raises(Exception, match="property 'blades'.*past where a neighbouring surface"):
+        mi.load_dict({"type": "realistic_lens", "lens": "ood-59mm", "blades": 6, "fstop": n0, "film": film})
 
 
 # ----------------------------------------------------------------------------- rendered: bokeh, exposure

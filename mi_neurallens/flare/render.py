@@ -314,7 +314,9 @@ class FlareRenderer:
         if tm.stop_head is not None and self._iris_ok:
             return dataclasses.replace(tm, iris=self.iris)
         if strict:
-            why = "has no stop head" if tm.stop_head is None else "was trained with a smaller or bladed iris"
+            why = ("has no stop head" if tm.stop_head is None else
+                   "was trained with a bladed iris" if Iris.of_lens(self.setup.base_lens).blades else
+                   "cannot reproduce an iris reaching beyond the trained one (polygon corners near wide open)")
             raise FlareError(f"lens_flare: mode='neural': the learned map of ghost {tm.path_id} {why}, so it "
                              f"cannot render the iris {self.iris.describe()}; use mode='auto' (exact where "
                              f"a map cannot) or add stop heads (`mi-neurallens train LENS --keep both`)")

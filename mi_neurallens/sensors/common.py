@@ -255,6 +255,36 @@ class LensSetup:
                 or (self.fresnel and any(s.coating is not None for s in L.surfaces)))
 
 
+def _check_polygon_fits(lens, r_widest: float, n_max: float, plugin: str):
+    """A bladed stop's corners (its circumscribed circle, :attr:`Iris.outer_radius_mm`) must lie in the
+    air gap like the stop itself; near wide open they can reach past a neighbouring surface's sag (into
+    glass: no physical iris does that), which is an error naming the f-number from which the polygon
+    fits.  ``r_widest``: the stop radius (mm) at the widest aperture ``n_max``."""
+    stop = lens.stop
+    if not stop.blades:
+        return
+    grow = 1.0 / math.cos(math.pi / stop.blades)
+
+    def fits(r):
+        try:
+            lens.with_surface(lens.stop_index, blades=0, semi_diameter=r * grow)
+            return True
+        except LensError:
+            return False
+    if fits(stop.semi_diameter):
+        return
+    lo, hi = 0.0, stop.semi_diameter          # fits(lo), not fits(hi)
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if fits(mid) else (lo, mid)
+    n_min = n_max * r_widest / lo
+    raise SensorPropertyError(plugin, "blades",
+                              f"{stop.blades} blades at this f-number put the iris corners "
+                              f"{stop.semi_diameter * grow:.4g} mm from the axis, past where a neighbouring "
+                              f"surface of lens '{lens.name}' crosses the stop plane ({lo * grow:.4g} mm); "
+                              f"use fstop >= {n_min * (1 + 1e-6):.4g} with {stop.blades} blades, or blades=0")
+
+
 def configure_lens(base_lens, *, fstop=None, focus_distance_mm=None, sensor_distance_mm=None,
                    blades=None, blade_rotation_deg=None, sensor_width_mm=FULL_FRAME_MM[0], film_size=(1, 1),
                    scene_unit_mm=1000.0, fresnel=True, plugin="realistic_lens") -> LensSetup:
@@ -284,6 +314,7 @@ def configure_lens(base_lens, *, fstop=None, focus_distance_mm=None, sensor_dist
     if iris:
         lens = lens.with_surface(lens.stop_index, **{k: (int(v) if k == "blades" else float(v))
                                                      for k, v in iris.items()})
+        _check_polygon_fits(lens, base_lens.stop.semi_diameter, n_max, plugin)
     if sensor_distance_mm is not None:
         if not (sensor_distance_mm > 0 and math.isfinite(sensor_distance_mm)):
             raise SensorPropertyError(plugin, "sensor_distance",

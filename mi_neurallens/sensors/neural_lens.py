@@ -9,6 +9,7 @@ Fresnel throughput) with literal weights and a rational tanh, and the undo of th
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 
 from ..errors import ModelError
@@ -173,10 +174,20 @@ class NeuralLens(LensSensorBase):
                 f"{trained.describe()}) and has no stop head, so its aperture is fixed; add one with "
                 f"`mi-neurallens train {st.base_lens.name} --paths backward-transmit --keep both` or use "
                 f"realistic_lens")
-        if trained.blades or not want.within(trained):
+        if trained.blades:
+            raise SensorPropertyError(
+                PLUGIN, prop, f"model {self.model_path} was trained with a bladed iris ({trained.describe()}); "
+                f"only a model trained with a circular stop can change its aperture")
+        if not want.within(trained):
+            hint = ""
+            if want.blades:
+                n_min = st.max_fnumber / math.cos(math.pi / want.blades)
+                hint = (f": the corners of {want.blades} blades reach {want.outer_radius_mm:.4g} mm from the axis, "
+                        f"where the map learned rays as blocked; use fstop >= {n_min * (1 + 1e-6):.4g} with "
+                        f"{want.blades} blades (blades=0 is round at any f-number), or realistic_lens")
             raise SensorPropertyError(
                 PLUGIN, prop, f"the requested iris ({want.describe()}) is not inside the one model "
-                f"{self.model_path} was trained with ({trained.describe()})")
+                f"{self.model_path} was trained with ({trained.describe()}){hint}")
         return want
 
     def _make_map(self):

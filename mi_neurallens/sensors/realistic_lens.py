@@ -44,7 +44,9 @@ Realistic lens camera (:monosp:`realistic_lens`)
 
  * - blades
    - |int|
-   - Number of straight iris blades: the stop becomes the regular polygon inscribed in its circle
+   - Number of straight iris blades: the stop becomes the regular polygon whose inscribed circle is
+     the stop's (the f-number is that circle's; the corners, 1/cos(π/n) farther out, must stay in the
+     stop's air gap)
      (0: circular).  (Default: the lens file's, usually 0)
 
  * - blade_rotation

@@ -6,10 +6,13 @@ radius, its first blade's normal at ``blade_rotation_deg`` from +x (counter-cloc
 sensor, lens space).  The exact tracer, the learned maps (which predict where a ray crosses the stop
 plane and test the crossing here at render time) and the layout plot all use this one rule.
 
-A polygon with inscribed radius R lies inside the disk of radius R, and stopping down shrinks R, so
-every iris of a lens is a subset of its widest circular opening: a map that learned everything but
-the iris at the widest opening (the stop-plane crossing included) reproduces any smaller iris
-exactly on the predicted crossing.
+A polygon with inscribed radius R *contains* the disk of radius R and lies inside the disk of its
+circumscribed radius R / cos(π/n).  A map that learned everything but the iris at the widest circular
+opening R₀ (the stop-plane crossing included) reproduces exactly, on the predicted crossing, every iris
+inside that disk: any smaller circle, and a polygon once its corners are inside it (R / cos(π/n) ≤ R₀,
+i.e. at least 1/cos(π/n) times the widest f-number: 1.155× for 6 blades, 1.236× for 5).  Nearer wide
+open the corners reach rays the map learned as blocked, so :meth:`Iris.within` says no and the learned
+maps refuse that iris rather than render a polygon clipped by the circle.
 """
 from __future__ import annotations
 
@@ -76,9 +79,18 @@ class Iris:
             ok &= x * c + y * s <= self.radius_mm
         return ok
 
+    @property
+    def outer_radius_mm(self) -> float:
+        """Radius of the smallest disk around the axis that holds the iris: the circle's radius, or the
+        polygon's circumscribed radius R / cos(π/n)."""
+        return self.radius_mm / math.cos(math.pi / self.blades) if self.blades else self.radius_mm
+
     def within(self, other: "Iris", rtol: float = 1e-9) -> bool:
-        """True when this iris is a subset of the circular ``other`` (smaller or equal radius)."""
-        return self.radius_mm <= other.radius_mm * (1.0 + rtol)
+        """True when this iris is a subset of the circular ``other``: its outer radius (a polygon's
+        corners) is not larger than ``other``'s radius."""
+        if other.blades:
+            raise ValueError("Iris.within: the other iris must be circular")
+        return self.outer_radius_mm <= other.radius_mm * (1.0 + rtol)
 
     def same_as(self, other: "Iris", rtol: float = 1e-9) -> bool:
         return (self.blades == other.blades and abs(self.radius_mm - other.radius_mm) <= rtol * other.radius_mm
