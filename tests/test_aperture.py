@@ -274,7 +274,7 @@ def test_neural_ghosts_take_the_iris(tmp_path):
     """lens_flare with learned ghosts at 2× the widest f-number and 6 blades: the ghost matches the
     exact one (paired samples; 2²² samples leave ~0.02 of noise) and blades rotated by half a blade do
     not.  Without stop heads, ``neural`` mode refuses the iris and ``auto`` traces the ghost instead."""
-    mi = _mitsuba()
+    _mitsuba()                      # skips without Mitsuba; sets the variant and registers
     from mi_neurallens.commands.render import load_scene
     from mi_neurallens.flare.render import FlareError, render_flare
     from mi_neurallens.metrics import mape_masked
@@ -311,7 +311,7 @@ def test_neural_and_exact_flares_select_the_same_ghosts():
     computed at training), refocused or stopped down from the ranking of the configured lens, as the
     exact flare does (at 4× the widest f-number a third of ood-59mm's 32 strongest ghosts are others
     than wide open)."""
-    mi = _mitsuba()
+    _mitsuba()
     from mi_neurallens.commands.render import load_scene
     from mi_neurallens.flare.render import FlareOptions, FlareRenderer
     path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "scenes", "night_point.xml")

@@ -314,7 +314,7 @@ def configure_lens(base_lens, *, fstop=None, focus_distance_mm=None, sensor_dist
     if iris:
         lens = lens.with_surface(lens.stop_index, **{k: (int(v) if k == "blades" else float(v))
                                                      for k, v in iris.items()})
-        _check_polygon_fits(lens, base_lens.stop.semi_diameter, n_max, plugin)
+    _check_polygon_fits(lens, base_lens.stop.semi_diameter, n_max, plugin)
     if sensor_distance_mm is not None:
         if not (sensor_distance_mm > 0 and math.isfinite(sensor_distance_mm)):
             raise SensorPropertyError(plugin, "sensor_distance",
