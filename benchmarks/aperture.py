@@ -25,6 +25,9 @@ import sys
 import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+from mi_neurallens.constants import LAMBDA_D  # noqa: E402
+
 LENSES = ("wide-22mm", "ood-59mm", "canon-ef-24mm-f1.4l")
 SCENES = ("still_life", "chart", "bokeh", "night")
 #: XML parameters per scene: for night.xml a modest flare budget, planned by the tracer in both sensors
@@ -39,9 +42,10 @@ def closest_focus_m(lens: str, want_m: float = 0.35) -> float:
     that is farther (then 2 % beyond it): bokeh.xml focuses at 0.2 m, nearer than any model was trained."""
     from mi_neurallens.neural.model import bundled_model_path, load_model
     from mi_neurallens.optics.prescription import Lens
+    from mi_neurallens.sensors.common import focus_for_sensor_distance
     L = Lens.load(lens)
     s_max = float(load_model(bundled_model_path(lens), L).sensor_distance_range[1])
-    near = (L.paraxial(587.5618).focus_distance_for(s_max) + L.total_track + s_max) / 1000.0
+    near = focus_for_sensor_distance(L, s_max) / 1000.0
     return want_m if near < want_m else 1.02 * near
 
 
@@ -78,7 +82,7 @@ def main(argv=None):
         return img, time.perf_counter() - t
 
     for lens in args.lenses.split(","):
-        n0 = Lens.load(lens).paraxial(587.5618).fnumber
+        n0 = Lens.load(lens).paraxial(LAMBDA_D).fnumber
         for name in args.scenes.split(","):
             path = os.path.join(ROOT, "scenes", f"{name}.xml")
             params = PARAMS.get(name, []) + ([f"focus={closest_focus_m(lens):.4g}"] if name == "bokeh" else [])
@@ -120,7 +124,7 @@ def speed(args, n: int = 1 << 20, repeats: int = 5):
     mi_neurallens.register()
     rows = []
     for lens in args.lenses.split(","):
-        n0 = Lens.load(lens).paraxial(587.5618).fnumber
+        n0 = Lens.load(lens).paraxial(LAMBDA_D).fnumber
         for k in (float(v) for v in args.mults.split(",")):
             for blades in (0, 6):
                 rate = {}

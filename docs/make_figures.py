@@ -103,14 +103,14 @@ def ablation(spp, res):
 def focus_sweep(spp, res):
     from mi_neurallens import Lens
     from mi_neurallens.metrics import mape
+    from mi_neurallens.sensors.common import focus_for_sensor_distance
     lens = Lens.load("ood-59mm")
-    px = lens.paraxial()
     imgs, titles, out = [], [], []
     dists = (38.5, 40.0, 42.0)
     for kind in ("realistic_lens", "neural_lens"):
         for s in dists:
             imgs.append(render(kind, "ood-59mm", spp, res, [f"sensor_distance={s}"]))
-            fd = px.focus_distance_for(s) + lens.total_track + s
+            fd = focus_for_sensor_distance(lens, s)
             titles.append(f"{kind}, sensor {s} mm (focus {fd / 1000:.2f} m)")
     for i, s in enumerate(dists):
         out.append({"sensor_distance_mm": s, "mape_neural_vs_exact": mape(imgs[3 + i], imgs[i])})

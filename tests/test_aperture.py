@@ -10,6 +10,7 @@ import os
 import numpy as np
 import pytest
 
+from mi_neurallens.constants import LAMBDA_D
 from mi_neurallens.neural.model import bundled_model_path, load_model
 from mi_neurallens.optics.prescription import Lens
 from mi_neurallens.trace.iris import Iris
@@ -170,7 +171,7 @@ def test_blades_near_wide_open_are_a_clear_error_where_they_cannot_be_rendered()
     mi.set_variant("llvm_ad_rgb")
     nl.register()
     film = {"type": "hdrfilm", "width": 8, "height": 8}
-    n0 = Lens.load("wide-22mm").paraxial(587.5618).fnumber
+    n0 = Lens.load("wide-22mm").paraxial(LAMBDA_D).fnumber
     n6 = n0 / math.cos(math.pi / 6)
     s = {"type": "neural_lens", "model": "wide-22mm", "lens": "wide-22mm", "blades": 6, "film": film}
     with pytest.raises(Exception, match=f"fstop >= {n6 * (1 + 1e-6):.4g} with 6 blades"):
@@ -179,7 +180,7 @@ def test_blades_near_wide_open_are_a_clear_error_where_they_cannot_be_rendered()
     mi.load_dict({**s, "fstop": 1.1 * n0, "blades": 0})
     mi.load_dict({"type": "realistic_lens", "lens": "wide-22mm", "blades": 6, "fstop": 1.1 * n0,
                   "film": film})                                          # wide-22mm: the corners fit its gap
-    n0 = Lens.load("ood-59mm").paraxial(587.5618).fnumber
+    n0 = Lens.load("ood-59mm").paraxial(LAMBDA_D).fnumber
     with pytest.raises(Exception, match="property 'blades'.*past where a neighbouring surface"):
         mi.load_dict({"type": "realistic_lens", "lens": "ood-59mm", "blades": 6, "fstop": n0, "film": film})
 
@@ -224,7 +225,7 @@ def test_bokeh_blades_neural_equals_exact_and_a_wrong_stop_fails(tmp_path):
     docs/results.md.)"""
     mi = _mitsuba()
     lens = Lens.load("wide-22mm")
-    N = 4.0 * lens.paraxial(587.5618).fnumber
+    N = 4.0 * lens.paraxial(LAMBDA_D).fnumber
     for blades in (5, 6, 9):
         ex = _mask(_bokeh(mi, "realistic_lens", N, blades))
         nn = _mask(_bokeh(mi, "neural_lens", N, blades))
@@ -260,7 +261,7 @@ def test_stopping_down_changes_exposure_like_the_exact_lens():
     vignettes strongly: the mean rises by ~40 % at 2×).  The neural sensor's ratio equals the exact one
     within 1 % (same seeds)."""
     mi = _mitsuba()
-    N0 = Lens.load("wide-22mm").paraxial(587.5618).fnumber
+    N0 = Lens.load("wide-22mm").paraxial(LAMBDA_D).fnumber
     base_ex, base_nn = _chart(mi, "realistic_lens", N0), _chart(mi, "neural_lens", N0)
     for k in (2.0, 4.0):
         r_ex = _chart(mi, "realistic_lens", k * N0) / base_ex
@@ -278,7 +279,7 @@ def test_neural_ghosts_take_the_iris(tmp_path):
     from mi_neurallens.commands.render import load_scene
     from mi_neurallens.flare.render import FlareError, render_flare
     from mi_neurallens.metrics import mape_masked
-    N = 2.0 * Lens.load("wide-22mm").paraxial(587.5618).fnumber
+    N = 2.0 * Lens.load("wide-22mm").paraxial(LAMBDA_D).fnumber
     path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "scenes", "night_point.xml")
 
     def scene(model="wide-22mm", rotation=0.0):
@@ -315,7 +316,7 @@ def test_neural_and_exact_flares_select_the_same_ghosts():
     from mi_neurallens.commands.render import load_scene
     from mi_neurallens.flare.render import FlareOptions, FlareRenderer
     path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "scenes", "night_point.xml")
-    N0 = Lens.load("wide-22mm").paraxial(587.5618).fnumber
+    N0 = Lens.load("wide-22mm").paraxial(LAMBDA_D).fnumber
     picked = {}
     for k in (1.0, 4.0):
         for kind in ("realistic_lens", "neural_lens"):

@@ -260,10 +260,11 @@ def _check_polygon_fits(lens, r_widest: float, n_max: float, plugin: str):
     air gap like the stop itself; near wide open they can reach past a neighbouring surface's sag (into
     glass: no physical iris does that), which is an error naming the f-number from which the polygon
     fits.  ``r_widest``: the stop radius (mm) at the widest aperture ``n_max``."""
+    from ..trace.iris import Iris
     stop = lens.stop
     if not stop.blades:
         return
-    grow = 1.0 / math.cos(math.pi / stop.blades)
+    grow = Iris.of_surface(stop).outer_radius_mm / stop.semi_diameter
 
     def fits(r):
         try:
@@ -283,6 +284,14 @@ def _check_polygon_fits(lens, r_widest: float, n_max: float, plugin: str):
                               f"{stop.semi_diameter * grow:.4g} mm from the axis, past where a neighbouring "
                               f"surface of lens '{lens.name}' crosses the stop plane ({lo * grow:.4g} mm); "
                               f"use fstop >= {n_min * (1 + 1e-6):.4g} with {stop.blades} blades, or blades=0")
+
+
+def focus_for_sensor_distance(lens, sensor_distance_mm: float) -> float:
+    """Object distance in focus (paraxial, d line) in mm from the *sensor plane* when the sensor is
+    ``sensor_distance_mm`` behind the last vertex: the convention of ``focus_distance``.  Raises
+    :class:`LensError` for a sensor closer than the rear focal point (focus "beyond infinity")."""
+    s = float(sensor_distance_mm)
+    return lens.paraxial(PARAXIAL_WAVELENGTH_NM).focus_distance_for(s) + lens.total_track + s
 
 
 def configure_lens(base_lens, *, fstop=None, focus_distance_mm=None, sensor_distance_mm=None,
@@ -322,8 +331,7 @@ def configure_lens(base_lens, *, fstop=None, focus_distance_mm=None, sensor_dist
                                       f"{sensor_distance_mm:g}")
         s = float(sensor_distance_mm)
         try:
-            fd = lens.paraxial(PARAXIAL_WAVELENGTH_NM).focus_distance_for(s)
-            focus = fd + lens.total_track + s
+            focus = focus_for_sensor_distance(lens, s)
         except LensError:
             focus = math.nan          # sensor closer than the rear focal point: "beyond infinity"
     else:

@@ -9,7 +9,6 @@ Fresnel throughput) with literal weights and a rational tanh, and the undo of th
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 
 from ..errors import ModelError
@@ -181,7 +180,7 @@ class NeuralLens(LensSensorBase):
         if not want.within(trained):
             hint = ""
             if want.blades:
-                n_min = st.max_fnumber / math.cos(math.pi / want.blades)
+                n_min = st.max_fnumber * want.outer_radius_mm / want.radius_mm
                 hint = (f": the corners of {want.blades} blades reach {want.outer_radius_mm:.4g} mm from the axis, "
                         f"where the map learned rays as blocked; use fstop >= {n_min * (1 + 1e-6):.4g} with "
                         f"{want.blades} blades (blades=0 is round at any f-number), or realistic_lens")
