@@ -170,7 +170,9 @@ def test_config_rejects_unknown_keys(tmp_path):
     p.write_text("[regressor]\nmax_steps = 7\n[forward_classifier]\nhidden = 3\nmax_minutes = 2.0\n")
     c = load_config(str(p), overrides={"regressor": {"patience": 5}, "forward_classifier": {"max_minutes": 6.0}})
     assert (c.regressor.max_steps, c.regressor.patience) == (7, 5)
-    assert c.forward_classifier == {"hidden": 3, "max_minutes": 6.0}
+    assert c.forward_classifier["hidden"] == 3 and c.forward_classifier["max_minutes"] == 6.0
+    # the forward defaults (flare goals) stay under a recipe's [forward_*] keys
+    assert c.forward_classifier["target"] == "margin" and c.net("classifier", "forward").goal_misclassification < 0.005
 
 
 def test_bundled_recipes_load():

@@ -14,9 +14,9 @@ from __future__ import annotations
 import numpy as np
 
 TANH_CLAMP = 7.90531110763549805
-_TN = (4.89352455891786e-3, 6.37261928875436e-4, 1.48572235717979e-5, 5.12229709037114e-8,
+TANH_P = (4.89352455891786e-3, 6.37261928875436e-4, 1.48572235717979e-5, 5.12229709037114e-8,
        -8.60467152213735e-11, 2.00018790482477e-13, -2.76076847742355e-16)
-_TD = (4.89352518554385e-3, 2.26843463243900e-3, 1.18534705686654e-4, 1.19825839466702e-6)
+TANH_Q = (4.89352518554385e-3, 2.26843463243900e-3, 1.18534705686654e-4, 1.19825839466702e-6)
 
 ACTIVATIONS = ("tanh", "relu")
 
@@ -27,20 +27,20 @@ def tanh_eigen(x):
     if isinstance(x, np.ndarray):
         x = np.clip(x, -TANH_CLAMP, TANH_CLAMP)
         x2 = x * x
-        p = _TN[6]
-        for c in reversed(_TN[:6]):
+        p = TANH_P[6]
+        for c in reversed(TANH_P[:6]):
             p = p * x2 + c
-        q = _TD[3]
-        for c in reversed(_TD[:3]):
+        q = TANH_Q[3]
+        for c in reversed(TANH_Q[:3]):
             q = q * x2 + c
         return x * p / q
     x = dr.clip(x, -TANH_CLAMP, TANH_CLAMP)
     x2 = x * x
-    p = dr.fma(x2, _TN[6], _TN[5])
-    for c in reversed(_TN[:5]):
+    p = dr.fma(x2, TANH_P[6], TANH_P[5])
+    for c in reversed(TANH_P[:5]):
         p = dr.fma(x2, p, c)
-    q = dr.fma(x2, _TD[3], _TD[2])
-    for c in reversed(_TD[:2]):
+    q = dr.fma(x2, TANH_Q[3], TANH_Q[2])
+    for c in reversed(TANH_Q[:2]):
         q = dr.fma(x2, q, c)
     return x * p / q
 

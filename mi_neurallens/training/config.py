@@ -30,7 +30,7 @@ class NetConfig:
     decay_every: int = 10000
     batch: int = 8192
     max_steps: int = 20000
-    max_minutes: float = 10.0           # wall-clock cap for this network
+    max_minutes: float = 10.0           # wall-clock cap per network (a stack of K networks: K × this)
     eval_every: int = 500
     patience: int = 8                   # evaluations without improvement before early stop
     residual: str = "linear"            # regressor: predict the residual of a least-squares linear guess
@@ -45,7 +45,13 @@ class NetConfig:
     boundary_sigma: tuple = (1e-3, 5e-2)  # classifier: log-uniform width range of the boundary perturbations (unit cube)
     edge_weight: float = 0.0            # regressor: extra loss weight of rays near an aperture edge, where a ghost's
     edge_margin: float = 0.02           # sharp edge lands: w = 1 + edge_weight·exp(−margin / edge_margin) (0: off)
-    pool: int = 2_000_000               # samples held in memory; refreshed from the tracer
+    stop_at_goals: bool = True          # a network stops as soon as a validation meets its goals (below)
+    goal_position_um: tuple = (2.0, 20.0)       # regressor: exit-position error (median, p99), µm
+    goal_direction_arcsec: tuple = (5.0, 40.0)  # regressor: exit-direction error (median, p99), arcsec
+    goal_misclassification: float = 0.005       # classifier: held-out misclassification (natural mix)
+    goal_stop_um: tuple = (2.0, 20.0)           # stop head: stop-plane crossing error (median, p99), µm
+    goal_margin: float = 0.9            # stop when the validation is within goal × this (the held-out set differs)
+    pool: int = 2_000_000               # samples held in memory per map; refreshed from the tracer
     refresh_every: int = 2000           # steps between pool refreshes (fresh tracer data)
     refresh_fraction: float = 0.25
 
@@ -55,7 +61,7 @@ def regressor_defaults() -> NetConfig:
 
 
 def classifier_defaults() -> NetConfig:
-    return NetConfig(hidden=2, lr=3e-3, max_steps=8000, max_minutes=3.0, residual="none",
+    return NetConfig(hidden=2, lr=3e-3, max_steps=40000, max_minutes=3.0, residual="none",
                      direction_loss="none", pool=1_500_000)
 
 
@@ -65,6 +71,14 @@ def stop_defaults() -> NetConfig:
                      residual="linear", loss_weights="uniform", direction_loss="none", odd_y=True,
                      pool=1_000_000)
 
+
+#: forward maps (ghosts, forward transmit) serve flares: a 2 K full-frame pixel is 17 µm, so their goals
+#: are looser than a camera ray's; the ghosts' edges are the flare error, so their classifier is deeper and
+#: regresses the aperture margin (docs/training.md)
+FORWARD_REGRESSOR = dict(goal_position_um=(3.0, 30.0), goal_direction_arcsec=(30.0, 200.0), max_minutes=3.0,
+                         max_steps=40000)
+FORWARD_CLASSIFIER = dict(hidden=3, target="margin", goal_misclassification=0.0005, max_minutes=3.0,
+                          max_steps=40000, patience=30)
 
 PAPER = dict(schedule="paper", lr=1e-4, decay=0.95, decay_every=10000, batch=8192, warmup_steps=0,
              residual="none", direction_loss="cosine", loss_weights="uniform", odd_y=False, target="label")
@@ -93,8 +107,9 @@ class TrainConfig:
     regressor: NetConfig = field(default_factory=regressor_defaults)
     classifier: NetConfig = field(default_factory=classifier_defaults)
     stop: NetConfig = field(default_factory=stop_defaults)  # the stop head (max_minutes = 0: none)
-    forward_regressor: dict = field(default_factory=dict)   # overrides for forward maps
-    forward_classifier: dict = field(default_factory=dict)
+    # overrides for forward maps (flares); a recipe's [forward_*] table is merged into these
+    forward_regressor: dict = field(default_factory=lambda: dict(FORWARD_REGRESSOR))
+    forward_classifier: dict = field(default_factory=lambda: dict(FORWARD_CLASSIFIER))
     forward_stop: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
@@ -154,6 +169,8 @@ def load_config(path: str | None = None, lens: str | None = None, overrides: dic
     for k, v in data.items():
         if k in ("regressor", "classifier", "stop"):
             setattr(cfg, k, _apply(getattr(cfg, k), v, k))
+        elif k.startswith("forward_"):
+            setattr(cfg, k, {**getattr(cfg, k), **v})
         else:
             setattr(cfg, k, v)
     if lens:

@@ -23,7 +23,7 @@ from ..errors import NeuralLensError
 from .config import NetConfig
 from .data import PathSampler, RegressorStream
 from .evaluate import heldout_valid, stop_errors
-from .trainer import _fit, _progress, _torch, fit_output_transform, make_net, net_layers, pick_device
+from .trainer import _torch, fit_output_transform, pick_device
 
 
 def odd_columns(x_wy: np.ndarray, s_max: float, k: int) -> np.ndarray:
@@ -34,14 +34,15 @@ def odd_columns(x_wy: np.ndarray, s_max: float, k: int) -> np.ndarray:
 
 
 class StopFit:
-    """One stop head's training problem (pool, targets, loss, validation, refresh) for :func:`_fit`.
+    """One stop head's training problem (pool, targets, loss, validation, fresh data) for
+    :func:`~mi_neurallens.training.stacked.train_stack`.
 
     The network's output ``p`` times ``M`` relates to the crossings ``s`` (N, 2k) by
     ``s = M·(shift + skip·xn) + oscale·(M·p)``."""
 
     def __init__(self, torch, dev, net, stream, val, pool0, *, center, scale_in, s_max, k, transform, rng,
-                 state, log=None, desc="stop head"):
-        self.torch, self.dev, self.net, self.stream, self.rng = torch, dev, net, stream, rng
+                 state, nc: NetConfig, log=None, desc="stop head"):
+        self.torch, self.dev, self.net, self.stream, self.rng, self.nc = torch, dev, net, stream, rng, nc
         self.center, self.scale_in, self.s_max, self.k = center, scale_in, float(s_max), int(k)
         self.skip, self.shift, self.oscale = transform
         self.state, self.log, self.desc = state, log, desc
@@ -59,18 +60,46 @@ class StopFit:
         t = (s - odd_columns(x[:, 2], self.s_max, self.k) * (self.shift + xn @ self.skip.T)) / self.oscale
         return self.f32(xn), self.f32(t)
 
+    def M_of(self, xb):
+        """The odd-y factor of a batch (…, B, 4): ωy/s_max on the sy columns, 1 on the sx ones."""
+        M = self.torch.ones(xb.shape[:-1] + (2 * self.k,), device=xb.device, dtype=xb.dtype)
+        M[..., 1::2] = ((self.wy_c + self.wy_s * xb[..., 2]) / self.s_max)[..., None]
+        return M
+
     def predict(self, xb):
-        M = self.torch.ones((xb.shape[0], 2 * self.k), device=self.dev)
-        M[:, 1::2] = ((self.wy_c + self.wy_s * xb[:, 2]) / self.s_max)[:, None]
-        return self.net(xb) * M
+        return self.net(xb) * self.M_of(xb)
 
     def crossings(self, x, p):
         """Crossings (N, 2k) from inputs and the network's output times M (numpy)."""
         xn = (x - self.center) / self.scale_in
         return p * self.oscale + odd_columns(x[:, 2], self.s_max, self.k) * (self.shift + xn @ self.skip.T)
 
-    def batch_loss(self, bi):
-        return ((self.predict(self.X[bi]) - self.Y[bi]) ** 2).mean()
+    # -- the pieces :func:`~mi_neurallens.training.stacked.train_stack` runs --------------------------
+    def pool(self):
+        return {"X": self.X, "Y": self.Y}
+
+    def release_pool(self):
+        self.X = self.Y = None
+
+    def constants(self):
+        return {}
+
+    def rows_loss(self, out, batch, const):
+        """Mean squared error of the standardised crossings, reduced over the samples ((B,) or (K, B)).
+        The maps of one stack share the domain (the ωy scale of M)."""
+        return ((out * self.M_of(batch["X"]) - batch["Y"]) ** 2).mean(-1).mean(-1)
+
+    def fresh_rows(self, n):
+        _, x, y = self.stream.sample(n)
+        X, Y = self._pair(x, y[:, 5:])
+        return {"X": X, "Y": Y}
+
+    def goals_met(self) -> bool:
+        """The last validation meets ``nc.goal_stop_um`` (median, p99 of the largest crossing error)."""
+        h = self.state["history"]
+        g = self.nc.goal_margin
+        med, p99 = self.nc.goal_stop_um
+        return bool(h) and h[-1]["stop_um_med"] <= g * med and h[-1]["stop_um_p99"] <= g * p99
 
     def validate(self, step, loss, seconds):
         with self.torch.no_grad():
@@ -85,12 +114,6 @@ class StopFit:
         score = e["stop_um_median"] / 2.0 + e["stop_um_p99"] / 20.0
         return score, dict(med=f"{e['stop_um_median']:.2f}µm", p99=f"{e['stop_um_p99']:.1f}µm")
 
-    def refresh(self, n):
-        _, x, y = self.stream.sample(n)
-        X, Y = self._pair(x, y[:, 5:])
-        idx = self.torch.as_tensor(self.rng.choice(len(self.X), n, replace=False), device=self.dev)
-        self.X[idx], self.Y[idx] = X, Y
-
 
 def train_stop_head(lens, tm, nc: NetConfig, *, seed: int, fresnel: bool = True, mcmc_threshold: float = 0.02,
                     n_val: int = 20_000, threads: int = 2, device: str = "auto", progress: bool = True,
@@ -99,40 +122,60 @@ def train_stop_head(lens, tm, nc: NetConfig, *, seed: int, fresnel: bool = True,
     of ``lens`` as it was trained, i.e. wide open) and return it as a
     :class:`~mi_neurallens.neural.model.StopHead` (``tm`` is not changed).  ``stream``: an existing
     :class:`~mi_neurallens.training.data.RegressorStream` of the same map built with ``stops=True``."""
+    return train_stop_heads(lens, [tm], nc, seeds=[seed], fresnel=fresnel, mcmc_threshold=mcmc_threshold,
+                            n_val=n_val, threads=threads, device=device, progress=progress, log=log,
+                            streams=None if stream is None else [stream])[0]
+
+
+def train_stop_heads(lens, tms, nc: NetConfig, *, seeds, fresnel: bool = True, mcmc_threshold: float = 0.02,
+                     n_val: int = 20_000, threads: int = 2, device: str = "auto", progress: bool = True,
+                     log=None, streams=None):
+    """The stop heads of the maps ``tms`` (all crossing the stop plane the same number of times, on one
+    domain), trained as one stack (:func:`~mi_neurallens.training.stacked.train_stack`); a list of
+    :class:`~mi_neurallens.neural.model.StopHead` in the order of ``tms``."""
     from ..neural.model import StopHead
+    from .stacked import pool_rows, train_stack
     torch = _torch(threads)
     dev = pick_device(torch, device)
-    torch.manual_seed(seed)
-    rng = np.random.default_rng(seed)
+    torch.manual_seed(int(seeds[0]))
     t0 = time.perf_counter()
-    if stream is None:
-        ps = PathSampler(lens, tm.path_id, tm.direction, tm.z_in, tm.z_out, tm.domain, fresnel=fresnel, stops=True)
-        stream = RegressorStream(ps, seed, mcmc_threshold)
-    k = stream.ps.map.stop_crossings
-    if k == 0 or stream.ps.n_out != 5 + 2 * k:
-        raise NeuralLensError(f"map {tm.key} of '{lens.name}': its path never crosses the stop plane, or the "
-                              "sampler was built without stops=True")
-    center, scale_in, s_max = np.asarray(tm.input_center), np.asarray(tm.input_scale), tm.domain.s_max
-    xv, yv = heldout_valid(lens, (tm.path_id, tm.direction, tm.z_in, tm.z_out), tm.domain, n_val, seed + 7,
-                           mcmc_threshold, fresnel, stops=True)
-    _, x0, y0 = stream.sample(nc.pool)
-    s0 = y0[:, 5:]
-    xn0 = (x0 - center) / scale_in
-    skip, shift, oscale = fit_output_transform(xn0, s0, "linear", odd_columns(x0[:, 2], s_max, k))
-    net = make_net(torch, 4, 2 * k, nc.hidden, nc.width, nc.activation).to(dev)
-    opt = torch.optim.Adam(net.parameters(), lr=nc.lr)
-    state = {"step": 0, "best_val": math.inf, "best_step": 0, "history": [], "evals_since_best": 0,
-             "seconds": 0.0, "samples": 0}
-    best = {kk: v.detach().clone() for kk, v in net.state_dict().items()}
-    fit = StopFit(torch, dev, net, stream, (xv, yv[:, 5:]), (x0, s0), center=center, scale_in=scale_in,
-                  s_max=s_max, k=k, transform=(skip, shift, oscale), rng=rng, state=state, log=log,
-                  desc=f"{tm.key} stop head")
-    bar = _progress(nc.max_steps, f"{tm.key} stop head", progress)
-    best, reason = _fit(torch, net, opt, nc, state, best, n_pool=len(fit.X), batch_loss=fit.batch_loss,
-                        refresh=fit.refresh, validate=fit.validate, ckpt=None, bar=bar, dev=dev)
-    net.load_state_dict(best)
-    training = {"config": dict(nc.__dict__), "steps": state["step"], "seconds": state["seconds"],
-                "stop_reason": reason, "samples": state["samples"], "seed": int(seed),
-                "wall_seconds": time.perf_counter() - t0, "history": state["history"]}
-    return StopHead(crossings=k, layers=net_layers(net), skip=skip, out_scale=oscale, out_shift=shift,
-                    activation=nc.activation, odd_y=True, training=training)
+    fits, transforms = [], []
+    ks = set()
+    for j, tm in enumerate(tms):
+        stream = streams[j] if streams is not None else None
+        if stream is None:
+            ps = PathSampler(lens, tm.path_id, tm.direction, tm.z_in, tm.z_out, tm.domain, fresnel=fresnel, stops=True)
+            stream = RegressorStream(ps, seeds[j], mcmc_threshold)
+        k = stream.ps.map.stop_crossings
+        if k == 0 or stream.ps.n_out != 5 + 2 * k:
+            raise NeuralLensError(f"map {tm.key} of '{lens.name}': its path never crosses the stop plane, or the "
+                                  "sampler was built without stops=True")
+        ks.add(k)
+        center, scale_in, s_max = np.asarray(tm.input_center), np.asarray(tm.input_scale), tm.domain.s_max
+        xv, yv = heldout_valid(lens, (tm.path_id, tm.direction, tm.z_in, tm.z_out), tm.domain, n_val, seeds[j] + 7,
+                               mcmc_threshold, fresnel, stops=True)
+        _, x0, y0 = stream.sample(pool_rows(nc, len(tms), 4 * (4 + 2 * k)))
+        s0 = y0[:, 5:]
+        xn0 = (x0 - center) / scale_in
+        tr = fit_output_transform(xn0, s0, "linear", odd_columns(x0[:, 2], s_max, k))
+        transforms.append(tr)
+        state = {"step": 0, "best_val": math.inf, "best_step": 0, "history": [], "evals_since_best": 0,
+                 "seconds": 0.0, "samples": 0}
+        fits.append(StopFit(torch, dev, None, stream, (xv, yv[:, 5:]), (x0, s0), center=center, scale_in=scale_in,
+                            s_max=s_max, k=k, transform=tr, rng=np.random.default_rng(seeds[j]), state=state,
+                            nc=nc, log=log, desc=f"{tm.key} stop head"))
+    if len(ks) != 1:
+        raise NeuralLensError(f"train_stop_heads: one stack needs one crossing count, got {sorted(ks)}")
+    k = ks.pop()
+    keys = [tm.key for tm in tms]
+    res = train_stack(torch, dev, fits, nc, seeds=seeds, n_in=4, n_out=2 * k, keys=keys, progress=progress,
+                      desc=f"stop heads ×{len(tms)}" if len(tms) > 1 else f"{keys[0]} stop head", log=log)
+    out = []
+    for r, (skip, shift, oscale), seed in zip(res, transforms, seeds):
+        st = r["state"]
+        training = {"config": dict(nc.__dict__), "steps": st["step"], "seconds": st["seconds"],
+                    "stop_reason": st.get("stop_reason"), "samples": st["samples"], "seed": int(seed),
+                    "wall_seconds": time.perf_counter() - t0, "stacked_with": len(tms), "history": st["history"]}
+        out.append(StopHead(crossings=k, layers=r["layers"], skip=skip, out_scale=oscale, out_shift=shift,
+                            activation=nc.activation, odd_y=True, training=training))
+    return out

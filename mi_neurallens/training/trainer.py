@@ -7,14 +7,17 @@ The regressor predicts the standardised *residual* of a least-squares linear gue
 what that buys.  Data are streamed from the tracer into an in-memory pool that is partly refreshed
 with fresh samples every ``refresh_every`` steps (no data files; nothing is re-used for long).
 
-Checkpoints (``<workdir>/<map>.<net>.ckpt.safetensors`` + ``.json``; tensors only, never pickle) hold
-weights, Adam state, best weights, step and history; they are written atomically every
-``checkpoint_seconds`` and at the end.  A rerun with the same workdir resumes from them; a finished
-network is not retrained.  The data stream after a resume is re-seeded deterministically from
-(seed, map, step).
+The maps of one direction train together (:func:`train_maps`): their regressors as one stack, their
+classifiers as another, their stop heads per crossing count (:mod:`~mi_neurallens.training.stacked`:
+stacked weights, batched products, each network leaving when it meets its goals).  One map is a stack
+of one.  Checkpoints (``<workdir>/<stack>.ckpt.safetensors`` + ``.json``; tensors only, never pickle)
+hold weights, Adam state, best weights, steps and histories; they are written atomically every minute
+and at the end.  A rerun with the same workdir resumes from them; a finished stack is not retrained.
+The data streams after a resume are re-seeded deterministically from (seed, map, step).
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -24,11 +27,10 @@ import numpy as np
 
 from ..constants import ARCSEC_PER_RAD
 from ..errors import NeuralLensError
-from ..fileio import atomic_write, atomic_write_text
+from ..fileio import atomic_write_text
 from .config import NetConfig, TrainConfig
 from .data import Domain, PathSampler, RegressorStream, classifier_samples
 
-CHECKPOINT_SECONDS = 60.0
 CLASSIFIER_VALIDATION = 400_000   # rays uniform over the domain that pick the classifier's best weights
 
 
@@ -74,54 +76,6 @@ def lr_at(step: int, nc: NetConfig, seconds: float = 0.0) -> float:
     t = min(max((step - nc.warmup_steps) / max(nc.max_steps - nc.warmup_steps, 1),
                 seconds / max(nc.max_minutes * 60.0, 1e-9)), 1.0)
     return nc.lr_min + 0.5 * (nc.lr - nc.lr_min) * (1.0 + math.cos(math.pi * t))
-
-
-def save_checkpoint(path: str, net, opt, best_state, state: dict):
-    """Weights + Adam moments + best weights as safetensors, the rest as JSON (both atomic)."""
-    from safetensors.torch import save_file
-    t = {f"net.{k}": v.detach().cpu().contiguous() for k, v in net.state_dict().items()}
-    t.update({f"best.{k}": v.detach().cpu().contiguous() for k, v in best_state.items()})
-    for i, (pid, st) in enumerate(opt.state.items()):
-        for name in ("exp_avg", "exp_avg_sq"):
-            if name in st:
-                t[f"adam.{i}.{name}"] = st[name].detach().cpu().contiguous()
-        if "step" in st:
-            state.setdefault("adam_steps", {})[str(i)] = float(st["step"])
-    atomic_write(path + ".safetensors", lambda p: save_file(t, p))
-    atomic_write_text(path + ".json", json.dumps(state))
-
-
-def load_checkpoint(path: str, net, opt, torch):
-    if not (os.path.exists(path + ".safetensors") and os.path.exists(path + ".json")):
-        return None
-    from safetensors.torch import load_file
-    try:
-        t = load_file(path + ".safetensors")
-        state = json.loads(open(path + ".json").read())
-    except Exception:
-        return None          # a broken checkpoint is ignored (training restarts)
-    dev = next(net.parameters()).device
-    net.load_state_dict({k[4:]: v.to(dev) for k, v in t.items() if k.startswith("net.")})
-    best = {k[5:]: v.to(dev) for k, v in t.items() if k.startswith("best.")}
-    params = [p for g in opt.param_groups for p in g["params"]]
-    for i, p in enumerate(params):
-        if f"adam.{i}.exp_avg" in t:
-            opt.state[p] = {"step": torch.tensor(state.get("adam_steps", {}).get(str(i), 0.0)),
-                            "exp_avg": t[f"adam.{i}.exp_avg"].to(dev),
-                            "exp_avg_sq": t[f"adam.{i}.exp_avg_sq"].to(dev)}
-    return state, best
-
-
-def _progress(total, desc, enabled):
-    try:
-        from tqdm.auto import tqdm
-        return tqdm(total=total, desc=desc, disable=not enabled, leave=False, dynamic_ncols=True)
-    except ImportError:  # pragma: no cover
-        class _N:
-            def update(self, *a): pass
-            def set_postfix(self, *a, **k): pass
-            def close(self): pass
-        return _N()
 
 
 # ----------------------------------------------------------------------------- output standardisation
@@ -193,78 +147,9 @@ def edge_weights(ps, u: np.ndarray, nc: NetConfig) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- regressor
-def _fit(torch, net, opt, nc: NetConfig, state: dict, best: dict, *, n_pool: int, batch_loss, refresh,
-         validate, ckpt, bar, dev):
-    """The optimisation loop both networks share: Adam steps on random batches of a sample pool that is
-    partly refreshed every ``nc.refresh_every`` steps, validation every ``nc.eval_every`` steps with the
-    best weights kept, early stop after ``nc.patience`` evaluations without progress, a wall-clock
-    budget (``nc.max_minutes``, resumed time included) and periodic checkpoints.
-
-    ``batch_loss(idx)`` → loss tensor of pool rows ``idx``; ``refresh(k)`` replaces ``k`` random pool
-    rows; ``validate(step, loss, seconds)`` → (score, postfix dict) — lower score is better (it also
-    logs).  Returns ``(best, stop_reason)``; ``state`` is updated in place.
-    """
-    t0 = time.perf_counter() - state["seconds"]
-    last_ckpt = time.perf_counter()
-    step = state["step"]
-    stop_reason = "max_steps"
-    loss = None
-
-    def evaluate_now():
-        nonlocal best
-        score, postfix = validate(step, loss, time.perf_counter() - t0)
-        bar.set_postfix(**postfix)
-        if score < state["best_val"]:
-            state.update(best_val=score, best_step=step, evals_since_best=0)
-            best = {k: v.detach().clone() for k, v in net.state_dict().items()}
-        else:
-            state["evals_since_best"] += 1
-        return state["evals_since_best"] >= nc.patience
-
-    while step < nc.max_steps:
-        if step > 0 and step % nc.refresh_every == 0:
-            refresh(int(nc.pool * nc.refresh_fraction))
-        for g in opt.param_groups:
-            g["lr"] = lr_at(step, nc, time.perf_counter() - t0)
-        loss = batch_loss(torch.randint(0, n_pool, (nc.batch,), device=dev))
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        step += 1
-        state["samples"] += nc.batch
-        bar.update(1)
-        if step % nc.eval_every == 0 or step == nc.max_steps:
-            if evaluate_now():
-                stop_reason = "early_stop"
-                break
-        state["step"] = step
-        state["seconds"] = time.perf_counter() - t0
-        if state["seconds"] > nc.max_minutes * 60.0:
-            stop_reason = "time_budget"
-            break
-        if ckpt and time.perf_counter() - last_ckpt > CHECKPOINT_SECONDS:
-            save_checkpoint(ckpt, net, opt, best, state)
-            last_ckpt = time.perf_counter()
-    state["step"] = step
-    if not state["history"] or state["history"][-1]["step"] != step:
-        evaluate_now()                           # the budget ended between evaluations
-    bar.close()
-    state.update(step=step, seconds=time.perf_counter() - t0, done=True, stop_reason=stop_reason)
-    return best, stop_reason
-
-
-def _start(torch, dev, nc: NetConfig, n_out: int, ckpt: str | None):
-    """A fresh network, its Adam optimiser, training state and best weights, or all of them resumed
-    from ``ckpt``.  Returns (net, opt, state, best, resumed)."""
-    net = make_net(torch, 4, n_out, nc.hidden, nc.width, nc.activation).to(dev)
-    opt = torch.optim.Adam(net.parameters(), lr=nc.lr)
-    state = {"step": 0, "best_val": math.inf, "best_step": 0, "history": [], "evals_since_best": 0,
-             "seconds": 0.0, "samples": 0}
-    best = {k: v.detach().clone() for k, v in net.state_dict().items()}
-    got = load_checkpoint(ckpt, net, opt, torch) if ckpt else None
-    if got is not None:
-        state, best = got
-    return net, opt, state, best, got is not None
+def _new_state() -> dict:
+    return {"step": 0, "best_val": math.inf, "best_step": 0, "history": [], "evals_since_best": 0,
+            "seconds": 0.0, "samples": 0}
 
 
 def train_regressor(stream: RegressorStream, val, nc: NetConfig, *, heading: int, center, scale_in, seed: int,
@@ -272,44 +157,64 @@ def train_regressor(stream: RegressorStream, val, nc: NetConfig, *, heading: int
                     desc: str = "regressor", log=None, s_max: float | None = None) -> dict:
     """Train one regressor.  ``val``: (x, y) float64 held-out (valid) samples for validation.
     ``s_max`` (the domain's) is needed when ``nc.odd_y`` (see :func:`odd_factor`)."""
+    p = dict(stream=stream, val=val, heading=heading, center=center, scale_in=scale_in, seed=seed, s_max=s_max,
+             key=desc)
+    return train_regressors([p], nc, ckpt=ckpt, threads=threads, device=device, progress=progress, log=log,
+                            desc=desc)[0]
+
+
+def train_regressors(problems, nc: NetConfig, *, ckpt: str | None = None, threads: int = 2, device: str = "auto",
+                     progress: bool = True, log=None, desc: str = "regressors") -> list:
+    """Train the regressors of several maps as one stack (:func:`~mi_neurallens.training.stacked.train_stack`).
+
+    ``problems``: one dict per map with ``stream`` (:class:`RegressorStream`), ``val`` ((x, y) float64
+    held-out valid samples), ``heading``, ``center``, ``scale_in``, ``seed``, ``s_max`` (the domain's;
+    needed when ``nc.odd_y``) and ``key``.  Returns one result dict per map (layers, output transform,
+    training state), in order."""
+    from .stacked import peek_stack, pool_rows, train_stack
     torch = _torch(threads)
     dev = pick_device(torch, device)
-    torch.manual_seed(seed)
-    rng = np.random.default_rng(seed)
+    torch.manual_seed(int(problems[0]["seed"]))
+    keys = [p["key"] for p in problems]
+    prior = peek_stack(ckpt, keys)
+    n_pool = pool_rows(nc, len(problems), 4 * (4 + 5 + 5 + 1))
     t_start = time.perf_counter()
-    odd_s = None
-    if nc.odd_y:
-        if s_max is None:
-            raise NeuralLensError("train_regressor: odd_y needs the domain's s_max")
-        odd_s = float(s_max)
-    u0, x0, y0 = stream.sample(nc.pool)
-    xn0 = (x0 - center) / scale_in
-    skip, shift, oscale = fit_output_transform(xn0, y0, nc.residual, odd_factor(x0[:, 2], odd_s))
-    net, opt, state, best, resumed = _start(torch, dev, nc, 5, ckpt)
-    if resumed:
-        skip, shift, oscale = (np.asarray(state["skip"]), np.asarray(state["shift"]), np.asarray(state["oscale"]))
-        if bool(state.get("odd_y", False)) != (odd_s is not None):
-            raise NeuralLensError(f"{ckpt}: checkpoint was trained with odd_y={state.get('odd_y', False)}; "
-                                  "use another work directory or the same setting")
-        if state.get("done"):
-            net.load_state_dict(best)
-            return _reg_result(net, skip, shift, oscale, state)
-        stream.rng = np.random.default_rng([seed, state["step"]])
-        u0, x0, y0 = stream.sample(nc.pool)
+    fits = []
+    for i, p in enumerate(problems):
+        odd_s = None
+        if nc.odd_y:
+            if p.get("s_max") is None:
+                raise NeuralLensError("train_regressor: odd_y needs the domain's s_max")
+            odd_s = float(p["s_max"])
+        stream, center, scale_in = p["stream"], p["center"], p["scale_in"]
+        state = _new_state() if prior is None else prior[i]
+        if prior is not None:
+            if bool(state.get("odd_y", False)) != (odd_s is not None):
+                raise NeuralLensError(f"{ckpt}: checkpoint was trained with odd_y={state.get('odd_y', False)}; "
+                                      "use another work directory or the same setting")
+            stream.rng = np.random.default_rng([int(p["seed"]), state["step"]])
+        u0, x0, y0 = stream.sample(n_pool)
         xn0 = (x0 - center) / scale_in
-    state.update(odd_y=odd_s is not None, skip=skip.tolist(), shift=shift.tolist(), oscale=oscale.tolist())
-    fit = RegressorFit(torch, dev, net, nc, stream, val, (u0, x0, y0), rng=rng, state=state, heading=heading,
-                       center=center, scale_in=scale_in, transform=(skip, shift, oscale), odd_s=odd_s,
-                       log=log, desc=desc)
-    bar = _progress(nc.max_steps, desc, progress)
-    bar.update(state["step"])
-    best, _ = _fit(torch, net, opt, nc, state, best, n_pool=len(fit.X), batch_loss=fit.batch_loss,
-                   refresh=fit.refresh, validate=fit.validate, ckpt=ckpt, bar=bar, dev=dev)
-    state["wall_seconds_total"] = time.perf_counter() - t_start
-    net.load_state_dict(best)
-    if ckpt:
-        save_checkpoint(ckpt, net, opt, best, state)
-    return _reg_result(net, skip, shift, oscale, state)
+        if prior is None:
+            transform = fit_output_transform(xn0, y0, nc.residual, odd_factor(x0[:, 2], odd_s))
+            state.update(odd_y=odd_s is not None, skip=transform[0].tolist(), shift=transform[1].tolist(),
+                         oscale=transform[2].tolist())
+        else:
+            transform = tuple(np.asarray(state[n]) for n in ("skip", "shift", "oscale"))
+        fits.append(RegressorFit(torch, dev, None, nc, stream, p["val"], (u0, x0, y0),
+                                 rng=np.random.default_rng(p["seed"]), state=state, heading=p["heading"],
+                                 center=center, scale_in=scale_in, transform=transform, odd_s=odd_s, log=log,
+                                 desc=f"{p['key']} regressor" if len(problems) > 1 else desc))
+    res = train_stack(torch, dev, fits, nc, seeds=[p["seed"] for p in problems], n_in=4, n_out=5, keys=keys,
+                      ckpt=ckpt, progress=progress, desc=desc, log=log)
+    out = []
+    for r, f in zip(res, fits):
+        st = r["state"]
+        st["wall_seconds_total"] = time.perf_counter() - t_start
+        st["stacked_with"] = len(problems)
+        out.append({"layers": r["layers"], "skip": np.asarray(f.skip), "out_shift": np.asarray(f.shift),
+                    "out_scale": np.asarray(f.oscale), "odd_y": f.odd_s is not None, "state": st})
+    return out
 
 
 class RegressorFit:
@@ -356,47 +261,89 @@ class RegressorFit:
         """The inverse of :meth:`targets`: reduced-frame outputs from the network's output times M."""
         return p * self.oscale + odd_factor(x[:, 2], self.odd_s) * (self.shift + xn @ self.skip.T)
 
-    def M_of(self, xb):
-        """The odd-y factor M of a batch of normalised inputs (ones unless ``odd_s``)."""
-        M = self.torch.ones((xb.shape[0], 5), device=self.dev)
+    def M_of(self, xb, const=None):
+        """The odd-y factor M of a batch of normalised inputs ``xb`` (…, B, 4) (ones unless ``odd_s``);
+        ``const``: the (stacked) constants of :meth:`constants`, default this map's."""
+        M = self.torch.ones(xb.shape[:-1] + (5,), device=xb.device, dtype=xb.dtype)
         if self.odd_s is not None:
-            m = (self.wy_c + self.wy_s * xb[:, 2]) / self.odd_s
+            c = {"wy_c": self.wy_c, "wy_s": self.wy_s, "odd_s": self.odd_s} if const is None else const
+            m = (c["wy_c"] + c["wy_s"] * xb[..., 2]) / c["odd_s"]
             for j in ODD_COLUMNS:
-                M[:, j] = m
+                M[..., j] = m
         return M
 
     def dir3(self, dxy):
-        """Unit 3-vectors from (dx, dy) with dz of the map's heading."""
+        """Unit 3-vectors from (dx, dy) (…, 2) with dz of the map's heading."""
         torch = self.torch
-        dz = self.heading * torch.sqrt(torch.clamp(1.0 - (dxy * dxy).sum(1, keepdim=True), min=0.0))
-        v = torch.cat([dxy, dz], 1)
-        return v / v.norm(dim=1, keepdim=True)
+        dz = self.heading * torch.sqrt(torch.clamp(1.0 - (dxy * dxy).sum(-1, keepdim=True), min=0.0))
+        v = torch.cat([dxy, dz], -1)
+        return v / v.norm(dim=-1, keepdim=True)
 
     def predict(self, xb):
         """Network output times M (compared with the targets) and M."""
         M = self.M_of(xb)
         return self.net(xb) * M, M
 
-    def loss(self, xb, tb, yb_raw, wb=None):
-        """Per-sample squared errors (and cosine term), averaged with the sample weights ``wb``
-        (edge emphasis; ``None``: uniform)."""
+    # -- the pieces :func:`~mi_neurallens.training.stacked.train_stack` runs --------------------------
+    def pool(self):
+        """The sample pool: normalised inputs X, targets Y, raw outputs Yraw (and edge weights W)."""
+        out = {"X": self.X, "Y": self.Y, "Yraw": self.Yraw}
+        if self.Wedge is not None:
+            out["W"] = self.Wedge
+        return out
+
+    def release_pool(self):
+        self.X = self.Y = self.Yraw = self.Wedge = None
+
+    def constants(self):
+        """This map's loss constants, shaped to broadcast against a (B, ·) batch (stacked: (K, B, ·))."""
+        t = self.torch
+        one = lambda v: t.as_tensor(np.float32(v), device=self.dev).reshape(1)
+        return {"W": self.W[None], "shift": self.T_shift[None], "skip": self.T_skip, "scale": self.T_scale[None],
+                "sig_d2": t.as_tensor(np.float32(self.sig_d2), device=self.dev), "wy_c": one(self.wy_c),
+                "wy_s": one(self.wy_s), "odd_s": one(self.odd_s if self.odd_s is not None else 1.0)}
+
+    def rows_loss(self, out, batch, const):
+        """The loss of a batch (dict of :meth:`pool` rows, (B, ·) or stacked (K, B, ·); ``out``: the
+        network's outputs on ``batch["X"]``), reduced over the samples only: weighted standardised MSE
+        (position and T; directions too unless ``cosine``) plus the cosine term 1 − cos of the exit
+        directions.  ``batch["W"]``: edge weights (absent: uniform)."""
         nc = self.nc
-        p, M = self.predict(xb)
-        mean = (lambda v: v.mean()) if wb is None else (lambda v: (v * wb).mean())
+        xb, tb, yb_raw, wb = batch["X"], batch["Y"], batch["Yraw"], batch.get("W")
+        M = self.M_of(xb, const)
+        p = out * M
+        mean = (lambda v: v.mean(-1)) if wb is None else (lambda v: (v * wb).mean(-1))
         if nc.direction_loss == "cosine":
-            l = mean((((p - tb) ** 2) * self.W)[:, [0, 1, 4]].mean(1)) * 3.0 / 5.0
+            l = mean((((p - tb) ** 2) * const["W"])[..., [0, 1, 4]].mean(-1)) * 3.0 / 5.0
         else:
-            l = mean((((p - tb) ** 2) * self.W).mean(1))
+            l = mean((((p - tb) ** 2) * const["W"]).mean(-1))
         if nc.direction_loss in ("cosine", "mse+cosine"):
-            d_pred = M[:, 2:4] * (self.T_shift[2:4] + xb @ self.T_skip[2:4].T) + self.T_scale[2:4] * p[:, 2:4]
+            d_pred = M[..., 2:4] * (const["shift"][..., 2:4] + xb @ const["skip"][..., 2:4, :].transpose(-1, -2)) \
+                + const["scale"][..., 2:4] * p[..., 2:4]
             # 1 − cos(a, b) = |â − b̂|²/2 for unit vectors (the stable form in float32)
-            cos_term = mean(((self.dir3(d_pred) - self.dir3(yb_raw[:, 2:4])) ** 2).sum(1)) / (2.0 * self.sig_d2)
+            cos_term = mean(((self.dir3(d_pred) - self.dir3(yb_raw[..., 2:4])) ** 2).sum(-1)) / (2.0 * const["sig_d2"])
             l = l + nc.cosine_weight * cos_term * (2.0 / 5.0)
         return l
 
-    def batch_loss(self, bi):
-        """The loss of pool rows ``bi``."""
-        return self.loss(self.X[bi], self.Y[bi], self.Yraw[bi], None if self.Wedge is None else self.Wedge[bi])
+    def fresh_rows(self, k):
+        """``k`` fresh pool rows from the stream."""
+        ur, xr, yr = self.stream.sample(k)
+        xrn = (xr - self.center) / self.scale_in
+        out = {"X": self.f32(xrn), "Y": self.f32(self.targets(xr, xrn, yr)), "Yraw": self.f32(yr)}
+        if self.nc.edge_weight > 0:
+            out["W"] = self.f32(edge_weights(self.stream.ps, ur, self.nc))
+        return out
+
+    def goals_met(self) -> bool:
+        """The last validation meets ``nc.goal_position_um`` and ``nc.goal_direction_arcsec`` (median, p99),
+        with the margin ``nc.goal_margin``."""
+        r = self.state["history"][-1] if self.state["history"] else None
+        if r is None:
+            return False
+        g = self.nc.goal_margin
+        (pm, pp), (dm, dp) = self.nc.goal_position_um, self.nc.goal_direction_arcsec
+        return r["pos_um_med"] <= g * pm and r["pos_um_p99"] <= g * pp and r["dir_as_med"] <= g * dm \
+            and r["dir_as_p99"] <= g * dp
 
     def validate(self, step, loss, seconds):
         """Held-out errors, appended to the training history; returns (score, progress-bar postfix)."""
@@ -420,46 +367,42 @@ class RegressorFit:
         return vl, dict(val=f"{vl:.2e}", pos=f"{m['position_um_median']:.2f}µm",
                         dir=f"{m['direction_arcsec_median']:.2f}\"")
 
-    def refresh(self, k):
-        """Replace ``k`` random pool rows with fresh samples of the stream."""
-        ur, xr, yr = self.stream.sample(k)
-        xrn = (xr - self.center) / self.scale_in
-        idx = self.torch.as_tensor(self.rng.choice(len(self.X), k, replace=False), device=self.dev)
-        self.X[idx], self.Y[idx], self.Yraw[idx] = self.f32(xrn), self.f32(self.targets(xr, xrn, yr)), self.f32(yr)
-        if self.Wedge is not None:
-            self.Wedge[idx] = self.f32(edge_weights(self.stream.ps, ur, self.nc))
-
-
-def _reg_result(net, skip, shift, oscale, state):
-    return {"layers": net_layers(net), "skip": np.asarray(skip), "out_shift": np.asarray(shift),
-            "out_scale": np.asarray(oscale), "odd_y": bool(state.get("odd_y", False)), "state": state}
-
 
 # ----------------------------------------------------------------------------- classifier
 def train_classifier(ps: PathSampler, valid_u_source, val, nc: NetConfig, *, center, scale_in, seed: int,
                      ckpt: str | None, threads: int = 2, device: str = "auto", progress: bool = True,
                      desc: str = "classifier", log=None) -> dict:
     """``valid_u_source(n)`` → (n, 4) valid unit-cube samples; ``val``: (x, label) natural-mix held-out."""
+    p = dict(ps=ps, valid_u_source=valid_u_source, val=val, center=center, scale_in=scale_in, seed=seed, key=desc)
+    return train_classifiers([p], nc, ckpt=ckpt, threads=threads, device=device, progress=progress, log=log,
+                             desc=desc)[0]
+
+
+def train_classifiers(problems, nc: NetConfig, *, ckpt: str | None = None, threads: int = 2, device: str = "auto",
+                      progress: bool = True, log=None, desc: str = "classifiers") -> list:
+    """Train the classifiers of several maps as one stack.  ``problems``: one dict per map with ``ps``
+    (:class:`PathSampler`), ``valid_u_source`` (n → (n, 4) valid unit-cube samples), ``val`` ((x, label)
+    natural-mix held-out), ``center``, ``scale_in``, ``seed`` and ``key``.  Returns ``{"layers", "state"}``
+    per map, in order."""
+    from .stacked import peek_stack, pool_rows, train_stack
     torch = _torch(threads)
     dev = pick_device(torch, device)
-    torch.manual_seed(seed)
-    rng = np.random.default_rng(seed)
-    net, opt, state, best, resumed = _start(torch, dev, nc, 1, ckpt)
-    if resumed:
-        if state.get("done"):
-            net.load_state_dict(best)
-            return {"layers": net_layers(net), "state": state}
-        rng = np.random.default_rng([seed, state["step"]])
-    fit = ClassifierFit(torch, dev, net, nc, ps, valid_u_source, val, rng=rng, state=state, center=center,
-                        scale_in=scale_in, log=log, desc=desc)
-    bar = _progress(nc.max_steps, desc, progress)
-    bar.update(state["step"])
-    best, _ = _fit(torch, net, opt, nc, state, best, n_pool=len(fit.X), batch_loss=fit.batch_loss,
-                   refresh=fit.refresh, validate=fit.validate, ckpt=ckpt, bar=bar, dev=dev)
-    net.load_state_dict(best)
-    if ckpt:
-        save_checkpoint(ckpt, net, opt, best, state)
-    return {"layers": net_layers(net), "state": state}
+    torch.manual_seed(int(problems[0]["seed"]))
+    keys = [p["key"] for p in problems]
+    prior = peek_stack(ckpt, keys)
+    ncp = dataclasses.replace(nc, pool=pool_rows(nc, len(problems), 4 * 5))
+    fits = []
+    for i, p in enumerate(problems):
+        state = _new_state() if prior is None else prior[i]
+        rng = np.random.default_rng(p["seed"] if prior is None else [int(p["seed"]), state["step"]])
+        fits.append(ClassifierFit(torch, dev, None, ncp, p["ps"], p["valid_u_source"], p["val"], rng=rng, state=state,
+                                  center=p["center"], scale_in=p["scale_in"], log=log,
+                                  desc=f"{p['key']} classifier" if len(problems) > 1 else desc))
+    res = train_stack(torch, dev, fits, nc, seeds=[p["seed"] for p in problems], n_in=4, n_out=1, keys=keys,
+                      ckpt=ckpt, progress=progress, desc=desc, log=log)
+    for r in res:
+        r["state"]["stacked_with"] = len(problems)
+    return res
 
 
 class ClassifierFit:
@@ -472,7 +415,7 @@ class ClassifierFit:
         self.valid_u_source, self.rng, self.state = valid_u_source, rng, state
         self.center, self.scale_in, self.log, self.desc = center, scale_in, log, desc
         self.margin = nc.target == "margin"
-        self.X, self.L = self.pool(nc.pool)
+        self.X, self.L = self.samples(nc.pool)
         xv, lv = val
         self.Xv, self.Lv = self.f32((xv - center) / scale_in), torch.as_tensor(lv.astype(bool), device=dev)
         self.bce = torch.nn.BCEWithLogitsLoss()
@@ -480,8 +423,8 @@ class ClassifierFit:
     def f32(self, a):
         return self.torch.as_tensor(np.ascontiguousarray(a, dtype=np.float32), device=self.dev)
 
-    def pool(self, n):
-        """(inputs, training target): the 0/1 label, or scale·margin clipped to ±clip (−clip on a hard
+    def samples(self, n):
+        """``n`` new pool rows (inputs, training target): the 0/1 label, or scale·margin clipped to ±clip (−clip on a hard
         failure)."""
         nc = self.nc
         got = classifier_samples(self.ps, self.valid_u_source(max(n // 3, 1024)), n, self.rng, margin=self.margin,
@@ -500,12 +443,34 @@ class ClassifierFit:
         torch, c = self.torch, self.nc.margin_clip
         lo = torch.where(t <= -c, torch.full_like(t, -math.inf), t)
         hi = torch.where(t >= c, torch.full_like(t, math.inf), t)
-        return torch.mean(torch.relu(lo - logit) ** 2 + torch.relu(logit - hi) ** 2)
+        return (torch.relu(lo - logit) ** 2 + torch.relu(logit - hi) ** 2).mean(-1)
 
-    def batch_loss(self, bi):
-        """The loss of pool rows ``bi``: the margin interval loss or binary cross-entropy."""
-        logit = self.net(self.X[bi])[:, 0]
-        return self.margin_loss(logit, self.L[bi]) if self.margin else self.bce(logit, self.L[bi])
+    # -- the pieces :func:`~mi_neurallens.training.stacked.train_stack` runs --------------------------
+    def pool(self):
+        return {"X": self.X, "L": self.L}
+
+    def release_pool(self):
+        self.X = self.L = None
+
+    def constants(self):
+        return {}
+
+    def rows_loss(self, out, batch, const):
+        """The loss of a batch ((B, ·) or stacked (K, B, ·); ``out``: the logits), reduced over the samples:
+        the margin interval loss or binary cross-entropy."""
+        logit, t = out[..., 0], batch["L"]
+        if self.margin:
+            return self.margin_loss(logit, t)
+        return self.torch.nn.functional.binary_cross_entropy_with_logits(logit, t, reduction="none").mean(-1)
+
+    def fresh_rows(self, k):
+        X, L = self.samples(k)
+        return {"X": X, "L": L}
+
+    def goals_met(self) -> bool:
+        """The last validation's misclassification is at most ``nc.goal_misclassification``."""
+        h = self.state["history"]
+        return bool(h) and h[-1]["val_misclass"] <= self.nc.goal_margin * self.nc.goal_misclassification
 
     def validate(self, step, loss, seconds):
         """Held-out misclassification and BCE, appended to the history; returns (score, postfix)."""
@@ -519,12 +484,6 @@ class ClassifierFit:
         if self.log:
             self.log(self.desc, rec)
         return err + 0.01 * vb, dict(miscls=f"{100 * err:.3f}%")
-
-    def refresh(self, k):
-        """Replace ``k`` random pool rows with fresh samples."""
-        xr, lr_ = self.pool(k)
-        idx = self.torch.as_tensor(self.rng.choice(len(self.X), k, replace=False), device=self.dev)
-        self.X[idx], self.L[idx] = xr, lr_
 
 
 # ----------------------------------------------------------------------------- prior calibration
@@ -598,11 +557,16 @@ def _kept(base, network: str) -> dict:
     return out
 
 
+def map_seed(cfg: TrainConfig, path_id: int, direction: str) -> int:
+    """The seed of one map (its data streams, held-out sets and initial weights)."""
+    return int(cfg.seed) * 1_000_003 + int(path_id) * 2 + (direction == "forward")
+
+
 def train_map(lens, path_id: int, direction: str, z_in: float, z_out: float, domain: Domain, cfg: TrainConfig,
               workdir: str | None = None, progress: bool = True, log=None, evaluate: bool = True,
               eval_n: int | None = None, keep: str | None = None, base=None):
     """Train the classifier, regressor and stop head of one map; returns a
-    :class:`~mi_neurallens.neural.model.NeuralMap` with held-out metrics.
+    :class:`~mi_neurallens.neural.model.NeuralMap` with held-out metrics (:func:`train_maps` of one map).
 
     The stop head (:mod:`~mi_neurallens.training.stop_head`) is trained when the path crosses the stop
     plane and ``cfg.stop.max_minutes > 0``; with ``keep``, a stop head the base map has is kept.
@@ -613,86 +577,142 @@ def train_map(lens, path_id: int, direction: str, z_in: float, z_out: float, dom
     the other one: e.g. a longer or wider classifier for a ghost whose flare error sits on its edge,
     without paying for (or changing) its regressor.  The kept network's training record is carried over
     under ``training["kept"]``."""
+    _check_keep(keep, base, path_id, direction, z_in, z_out, domain)
+    if keep == "both":
+        return _add_stop_head(lens, base, cfg, map_seed(cfg, path_id, direction), progress, log)
+    return train_maps(lens, [(path_id, direction, z_in, z_out, domain)], cfg, workdir, progress=progress, log=log,
+                      evaluate=evaluate, eval_n=eval_n, keep=keep, bases=None if base is None else [base])[0]
+
+
+def train_maps(lens, specs, cfg: TrainConfig, workdir: str | None = None, progress: bool = True, log=None,
+               evaluate: bool = True, eval_n: int | None = None, keep: str | None = None, bases=None) -> list:
+    """Train several maps of ``lens`` together: all their regressors as one stack, then all their
+    classifiers, then their stop heads (one stack per stop-crossing count), each network leaving its stack
+    when it meets its goals (:mod:`~mi_neurallens.training.stacked`).  ``specs``: (path_id, direction,
+    z_in, z_out, domain) per map, all of one direction.  ``keep``/``bases``: as :func:`train_map`, one
+    base map per spec.  Returns the :class:`~mi_neurallens.neural.model.NeuralMap` s, in order."""
     from ..neural.model import NeuralMap
     from .evaluate import evaluate_map, heldout_valid
-    _check_keep(keep, base, path_id, direction, z_in, z_out, domain)
-    key = f"{direction}.{path_id}"
-    seed = int(cfg.seed) * 1_000_003 + int(path_id) * 2 + (direction == "forward")
+    from .stacked import stack_name
+    specs = [(int(p), d, float(zi), float(zo), dom) for p, d, zi, zo, dom in specs]
+    dirs = {d for _, d, *_ in specs}
+    if len(dirs) != 1:
+        raise NeuralLensError(f"train_maps: one direction per call, got {sorted(dirs)}")
+    direction = dirs.pop()
+    for j, (p, d, zi, zo, dom) in enumerate(specs):
+        _check_keep(keep, None if bases is None else bases[j], p, d, zi, zo, dom)
     if keep == "both":
-        return _add_stop_head(lens, base, cfg, seed, progress, log)
+        return [_add_stop_head(lens, b, cfg, map_seed(cfg, p, d), progress, log) for (p, d, *_), b in zip(specs, bases)]
+    keys = [f"{d}.{p}" for p, d, *_ in specs]
+    seeds = [map_seed(cfg, p, d) for p, d, *_ in specs]
     rc, cc = cfg.net("regressor", direction), cfg.net("classifier", direction)
-    ps = PathSampler(lens, path_id, direction, z_in, z_out, domain, fresnel=cfg.fresnel)
-    stream = RegressorStream(ps, seed, cfg.mcmc_threshold, cfg.mcmc_chains, cfg.mcmc_p_large, cfg.mcmc_sigma)
-    center, scale_in = domain.norm_center_scale()
-    ck = (lambda n: os.path.join(workdir, f"{key}.{n}.ckpt")) if workdir else (lambda n: None)
+    ck = (lambda net: os.path.join(workdir, stack_name(net, keys) + ".ckpt")) if workdir else (lambda net: None)
+    many = len(specs) > 1
     t0 = time.perf_counter()
+    samplers, streams = [], []
+    for (p, d, zi, zo, dom), seed in zip(specs, seeds):
+        ps = PathSampler(lens, p, d, zi, zo, dom, fresnel=cfg.fresnel)
+        samplers.append(ps)
+        streams.append(RegressorStream(ps, seed, cfg.mcmc_threshold, cfg.mcmc_chains, cfg.mcmc_p_large,
+                                       cfg.mcmc_sigma))
     if keep == "regressor":
-        reg = _kept(base, "regressor")
+        regs = [_kept(b, "regressor") for b in bases]
     else:
-        val = heldout_valid(lens, (path_id, direction, z_in, z_out), domain, min(cfg.heldout, 20_000), seed + 7,
-                            cfg.mcmc_threshold, cfg.fresnel)
-        reg = train_regressor(stream, val, rc, heading=1 if direction == "forward" else -1, center=center,
-                              scale_in=scale_in, seed=seed, ckpt=ck("regressor"), threads=cfg.threads,
-                              device=cfg.device, progress=progress, desc=f"{key} regressor", log=log,
-                              s_max=domain.s_max)
+        problems = []
+        for (p, d, zi, zo, dom), seed, stream, key in zip(specs, seeds, streams, keys):
+            center, scale_in = dom.norm_center_scale()
+            val = heldout_valid(lens, (p, d, zi, zo), dom, min(cfg.heldout, 20_000), seed + 7, cfg.mcmc_threshold,
+                                cfg.fresnel)
+            problems.append(dict(stream=stream, val=val, heading=1 if d == "forward" else -1, center=center,
+                                 scale_in=scale_in, seed=seed, s_max=dom.s_max, key=key))
+        regs = train_regressors(problems, rc, ckpt=ck("regressor"), threads=cfg.threads, device=cfg.device,
+                                progress=progress, log=log,
+                                desc=f"{len(specs)} regressors" if many else f"{keys[0]} regressor")
     t1 = time.perf_counter()
     if keep == "classifier":
-        cls = _kept(base, "classifier")
+        clss = [_kept(b, "classifier") for b in bases]
     else:
-        # classifier validation: the natural mix (uniform over the domain), float64 labels; large, because
-        # only the few rays near the boundary tell two good classifiers apart (0.02 % of 400 k = 80 errors)
-        vrng = np.random.default_rng(seed + 11)
-        psv = PathSampler(lens, path_id, direction, z_in, z_out, domain, fresnel=cfg.fresnel, precision="float64")
-        xcv = domain.u_to_x(vrng.random((CLASSIFIER_VALIDATION, 4)))
-        lcv, _ = psv.trace_x(xcv)
-        cls = train_classifier(ps, lambda n: stream.sample(n)[0], (xcv, lcv), cc, center=center,
-                               scale_in=scale_in, seed=seed + 1, ckpt=ck("classifier"), threads=cfg.threads,
-                               device=cfg.device, progress=progress, desc=f"{key} classifier", log=log)
+        problems = []
+        for (p, d, zi, zo, dom), seed, stream, ps, key in zip(specs, seeds, streams, samplers, keys):
+            # classifier validation: the natural mix (uniform over the domain), float64 labels; large, because
+            # only the few rays near the boundary tell two good classifiers apart (0.02 % of 400 k = 80 errors)
+            vrng = np.random.default_rng(seed + 11)
+            psv = PathSampler(lens, p, d, zi, zo, dom, fresnel=cfg.fresnel, precision="float64")
+            xcv = dom.u_to_x(vrng.random((CLASSIFIER_VALIDATION, 4)))
+            lcv, _ = psv.trace_x(xcv)
+            center, scale_in = dom.norm_center_scale()
+            problems.append(dict(ps=ps, valid_u_source=(lambda n, s=stream: s.sample(n)[0]), val=(xcv, lcv),
+                                 center=center, scale_in=scale_in, seed=seed + 1, key=key))
+        clss = train_classifiers(problems, cc, ckpt=ck("classifier"), threads=cfg.threads, device=cfg.device,
+                                 progress=progress, log=log,
+                                 desc=f"{len(specs)} classifiers" if many else f"{keys[0]} classifier")
     t2 = time.perf_counter()
-    training = {"config_digest": cfg.digest(),
-                "regressor": reg.get("config", {k: v for k, v in rc.__dict__.items()}),
-                "classifier": cls.get("config", {k: v for k, v in cc.__dict__.items()}),
-                "regressor_steps": reg["state"]["step"], "classifier_steps": cls["state"]["step"],
-                "regressor_seconds": reg["state"]["seconds"], "classifier_seconds": cls["state"]["seconds"],
-                "regressor_stop": reg["state"].get("stop_reason"), "classifier_stop": cls["state"].get("stop_reason"),
-                "regressor_samples": reg["state"]["samples"], "classifier_samples": cls["state"]["samples"],
-                "data_sampler": stream.method, "valid_fraction": stream.fraction,
-                "mcmc": stream.mcmc.stats() if stream.mcmc is not None else None,
-                "wall_seconds_this_run": t2 - t0, "regressor_wall_this_run": t1 - t0,
-                "seed": cfg.seed, "device": str(pick_device(_torch(0), cfg.device)),
-                "regressor_history": reg["state"]["history"], "classifier_history": cls["state"]["history"]}
-    if keep is not None:
-        training["kept"] = {"network": keep, "from_config_digest": base.training.get("config_digest")}
-        if keep == "classifier":       # its calibration offset is already folded into its last bias
-            for k in ("classifier_logit_offset", "classifier_calibration"):
-                if k in base.training:
-                    training[k] = base.training[k]
-    tm = NeuralMap(path_id=int(path_id), direction=direction, z_in=float(z_in), z_out=float(z_out),
-                      domain=domain.to_dict(), input_center=center, input_scale=scale_in,
-                      classifier=cls["layers"], regressor=reg["layers"], skip=reg["skip"],
-                      out_scale=reg["out_scale"], out_shift=reg["out_shift"], odd_y=reg["odd_y"],
-                      classifier_activation=cls.get("activation", cc.activation),
-                      regressor_activation=reg.get("activation", rc.activation), training=training)
-    if keep != "classifier":
-        calibrate_classifier(lens, tm, min(cfg.heldout, 200_000), seed + 13, cfg.fresnel)
-    tm.stop_head = base.stop_head if (keep is not None and base.stop_head is not None) else \
-        _stop_head_of(lens, tm, cfg, seed, progress, log)
-    if evaluate:
-        tm.metrics = evaluate_map(lens, tm, n=eval_n or cfg.heldout, seed=seed + 99,
-                                  mcmc_threshold=cfg.mcmc_threshold, fresnel=cfg.fresnel)
-    return tm
+    tms = []
+    for j, ((p, d, zi, zo, dom), reg, cls, stream) in enumerate(zip(specs, regs, clss, streams)):
+        center, scale_in = dom.norm_center_scale()
+        base = None if bases is None else bases[j]
+        training = {"config_digest": cfg.digest(),
+                    "regressor": reg.get("config", {k: v for k, v in rc.__dict__.items()}),
+                    "classifier": cls.get("config", {k: v for k, v in cc.__dict__.items()}),
+                    "regressor_steps": reg["state"]["step"], "classifier_steps": cls["state"]["step"],
+                    "regressor_seconds": reg["state"]["seconds"], "classifier_seconds": cls["state"]["seconds"],
+                    "regressor_stop": reg["state"].get("stop_reason"), "classifier_stop": cls["state"].get("stop_reason"),
+                    "regressor_samples": reg["state"]["samples"], "classifier_samples": cls["state"]["samples"],
+                    "stacked_with": len(specs),
+                    "data_sampler": stream.method, "valid_fraction": stream.fraction,
+                    "mcmc": stream.mcmc.stats() if stream.mcmc is not None else None,
+                    "wall_seconds_this_run": t2 - t0, "regressor_wall_this_run": t1 - t0,
+                    "seed": cfg.seed, "device": str(pick_device(_torch(0), cfg.device)),
+                    "regressor_history": reg["state"]["history"], "classifier_history": cls["state"]["history"]}
+        if keep is not None:
+            training["kept"] = {"network": keep, "from_config_digest": base.training.get("config_digest")}
+            if keep == "classifier":       # its calibration offset is already folded into its last bias
+                for k in ("classifier_logit_offset", "classifier_calibration"):
+                    if k in base.training:
+                        training[k] = base.training[k]
+        tm = NeuralMap(path_id=int(p), direction=d, z_in=float(zi), z_out=float(zo),
+                       domain=dom.to_dict(), input_center=center, input_scale=scale_in,
+                       classifier=cls["layers"], regressor=reg["layers"], skip=reg["skip"],
+                       out_scale=reg["out_scale"], out_shift=reg["out_shift"], odd_y=reg["odd_y"],
+                       classifier_activation=cls.get("activation", cc.activation),
+                       regressor_activation=reg.get("activation", rc.activation), training=training)
+        if keep != "classifier":
+            calibrate_classifier(lens, tm, min(cfg.heldout, 200_000), seeds[j] + 13, cfg.fresnel)
+        tms.append(tm)
+    heads = _stop_heads_of(lens, tms, cfg, seeds, progress, log, bases if keep is not None else None)
+    for tm, head, seed in zip(tms, heads, seeds):
+        tm.stop_head = head
+        if evaluate:
+            tm.metrics = evaluate_map(lens, tm, n=eval_n or cfg.heldout, seed=seed + 99,
+                                      mcmc_threshold=cfg.mcmc_threshold, fresnel=cfg.fresnel)
+    return tms
 
 
-def _stop_head_of(lens, tm, cfg: TrainConfig, seed: int, progress: bool, log):
-    """The stop head of ``tm`` trained with ``cfg.stop`` (None when disabled or the path never crosses
-    the stop plane)."""
+def _stop_heads_of(lens, tms, cfg: TrainConfig, seeds, progress: bool, log, bases=None) -> list:
+    """The stop heads of ``tms`` trained with ``cfg.stop`` — one stack per stop-crossing count; None for a
+    map whose path never crosses the stop plane, or all None when ``stop.max_minutes = 0``.  With
+    ``bases``, a stop head the base map has is kept."""
     from ..transport.exact import ExactMap
-    nc = cfg.net("stop", tm.direction)
-    if nc.max_minutes <= 0 or ExactMap(lens, tm.path_id, tm.direction, tm.z_in, tm.z_out).stop_crossings == 0:
-        return None
-    from .stop_head import train_stop_head
-    return train_stop_head(lens, tm, nc, seed=seed + 17, fresnel=cfg.fresnel, mcmc_threshold=cfg.mcmc_threshold,
-                           threads=cfg.threads, device=cfg.device, progress=progress, log=log)
+    out = [None] * len(tms)
+    if not tms:
+        return out
+    nc = cfg.net("stop", tms[0].direction)
+    groups: dict = {}
+    for j, tm in enumerate(tms):
+        if bases is not None and bases[j].stop_head is not None:
+            out[j] = bases[j].stop_head
+            continue
+        k = ExactMap(lens, tm.path_id, tm.direction, tm.z_in, tm.z_out).stop_crossings
+        if nc.max_minutes > 0 and k > 0:
+            groups.setdefault(k, []).append(j)
+    from .stop_head import train_stop_heads
+    for k, idx in groups.items():
+        heads = train_stop_heads(lens, [tms[j] for j in idx], nc, seeds=[seeds[j] + 17 for j in idx],
+                                 fresnel=cfg.fresnel, mcmc_threshold=cfg.mcmc_threshold, threads=cfg.threads,
+                                 device=cfg.device, progress=progress, log=log)
+        for j, h in zip(idx, heads):
+            out[j] = h
+    return out
 
 
 def _add_stop_head(lens, base, cfg: TrainConfig, seed: int, progress: bool, log):
@@ -700,7 +720,7 @@ def _add_stop_head(lens, base, cfg: TrainConfig, seed: int, progress: bool, log)
     regressor and their metrics are unchanged."""
     import dataclasses
     from .evaluate import heldout_valid, stop_errors
-    head = _stop_head_of(lens, base, cfg, seed, progress, log)
+    head = _stop_heads_of(lens, [base], cfg, [seed], progress, log)[0]
     if head is None:
         raise NeuralLensError(f"map {base.key}: no stop head to train (its path does not cross the stop plane, "
                               "or stop.max_minutes = 0)")
@@ -806,17 +826,25 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
         for k, m in base_model.maps.items():
             if k not in wanted:
                 model.maps.setdefault(k, m)
-    for pid, d, zi, zo, dom in todo:
-        key = f"{d}.{pid}"
-        if key in model.maps:
+    # the maps left to train, one stack per direction (maps of one direction share shape and domain)
+    for direction in ("backward", "forward"):
+        group = [t for t in todo if t[1] == direction and f"{direction}.{t[0]}" not in model.maps]
+        if not group:
             continue
-        base = None
+        bases = None
         if base_model is not None:
-            if key not in base_model.maps:
-                raise ModelError(f"{base_path}: no map {key!r} to keep the {keep} of; it has {sorted(base_model.maps)}")
-            base = base_model.maps[key]
-        tm = train_map(lens, pid, d, zi, zo, dom, cfg, workdir, progress=progress, log=log, keep=keep, base=base)
-        model.maps[key] = tm
+            missing = [f"{direction}.{t[0]}" for t in group if f"{direction}.{t[0]}" not in base_model.maps]
+            if missing:
+                raise ModelError(f"{base_path}: no map {missing[0]!r} to keep the {keep} of; it has "
+                                 f"{sorted(base_model.maps)}")
+            bases = [base_model.maps[f"{direction}.{t[0]}"] for t in group]
+        if progress:
+            import sys
+            print(f"{lens.name}: training {len(group)} {direction} map(s) together: "
+                  f"{', '.join(str(t[0]) for t in group)}", file=sys.stderr, flush=True)
+        tms = train_maps(lens, group, cfg, workdir, progress=progress, log=log, keep=keep, bases=bases)
+        for tm in tms:
+            model.maps[tm.key] = tm
         if base_model is not None:      # the base's order (ghosts: strongest first), new maps after
             order = list(base_model.maps) + [k for k in model.maps if k not in base_model.maps]
             model.maps = {k: model.maps[k] for k in order if k in model.maps}

@@ -1,0 +1,477 @@
+"""Training many networks of one shape at once: stacked weights, batched matrix products, one step.
+
+The maps of a lens are independent small networks of the same shape (every ghost's regressor is a 5×32
+tanh MLP on the same four inputs).  Trained one at a time, each step is a handful of 8192×32×32 matrix
+products and elementwise passes, and a CPU spends its time in per-operation overhead and in
+``torch.tanh``.  Here the K networks of a group are one :class:`StackedMLP` — weights ``(K, in, out)``,
+inputs ``(K, B, in)``, every layer one ``baddbmm``, a batch one window of the shuffled pools — and the
+loss is the *sum* of the maps' losses, so each map's gradient is its own; :class:`StackedAdam` is
+elementwise, hence each map follows exactly the Adam trajectory it would follow alone (same learning-rate
+schedule, same batches).  The activation is Eigen's rational tanh (the one the render-time kernel
+evaluates, :func:`~mi_neurallens.neural.mlp.tanh_eigen`), compiled by ``torch.compile`` into one fused pass when a C++ compiler is present, with the exact
+derivative 1 − y² as its backward; without a compiler, ``torch.tanh``.
+
+A map leaves the stack when it meets its goals (``NetConfig.goals``), stops improving (``patience``) or
+the group's budget ends; the stack then shrinks, so finished maps cost nothing.  What each network's
+problem is — its sample pool, loss, validation and fresh data — stays with its ``*Fit`` class
+(:class:`~mi_neurallens.training.trainer.RegressorFit`, ``ClassifierFit``,
+:class:`~mi_neurallens.training.stop_head.StopFit`); this module only runs them together:
+
+* ``fit.pool()`` → dict of pool tensors ``(N, ·)`` (rows are samples);
+* ``fit.constants()`` → dict of per-map loss constants (tensors broadcasting against a batch);
+* ``fit.rows_loss(out, batch, const)`` → the loss of a batch (``out``: the network's outputs on
+  ``batch["X"]``), reduced over the sample axis only (so a
+  ``(K, B, ·)`` batch with ``(K, 1, ·)`` constants gives ``(K,)``);
+* ``fit.fresh_rows(k)`` → dict of ``k`` new pool rows; ``fit.validate(step, loss, seconds)`` →
+  (score, postfix) with ``fit.net`` the map's own network; ``fit.goals_met()`` → bool.
+
+Checkpoints (``<ckpt>.safetensors`` + ``.json``: weights, Adam moments, best weights, per-map state;
+tensors only) are written every ``CHECKPOINT_SECONDS`` and at the end; a rerun resumes, and a finished
+stack is not retrained.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+
+import numpy as np
+
+CHECKPOINT_SECONDS = 60.0
+#: rows per step (maps × batch) of a CPU stack: measured fastest on a 2-core AVX-512 machine (1.4 M
+#: samples/s at 4 × 8192 or 16 × 2048, against 0.9 M at 16 × 8192: docs/results.md)
+CPU_STACK_ROWS = 32768
+#: memory the sample pools of one stack may take (bytes); a larger stack gets smaller pools per map
+POOL_BYTES = 3 << 30
+
+_ACT = {}
+
+
+# ----------------------------------------------------------------------------- the activation
+def training_tanh(torch):
+    """tanh for training: Eigen's clamped 13/6 rational (the render kernel's), fused by ``torch.compile``
+    with the backward ``g·(1 − y²)``; ``torch.tanh`` where compiling is unavailable or disabled
+    (``MI_NEURALLENS_TORCH_COMPILE=0``).  Cached per process."""
+    if "tanh" in _ACT:
+        return _ACT["tanh"]
+    fn = torch.tanh
+    if os.environ.get("MI_NEURALLENS_TORCH_COMPILE", "1") != "0":
+        from ..neural.mlp import TANH_CLAMP, TANH_P, TANH_Q
+
+        def rational(x):
+            x = x.clamp(-TANH_CLAMP, TANH_CLAMP)
+            x2 = x * x
+            p = TANH_P[-1]
+            for a in reversed(TANH_P[:-1]):
+                p = p * x2 + a
+            q = TANH_Q[-1]
+            for b in reversed(TANH_Q[:-1]):
+                q = q * x2 + b
+            return x * p / q
+
+        try:
+            compiled = torch.compile(rational, dynamic=True)
+            compiled_grad = torch.compile(lambda g, y: g * (1.0 - y * y), dynamic=True)
+
+            class RationalTanh(torch.autograd.Function):
+                @staticmethod
+                def forward(ctx, x):
+                    y = compiled(x)
+                    ctx.save_for_backward(y)
+                    return y
+
+                @staticmethod
+                def backward(ctx, g):
+                    (y,) = ctx.saved_tensors
+                    return compiled_grad(g, y)
+
+            probe = torch.linspace(-9.0, 9.0, 257)
+            if float((RationalTanh.apply(probe) - torch.tanh(probe)).abs().max()) < 1e-6:
+                fn = RationalTanh.apply
+        except Exception:          # no C++ compiler, unsupported platform: the exact torch.tanh
+            fn = torch.tanh
+    _ACT["tanh"] = fn
+    return fn
+
+
+# ----------------------------------------------------------------------------- K networks
+class StackedMLP:
+    """K MLPs of one shape: ``params`` = [W₀ (K, in, w), b₀ (K, 1, w), …] (``x @ W + b`` per layer),
+    initialised as ``torch.nn.Linear`` does (uniform ±1/√fan_in), each map from its own seed."""
+
+    def __init__(self, torch, dev, seeds, n_in: int, n_out: int, hidden: int, width: int, activation: str = "tanh"):
+        self.torch, self.dev = torch, dev
+        self.dims = [n_in] + [width] * hidden + [n_out]
+        self.activation = activation
+        Ws = [[] for _ in self.dims[1:]]
+        bs = [[] for _ in self.dims[1:]]
+        for s in seeds:
+            g = torch.Generator().manual_seed(int(s))
+            for i, (a, b) in enumerate(zip(self.dims[:-1], self.dims[1:])):
+                bound = 1.0 / math.sqrt(a)
+                Ws[i].append((torch.rand(a, b, generator=g) * 2 - 1) * bound)
+                bs[i].append((torch.rand(1, b, generator=g) * 2 - 1) * bound)
+        self.params = []
+        for W, b in zip(Ws, bs):
+            self.params += [torch.stack(W).to(dev).requires_grad_(), torch.stack(b).to(dev).requires_grad_()]
+        self.act = training_tanh(torch) if activation == "tanh" else torch.relu
+
+    @property
+    def k(self) -> int:
+        return self.params[0].shape[0]
+
+    def forward(self, x, params=None):
+        """(K, B, in) → (K, B, out)."""
+        p = self.params if params is None else params
+        h, n = x, len(p) // 2
+        for i in range(n):
+            h = self.torch.baddbmm(p[2 * i + 1], h, p[2 * i])
+            if i < n - 1:
+                h = self.act(h)
+        return h
+
+    def one(self, j: int):
+        """Map ``j``'s network as a callable (B, in) → (B, out) on the current weights."""
+        def net(x):
+            p = [q[j:j + 1] for q in self.params]
+            return self.forward(x[None], p)[0]
+        return net
+
+    def snapshot(self, j: int) -> list:
+        """A copy of map ``j``'s weights (what the best-so-far keeps)."""
+        return [q[j].detach().clone() for q in self.params]
+
+    def load(self, j: int, weights: list):
+        with self.torch.no_grad():
+            for q, w in zip(self.params, weights):
+                q[j] = w
+
+    @staticmethod
+    def layers(weights: list) -> list:
+        """[(W (out, in), b (out,)) float64 numpy] of one map's weights: the model file's layout."""
+        return [(weights[2 * i].detach().cpu().double().numpy().T.copy(),
+                 weights[2 * i + 1].detach().cpu().double().numpy()[0].copy()) for i in range(len(weights) // 2)]
+
+    def take(self, keep: list):
+        """Keep only the maps ``keep`` (indices into the current stack)."""
+        idx = self.torch.as_tensor(keep, device=self.dev, dtype=self.torch.long)
+        self.params = [q.detach()[idx].clone().requires_grad_() for q in self.params]
+
+
+class StackedAdam:
+    """Adam (PyTorch's update, bias-corrected, ε outside the square root) on stacked parameters; being
+    elementwise, each map's slice follows the trajectory it would follow alone.  :meth:`take` drops maps."""
+
+    def __init__(self, params, betas=(0.9, 0.999), eps: float = 1e-8):
+        self.b1, self.b2, self.eps = betas[0], betas[1], eps
+        self.m = [p.detach().new_zeros(p.shape) for p in params]
+        self.v = [p.detach().new_zeros(p.shape) for p in params]
+        self.t = 0
+
+    def step(self, params, lr: float):
+        self.t += 1
+        c1, c2 = 1.0 - self.b1 ** self.t, 1.0 - self.b2 ** self.t
+        for p, m, v in zip(params, self.m, self.v):
+            g = p.grad
+            m.mul_(self.b1).add_(g, alpha=1.0 - self.b1)
+            v.mul_(self.b2).addcmul_(g, g, value=1.0 - self.b2)
+            denom = (v / c2).sqrt_().add_(self.eps)
+            p.data.addcdiv_(m, denom, value=-lr / c1)
+            p.grad = None
+
+    def take(self, keep, torch):
+        idx = torch.as_tensor(keep, dtype=torch.long, device=self.m[0].device)
+        self.m = [m[idx].clone() for m in self.m]
+        self.v = [v[idx].clone() for v in self.v]
+
+
+# ----------------------------------------------------------------------------- the pools of K maps
+class PoolStack:
+    """The sample pools of the active maps as stacked tensors ``(K, N, ·)`` and their loss constants
+    ``(K, …)``; a batch is one gather.  Pools are refreshed per map with that map's fresh data."""
+
+    def __init__(self, torch, fits):
+        self.torch = torch
+        pools = [f.pool() for f in fits]
+        self.names = list(pools[0])
+        self.pool = {n: torch.stack([p[n] for p in pools]) for n in self.names}
+        consts = [f.constants() for f in fits]
+        self.const = {n: torch.stack([c[n] for c in consts]) for n in consts[0]}
+        self.n = self.pool[self.names[0]].shape[1]
+        for f in fits:              # the per-map copies are no longer needed (memory)
+            f.release_pool()
+
+    def batch(self, start: int, size: int):
+        """Rows ``start … start + size`` of every pool (views, no copy): dict of (K, size, ·).  The pool's
+        rows are in random order (:meth:`shuffle`), so a window is a random batch."""
+        return {n: t[:, start:start + size] for n, t in self.pool.items()}
+
+    def shuffle(self, rng):
+        """Put every map's pool rows in a fresh random order (after new rows were written)."""
+        perm = self.torch.as_tensor(rng.permutation(self.n), device=self.pool[self.names[0]].device)
+        self.pool = {n: t.index_select(1, perm) for n, t in self.pool.items()}
+
+    def write(self, j: int, new: dict, rng):
+        """Replace random rows of map ``j``'s pools with ``new`` (dict of (k, ·))."""
+        k = len(next(iter(new.values())))
+        idx = self.torch.as_tensor(rng.choice(self.n, k, replace=False), device=self.pool[self.names[0]].device)
+        for n, v in new.items():
+            self.pool[n][j, idx] = v
+
+    def take(self, keep):
+        idx = self.torch.as_tensor(keep, dtype=self.torch.long)
+        self.pool = {n: t[idx] for n, t in self.pool.items()}
+        self.const = {n: t[idx] for n, t in self.const.items()}
+
+
+def pool_rows(nc, n_maps: int, row_bytes: int) -> int:
+    """Pool size per map: ``nc.pool`` unless the stack's pools would exceed :data:`POOL_BYTES`."""
+    return int(max(min(nc.pool, POOL_BYTES // max(n_maps * row_bytes, 1)), 4 * nc.batch))
+
+
+# ----------------------------------------------------------------------------- the loop
+def stack_size(dev, batch: int) -> int:
+    """How many maps one stack holds: on a CPU, stacks of about :data:`CPU_STACK_ROWS` rows per step (K ×
+    batch) train fastest — larger ones spill the activations out of cache (benchmarks/training_throughput.py);
+    on a GPU, every map at once."""
+    if str(dev).startswith("cuda"):
+        return 1 << 30
+    return max(1, CPU_STACK_ROWS // max(int(batch), 1))
+
+
+def train_stack(torch, dev, fits, nc, *, seeds, n_in: int, n_out: int, keys, ckpt: str | None = None,
+                progress: bool = True, desc: str = "", log=None):
+    """Train one network per problem in ``fits`` (all of one kind and shape, ``nc`` their settings) in
+    stacks of :func:`stack_size` maps, one after the other.  Returns a list of ``{"layers", "state"}`` (the
+    best weights by each map's validation score) in the order of ``fits``.  ``keys``: the maps' names
+    (checkpoints and progress); ``seeds``: one per map (initial weights)."""
+    n = stack_size(dev, nc.batch)
+    chunks = [list(range(i, min(i + n, len(fits)))) for i in range(0, len(fits), n)]
+    out = []
+    for c, idx in enumerate(chunks):
+        d = desc if len(chunks) == 1 else f"{desc} [stack {c + 1}/{len(chunks)}]"
+        out += _train_one_stack(torch, dev, [fits[i] for i in idx], nc, seeds=[seeds[i] for i in idx], n_in=n_in,
+                                n_out=n_out, keys=[keys[i] for i in idx],
+                                ckpt=None if not ckpt else (ckpt if len(chunks) == 1 else f"{ckpt}.{c}"),
+                                progress=progress, desc=d, log=log)
+        for r in out[-len(idx):]:
+            r["state"]["stack"] = c
+    return out
+
+
+def _train_one_stack(torch, dev, fits, nc, *, seeds, n_in: int, n_out: int, keys, ckpt: str | None = None,
+                     progress: bool = True, desc: str = "", log=None):
+    """Train the networks of ``fits`` as one stack (what :func:`train_stack` runs per stack).
+
+    A map stops when ``fit.goals_met()`` after a validation (``stop_reason = "goals"``, only when
+    ``nc.stop_at_goals``), after ``nc.patience`` validations without a better score (``"early_stop"``),
+    at ``nc.max_steps`` or when the stack's wall-clock budget ends (``nc.max_minutes`` per map: K ×
+    ``max_minutes`` for the stack, the time the maps would get one at a time)."""
+    K = len(fits)
+    net = StackedMLP(torch, dev, seeds, n_in, n_out, nc.hidden, nc.width, nc.activation)
+    opt = StackedAdam(net.params)
+    states = [f.state for f in fits]          # each fit logs its validations into its own state
+    best = [net.snapshot(j) for j in range(K)]
+    got = load_stack(ckpt, keys, net, opt, torch, dev) if ckpt else None
+    active = list(range(K))
+    step0 = 0
+    if got is not None:         # resumed: ``net`` and ``opt`` hold only the maps still training
+        states, best, active, step0 = got
+        for f, st in zip(fits, states):
+            f.state = st
+    rng = np.random.default_rng([int(seeds[0]), step0])
+    pools = PoolStack(torch, [fits[i] for i in active]) if active else None
+    if pools is not None:
+        pools.shuffle(rng)
+    if active:                  # compile the activation (forward and backward) before the clock starts
+        net.forward(torch.zeros((net.k, 8, n_in), device=dev)).sum().backward()
+        for q in net.params:
+            q.grad = None
+    t0 = time.perf_counter() - (states[active[0]]["seconds"] if active else 0.0)
+    last_ckpt = time.perf_counter()
+    step = step0
+    bar = Progress(K, nc, desc, progress, done=K - len(active), step=step, seconds=time.perf_counter() - t0)
+
+    def finish(i, reason):
+        states[i].update(stop_reason=reason, done=True, step=step, seconds=time.perf_counter() - t0)
+
+    def validate_all(loss):
+        """Validate every active map; returns the indices (into ``active``) of maps that are done."""
+        out = []
+        for j, i in enumerate(active):
+            f, st = fits[i], states[i]
+            f.net = net.one(j)
+            with torch.no_grad():
+                score, postfix = f.validate(step, None if loss is None else loss[j], time.perf_counter() - t0)
+            if score < st["best_val"]:
+                st.update(best_val=score, best_step=step, evals_since_best=0)
+                best[i] = net.snapshot(j)
+            else:
+                st["evals_since_best"] += 1
+            if nc.stop_at_goals and f.goals_met():
+                finish(i, "goals")
+                out.append(j)
+            elif st["evals_since_best"] >= nc.patience:
+                finish(i, "early_stop")
+                out.append(j)
+        return out
+
+    while active and step < nc.max_steps:
+        if step > step0 and step % nc.refresh_every == 0:
+            k = int(pools.n * nc.refresh_fraction)
+            for j, i in enumerate(active):
+                pools.write(j, fits[i].fresh_rows(k), rng)
+            pools.shuffle(rng)
+        seconds = time.perf_counter() - t0
+        lr = _lr(step, nc, seconds / K)       # the schedule's clock: the stack's budget is K × max_minutes
+        batch = pools.batch(int(rng.integers(0, pools.n - nc.batch + 1)), nc.batch)
+        loss = fits[active[0]].rows_loss(net.forward(batch["X"]), batch, pools.const)
+        loss.sum().backward()
+        opt.step(net.params, lr)
+        step += 1
+        for i in active:
+            states[i]["samples"] += nc.batch
+            states[i]["step"] = step
+        bar.step(step, len(active) * nc.batch)
+        done_now = []
+        if step % nc.eval_every == 0 or step == nc.max_steps:
+            done_now = validate_all(loss.detach())
+        seconds = time.perf_counter() - t0
+        for i in active:
+            states[i]["seconds"] = seconds
+        if seconds > nc.max_minutes * 60.0 * K:
+            if step % nc.eval_every != 0:            # this step was not validated yet
+                done_now = validate_all(loss.detach())
+            for i in active:
+                if not states[i].get("done"):
+                    finish(i, "time_budget")
+            done_now = list(range(len(active)))
+        if done_now:
+            keep = [j for j in range(len(active)) if j not in done_now]
+            bar.finished(len(done_now))
+            active = [active[j] for j in keep]
+            if keep:
+                net.take(keep)
+                opt.take(keep, torch)
+                pools.take(keep)
+        if ckpt and time.perf_counter() - last_ckpt > CHECKPOINT_SECONDS:
+            save_stack(ckpt, keys, net, opt, states, best, active, step)
+            last_ckpt = time.perf_counter()
+    if active:                                  # max_steps reached
+        if any(not states[i]["history"] or states[i]["history"][-1]["step"] != step for i in active):
+            validate_all(None)
+        for i in active:
+            if not states[i].get("done"):
+                finish(i, "max_steps")
+        active = []
+    bar.close()
+    if ckpt:
+        save_stack(ckpt, keys, net, opt, states, best, active, step)
+    return [{"layers": StackedMLP.layers(best[i]), "state": states[i]} for i in range(K)]
+
+
+def _lr(step, nc, seconds):
+    from .trainer import lr_at
+    return lr_at(step, nc, seconds)
+
+
+# ----------------------------------------------------------------------------- progress and ETA
+class Progress:
+    """One line for a stack: maps done / K, step, aggregate samples/s and an ETA — an upper bound: the
+    time to ``max_steps`` at the current step rate, capped by what is left of the wall-clock budget (maps
+    that meet their goals leave earlier)."""
+
+    def __init__(self, k, nc, desc, enabled, done=0, step=0, seconds=0.0):
+        self.k, self.nc, self.done = k, nc, done
+        self.t0, self.step0, self.seconds0 = time.perf_counter(), step, seconds
+        self.samples, self.last = 0, 0.0
+        self.bar = None
+        if enabled:
+            try:
+                from tqdm.auto import tqdm
+                self.bar = tqdm(total=nc.max_steps, initial=step, desc=desc, leave=False, dynamic_ncols=True)
+            except ImportError:  # pragma: no cover
+                self.bar = None
+
+    def step(self, step, samples):
+        self.samples += samples
+        if self.bar is None:
+            return
+        self.bar.update(1)
+        now = time.perf_counter()
+        if now - self.last > 1.0:
+            self.last = now
+            dt = now - self.t0
+            eta = min(dt / max(step - self.step0, 1) * (self.nc.max_steps - step),
+                      self.nc.max_minutes * 60.0 * self.k - self.seconds0 - dt)
+            self.bar.set_postfix_str(f"maps {self.done}/{self.k} done, {self.samples / max(dt, 1e-9) / 1e6:.2f} M "
+                                     f"samples/s, ETA ≤ {max(eta, 0.0) / 60:.1f} min")
+
+    def finished(self, n):
+        self.done += n
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.close()
+
+
+# ----------------------------------------------------------------------------- checkpoints
+def save_stack(path, keys, net, opt, states, best, active, step):
+    """Weights and Adam moments of the active maps, every map's best weights and state (atomic)."""
+    from safetensors.torch import save_file
+    from ..fileio import atomic_write, atomic_write_text
+    t = {}
+    for n, q in enumerate(net.params):
+        t[f"net.{n}"] = q.detach().cpu().contiguous()
+        t[f"adam.m.{n}"] = opt.m[n].cpu().contiguous()
+        t[f"adam.v.{n}"] = opt.v[n].cpu().contiguous()
+    for i, w in enumerate(best):
+        for n, q in enumerate(w):
+            t[f"best.{i}.{n}"] = q.detach().cpu().contiguous()
+    meta = {"keys": list(keys), "active": list(active), "step": int(step), "adam_t": opt.t, "states": states}
+    atomic_write(path + ".safetensors", lambda p: save_file(t, p))
+    atomic_write_text(path + ".json", json.dumps(meta))
+
+
+def load_stack(path, keys, net, opt, torch, dev):
+    """Resume a stack saved by :func:`save_stack` for the same ``keys``: (states, best, active, step) with
+    ``net`` and ``opt`` restored to its active maps, or None (no or another or a broken checkpoint)."""
+    if not (os.path.exists(path + ".safetensors") and os.path.exists(path + ".json")):
+        return None
+    from safetensors.torch import load_file
+    try:
+        t = load_file(path + ".safetensors")
+        meta = json.loads(open(path + ".json").read())
+    except Exception:
+        return None
+    if meta.get("keys") != list(keys):
+        return None
+    n = len(net.params)
+    net.params = [t[f"net.{i}"].to(dev).requires_grad_() for i in range(n)]
+    opt.m = [t[f"adam.m.{i}"].to(dev) for i in range(n)]
+    opt.v = [t[f"adam.v.{i}"].to(dev) for i in range(n)]
+    opt.t = int(meta["adam_t"])
+    best = [[t[f"best.{i}.{j}"].to(dev) for j in range(n)] for i in range(len(keys))]
+    return meta["states"], best, list(meta["active"]), int(meta["step"])
+
+
+def peek_stack(path, keys):
+    """The per-map states of a checkpoint of ``keys`` (what a resume must restore before the pools are
+    built, e.g. a regressor's output transform), or None."""
+    if not path or not os.path.exists(path + ".json"):
+        return None
+    try:
+        meta = json.loads(open(path + ".json").read())
+    except Exception:
+        return None
+    return meta["states"] if meta.get("keys") == list(keys) else None
+
+
+def stack_name(net: str, keys) -> str:
+    """The checkpoint name of a stack: ``<map>.<net>`` for one map, ``<net>.<K>maps.<digest>`` for many."""
+    import hashlib
+    keys = list(keys)
+    if len(keys) == 1:
+        return f"{keys[0]}.{net}"
+    return f"{net}.{len(keys)}maps.{hashlib.sha256(','.join(keys).encode()).hexdigest()[:10]}"
