@@ -3,7 +3,7 @@
 #  1. Debian's libllvm19 when no LLVM >= 16 is present: Dr.Jit 1.5's LLVM backend crashes on LLVM 15
 #     ("Cannot select fminimum").
 #  2. torch==2.13.0 (CPU build) BEFORE anything that could pull an unpinned torch with CUDA wheels.
-#  3. The package itself, editable, with the dev and train extras.
+#  3. The package itself, editable, with the dev, train and cluster (Ray) extras.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
@@ -26,11 +26,11 @@ fi
 
 stamp=.setup-done
 want="$(cat pyproject.toml scripts/setup.sh | sha1sum | cut -c1-16)"
-if [ -f "$stamp" ] && [ "$(cat $stamp)" = "$want" ] && $PY -c "import mi_neurallens, torch, mitsuba" 2>/dev/null; then
+if [ -f "$stamp" ] && [ "$(cat $stamp)" = "$want" ] && $PY -c "import mi_neurallens, torch, mitsuba, ray" 2>/dev/null; then
   exit 0
 fi
 echo "[setup] installing Python packages (torch CPU pinned first)"
 $PY -m pip install -q --disable-pip-version-check "torch==2.13.0"
-$PY -m pip install -q --disable-pip-version-check -e ".[dev,train]"
+$PY -m pip install -q --disable-pip-version-check -e ".[dev,train,cluster]"
 echo "$want" > "$stamp"
 echo "[setup] done"

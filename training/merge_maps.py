@@ -12,27 +12,15 @@ from __future__ import annotations
 import argparse
 import sys
 
-from mi_neurallens.errors import ModelError
 from mi_neurallens.neural.model import load_model
+from mi_neurallens.training.merge import merge_models
 
 
 def merge(src_path: str, dst_path: str, keys=None) -> list[str]:
-    src, dst = load_model(src_path), load_model(dst_path)
-    if src.fingerprint != dst.fingerprint:
-        raise ModelError(f"{src_path} is for lens {src.lens_name} ({src.fingerprint}), "
-                         f"{dst_path} for {dst.lens_name} ({dst.fingerprint})")
-    if abs(src.z_front - dst.z_front) > 1e-9 or abs(src.z_rear - dst.z_rear) > 1e-9:
-        raise ModelError("the two models use different planes (different close_focus_mm?)")
-    keys = list(src.maps) if not keys else keys
-    for k in keys:
-        if k not in src.maps:
-            raise ModelError(f"{src_path} has no map {k!r}; it has {sorted(src.maps)}")
-        dst.maps[k] = src.maps[k]
-    order = [int(d["path_id"]) for d in dst.extra.get("ghost_ranking", [])]
-    have = set(dst.ghost_ids)
-    dst.extra["ghosts_trained"] = [p for p in order if p in have] + sorted(have - set(order))
+    dst = load_model(dst_path)
+    done = merge_models(load_model(src_path), dst, keys)
     dst.save(dst_path)
-    return keys
+    return done
 
 
 def main(argv=None):

@@ -1,9 +1,11 @@
 """``mi-neurallens train LENS``: train the neural lens transport maps of a lens.
 
 Reads the per-lens recipe ``training/<lens>.toml`` when it exists (or ``--config``), plans the planes,
-ranks the ghosts, trains every selected map (classifier + regressor, PyTorch on CPU or CUDA) with
-checkpoints in ``<out>.work/`` (rerun the same command to resume after an interruption) and writes one
-model file ``<out>/<lens>.model.safetensors`` (atomically, after each map) with the held-out metrics.
+ranks the ghosts, trains every selected map (classifier, regressor and stop head, PyTorch on CPU or CUDA;
+the maps of one direction together, each network stopping at its goals) with checkpoints in
+``<out>.work/`` (rerun the same command to resume after an interruption) and writes one model file
+``<out>/<lens>.model.safetensors`` (atomically, after each direction's maps) with the held-out metrics.
+``--ray [ADDRESS]`` runs the maps of one or more lenses as jobs on Ray (training/distributed.py).
 """
 from __future__ import annotations
 
@@ -15,7 +17,7 @@ import sys
 def add_parser(subparsers):
     p = subparsers.add_parser("train", help="train the neural transport maps of a lens",
                               description=__doc__.split("\n\n", 1)[1] if __doc__ else None)
-    p.add_argument("lens", help="bundled lens name or lens file")
+    p.add_argument("lens", nargs="+", help="bundled lens name(s) or lens file(s)")
     p.add_argument("--paths", help="comma list: transmit, ghosts, backward, forward, backward-transmit, "
                                    "forward-transmit or forward path ids (default: what the config lists)")
     p.add_argument("--config", help="TOML training config (default: training/<lens>.toml when present)")
@@ -27,6 +29,10 @@ def add_parser(subparsers):
                         "only the stop heads (a render-time aperture for an existing model)")
     p.add_argument("--base", help="model file the --keep networks come from (default: the output model file "
                                   "when it exists, else the bundled model of the lens)")
+    p.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
+                   help="run the maps as jobs on Ray (the 'cluster' extra): a local instance, or the cluster at "
+                        "ADDRESS (e.g. auto, ray://head:10001); one GPU per job when the cluster has GPUs")
+    p.add_argument("--jobs", type=int, default=4, help="with --ray: forward-map jobs per lens (default 4)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--quiet", action="store_true", help="no per-evaluation log lines")
     p.set_defaults(func=run)
@@ -55,15 +61,44 @@ def _overrides(sets):
 def run(args):
     from ..optics.prescription import Lens
     from ..training.config import default_config_path, load_config
+    from ..neural.model import bundled_model_path
+    lenses = [Lens.load(name) for name in args.lens]
+    cfgs, outs = [], []
+    for lens in lenses:
+        cfg_path = args.config or default_config_path(lens.name)
+        cfg = load_config(cfg_path, lens=lens.name, overrides=_overrides(args.sets))
+        out_dir = args.out or os.path.dirname(bundled_model_path(lens.name))
+        outs.append(os.path.join(out_dir, f"{lens.name}.model.safetensors"))
+        cfgs.append(cfg)
+        print(f"training {lens.name} (fingerprint {lens.fingerprint()}), config {cfg_path or 'defaults'} "
+              f"[{cfg.digest()}] -> {outs[-1]}", file=sys.stderr)
+    if args.ray:
+        if args.keep:
+            from ..errors import NeuralLensError
+            raise NeuralLensError("--keep trains on this machine only; drop --ray")
+        from ..training.distributed import train_on_ray
+        out_dir = args.out or os.path.dirname(outs[0])
+        got = train_on_ray(lenses, cfgs, out_dir, address=None if args.ray == "local" else args.ray,
+                           jobs=args.jobs, paths=args.paths, log=lambda m: print(m, file=sys.stderr, flush=True))
+        for name, path in got["models"].items():
+            _report(path)
+        return 0
+    for lens, cfg, out in zip(lenses, cfgs, outs):
+        _train_one(args, lens, cfg, out)
+    return 0
+
+
+def _report(path):
+    from ..neural.model import load_model
+    from ..training.evaluate import markdown_table
+    model = load_model(path)
+    print(markdown_table(model, [(k, m.metrics) for k, m in model.maps.items() if m.metrics]))
+    print(f"wrote {path}")
+
+
+def _train_one(args, lens, cfg, out):
     from ..training.trainer import train_lens
     from ..neural.model import bundled_model_path
-    lens = Lens.load(args.lens)
-    cfg_path = args.config or default_config_path(lens.name)
-    cfg = load_config(cfg_path, lens=lens.name, overrides=_overrides(args.sets))
-    out_dir = args.out or os.path.dirname(bundled_model_path(lens.name))
-    out = os.path.join(out_dir, f"{lens.name}.model.safetensors")
-    print(f"training {lens.name} (fingerprint {lens.fingerprint()}), config {cfg_path or 'defaults'} "
-          f"[{cfg.digest()}] -> {out}", file=sys.stderr)
 
     def log(desc, rec):
         if not args.quiet:
@@ -78,9 +113,6 @@ def run(args):
     elif args.base:
         from ..errors import NeuralLensError
         raise NeuralLensError("--base names where --keep takes its networks from; give --keep too")
-    model = train_lens(lens, cfg, out, paths=args.paths, progress=not args.no_progress, log=log,
-                       keep=args.keep, base_path=base)
-    from ..training.evaluate import markdown_table
-    print(markdown_table(model, [(k, m.metrics) for k, m in model.maps.items() if m.metrics]))
-    print(f"wrote {out}")
-    return 0
+    train_lens(lens, cfg, out, paths=args.paths, progress=not args.no_progress, log=log,
+               keep=args.keep, base_path=base)
+    _report(out)
