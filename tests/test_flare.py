@@ -238,6 +238,19 @@ def test_missing_ghost_model_raises():
         render_flare(scene, 0, mode="neural", ghosts=[2560], model=empty)
 
 
+def test_flare_model_takes_a_bundled_name():
+    """``model`` of lens_flare (and ``--model`` of the CLI) names a bundled model as the sensor's
+    ``model`` does; an unknown name is an error that lists the bundled ones."""
+    from mi_neurallens.flare.options import FlareOptions
+    from mi_neurallens.flare.render import sensor_model
+    if not os.path.exists(os.path.join(ROOT, "lenses", "models", "wide-22mm.model.safetensors")):
+        pytest.skip("no bundled wide-22mm model")
+    m = sensor_model(None, FlareOptions(model="wide-22mm"))
+    assert m.lens_name == "wide-22mm" and m.maps
+    with pytest.raises(Exception, match="bundled: .*wide-22mm"):
+        sensor_model(None, FlareOptions(model="no-such-lens"))
+
+
 # ------------------------------------------------------------------------------------------ neural
 MODEL = os.path.join(ROOT, "lenses", "models", "wide-22mm.model.safetensors")
 

@@ -32,7 +32,7 @@ def add_parser(subparsers):
     p.add_argument("--lens", help="lens of the sensor (bundled name or file)")
     p.add_argument("--mode", choices=("auto", "exact", "neural", "abcd", "taylor3", "taylor5", "fitted"),
                    default="auto", help="ghost evaluator: exact tracer, learned maps, or a baseline")
-    p.add_argument("--model", help="neural model file (default: the sensor's model)")
+    p.add_argument("--model", help="neural model: a file or a bundled lens name, e.g. wide-22mm (default: the sensor's model)")
     p.add_argument("--ghost", dest="ghosts", action="append", default=[], metavar="ID",
                    help="render only this ghost (path id or a:b surface pair; repeatable)")
     p.add_argument("--exclude", dest="exclude", action="append", default=[], metavar="ID")

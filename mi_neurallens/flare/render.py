@@ -138,15 +138,17 @@ class GhostEvaluator:
 
 # ------------------------------------------------------------------------------------ helpers
 def sensor_model(sensor, opts: FlareOptions):
-    """The neural model to use: ``opts.model`` (object or file) else the sensor's, else None."""
+    """The neural model to use: ``opts.model`` (object, file or bundled lens name, as the ``neural_lens``
+    sensor's ``model``) else the sensor's, else None."""
     from ..neural.model import NeuralLensModel
+    from ..sensors.neural_lens import resolve_model_path
     m = opts.model
     if m is None:
         m = getattr(sensor, "model", None)
     if m is None or isinstance(m, NeuralLensModel):
         return m
     if isinstance(m, str) and m:
-        return NeuralLensModel.load(m, None)
+        return NeuralLensModel.load(resolve_model_path(m, "lens_flare"), None)
     return None
 
 

@@ -47,7 +47,8 @@ sensor must be ``realistic_lens`` or ``neural_lens``.
 
  * - model
    - |string|
-   - Neural model file whose ghost maps are used.  (Default: the ``neural_lens`` sensor's model)
+   - Neural model whose ghost maps are used: a file, or a bundled lens name as the ``neural_lens`` sensor's
+     ``model``.  (Default: the ``neural_lens`` sensor's model)
 
  * - ghosts
    - |string|
