@@ -193,7 +193,7 @@ def test_transport_map_eval_dr_equals_numpy(direction):
 
 def test_bundled_models_load():
     found = 0
-    for name in ("wide-22mm", "ood-59mm", "canon-ef-24mm-f1.4l"):
+    for name in ("wide-22mm", "ood-59mm", "canon-ef-24mm-f1.4l", "dgauss-50mm"):
         p = bundled_model_path(name)
         if not os.path.exists(p):
             continue

@@ -39,8 +39,8 @@ import time
 import numpy as np
 
 CHECKPOINT_SECONDS = 60.0
-#: rows per step (maps × batch) of a CPU stack: measured fastest on a 2-core AVX-512 machine (1.4 M
-#: samples/s at 4 × 8192 or 16 × 2048, against 0.9 M at 16 × 8192: docs/results.md)
+#: rows per step (maps × batch) of a CPU stack: measured fastest on a 2-core AVX-512 machine (1.37 M
+#: samples/s at 4 × 8192, against 1.03 M at 16 × 8192: benchmarks/training_throughput.py --grid)
 CPU_STACK_ROWS = 32768
 #: memory the sample pools of one stack may take (bytes); a larger stack gets smaller pools per map
 POOL_BYTES = 3 << 30

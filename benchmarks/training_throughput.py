@@ -1,0 +1,197 @@
+"""Training throughput: samples/s of the stacked trainer against the one-map-at-a-time trainer it replaced.
+
+    python benchmarks/training_throughput.py                       # new trainer, K = 1, 4, 16 maps
+    python benchmarks/training_throughput.py --baseline-tree DIR   # + the old trainer from a checkout
+    python benchmarks/training_throughput.py --grid                # step time over maps × batch per stack
+
+Same networks (the recipe's forward regressor 5×32 and classifier 3×32), same data (ghost maps of
+``wide-22mm`` streamed from the tracer, pools refreshed every ``refresh_every`` steps, validation every
+``eval_every`` steps — what training really does), fixed step counts, goals off.  Samples/s counts
+training samples (batch × steps × maps) per second of the training loop (set-up excluded: building the
+samplers and held-out sets is the same for both).  ``--baseline-tree``: a checkout of the repository
+before the stacked trainer (e.g. ``git worktree add /tmp/old c6c3982``), run in a subprocess with the
+same settings, one map at a time.  Writes ``benchmarks/results/training_throughput.json``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+LENS = "wide-22mm"
+
+
+def problems(k, kind, heldout=20_000):
+    """The first ``k`` ghosts of the lens's ranking as regressor or classifier problems."""
+    import numpy as np
+    from mi_neurallens import Lens
+    from mi_neurallens.flare.energy import ghost_energy_ranking
+    from mi_neurallens.training import plan
+    from mi_neurallens.training.data import PathSampler, RegressorStream
+    from mi_neurallens.training.evaluate import heldout_valid
+    from mi_neurallens.transport.planning import select_ghosts
+    lens = Lens.load(LENS)
+    s0, _ = plan.sensor_distance_range(lens, 300.0)
+    zf, zr = plan.planes(lens, s0)
+    dom = plan.forward_domain(lens, zf, plan.default_field_half_angle(lens))
+    ghosts = select_ghosts(ghost_energy_ranking(lens), 0.99, 32)[:k]
+    center, scale = dom.norm_center_scale()
+    out = []
+    for pid in ghosts:
+        ps = PathSampler(lens, pid, "forward", zf, zr, dom)
+        stream = RegressorStream(ps, 7 + pid)
+        if kind == "regressor":
+            val = heldout_valid(lens, (pid, "forward", zf, zr), dom, heldout, 11 + pid)
+            out.append(dict(stream=stream, val=val, heading=1, center=center, scale_in=scale, seed=7 + pid,
+                            s_max=dom.s_max, key=f"forward.{pid}"))
+        else:
+            rng = np.random.default_rng(5)
+            psv = PathSampler(lens, pid, "forward", zf, zr, dom, precision="float64")
+            xcv = dom.u_to_x(rng.random((400_000, 4)))
+            lcv, _ = psv.trace_x(xcv)
+            out.append(dict(ps=ps, valid_u_source=(lambda n, s=stream: s.sample(n)[0]), val=(xcv, lcv),
+                            center=center, scale_in=scale, seed=7 + pid, key=f"forward.{pid}"))
+    return out
+
+
+def net_config(kind, steps):
+    from mi_neurallens.training.config import load_config
+    cfg = load_config(os.path.join(ROOT, "training", f"{LENS}.toml"))
+    nc = cfg.net(kind, "forward")
+    over = dict(max_steps=steps, max_minutes=1e6, patience=10 ** 9)
+    if hasattr(nc, "stop_at_goals"):
+        over["stop_at_goals"] = False
+    import dataclasses
+    return dataclasses.replace(nc, **over)
+
+
+def measure_new(k, kind, steps):
+    from mi_neurallens.training import trainer
+    probs = problems(k, kind)
+    nc = net_config(kind, steps)
+    fn = trainer.train_regressors if kind == "regressor" else trainer.train_classifiers
+    t = time.perf_counter()
+    res = fn(probs, nc, progress=False)
+    wall = time.perf_counter() - t
+    st = [r["state"] for r in res]
+    samples = sum(s["samples"] for s in st)
+    loop = sum({s["stack"]: s["seconds"] for s in st}.values())      # the stacks run one after the other
+    return {"maps": k, "kind": kind, "steps": steps, "samples": samples, "loop_seconds": loop,
+            "stacks": len({s["stack"] for s in st}), "samples_per_s": samples / loop, "wall_seconds": wall}
+
+
+def measure_old(k, kind, steps):
+    """The pre-stack trainer: one map at a time with its own train_regressor / train_classifier."""
+    from mi_neurallens.training import trainer
+    nc = net_config(kind, steps)
+    probs = problems(k, kind)
+    samples = seconds = 0.0
+    for p in probs:
+        if kind == "regressor":
+            r = trainer.train_regressor(p["stream"], p["val"], nc, heading=1, center=p["center"],
+                                        scale_in=p["scale_in"], seed=p["seed"], ckpt=None, progress=False,
+                                        s_max=p["s_max"])
+        else:
+            r = trainer.train_classifier(p["ps"], p["valid_u_source"], p["val"], nc, center=p["center"],
+                                         scale_in=p["scale_in"], seed=p["seed"], ckpt=None, progress=False)
+        samples += r["state"]["samples"]
+        seconds += r["state"]["seconds"]
+    return {"maps": k, "kind": kind, "steps": steps, "samples": samples, "loop_seconds": seconds,
+            "samples_per_s": samples / seconds}
+
+
+def grid(maps=(1, 2, 4, 8, 16), batches=(1024, 2048, 4096, 8192)):
+    """Step time of one stack of K regressors at batch B (pools in memory, no validation or refresh):
+    what :data:`~mi_neurallens.training.stacked.CPU_STACK_ROWS` is chosen from."""
+    import copy
+    import numpy as np
+    import torch
+    from mi_neurallens.training import stacked, trainer
+    torch.set_num_threads(2)
+    probs = problems(max(maps), "regressor", heldout=2000)
+    nc = net_config("regressor", 10)
+    fits = []
+    for p in probs:
+        u0, x0, y0 = p["stream"].sample(300_000)
+        xn0 = (x0 - p["center"]) / p["scale_in"]
+        tr = trainer.fit_output_transform(xn0, y0, nc.residual, trainer.odd_factor(x0[:, 2], p["s_max"]))
+        fits.append(trainer.RegressorFit(torch, "cpu", None, nc, p["stream"], p["val"], (u0, x0, y0),
+                                         rng=np.random.default_rng(0), state=trainer._new_state(), heading=1,
+                                         center=p["center"], scale_in=p["scale_in"], transform=tr,
+                                         odd_s=p["s_max"]))
+    rng = np.random.default_rng(0)
+    rows = []
+    for k in maps:
+        for b in batches:
+            fs = [copy.copy(f) for f in fits[:k]]
+            net = stacked.StackedMLP(torch, "cpu", range(k), 4, 5, 5, 32)
+            opt = stacked.StackedAdam(net.params)
+            pools = stacked.PoolStack(torch, fs)
+
+            def step():
+                batch = pools.batch(int(rng.integers(0, pools.n - b)), b)
+                fs[0].rows_loss(net.forward(batch["X"]), batch, pools.const).sum().backward()
+                opt.step(net.params, 1e-3)
+            for _ in range(3):
+                step()
+            n = max(5, int(2e6 / (k * b)))
+            t = time.perf_counter()
+            for _ in range(n):
+                step()
+            dt = (time.perf_counter() - t) / n
+            rows.append({"maps": k, "batch": b, "step_ms": 1e3 * dt, "samples_per_s": k * b / dt})
+            print(f"K={k:2d} B={b:5d}: {1e3 * dt:6.1f} ms/step, {k * b / dt / 1e6:.2f} M samples/s", flush=True)
+    return rows
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--baseline-tree", help="checkout of the one-map-at-a-time trainer (run in a subprocess)")
+    ap.add_argument("--steps", type=int, default=1000)
+    ap.add_argument("--maps", default="1,4,16")
+    ap.add_argument("--kinds", default="regressor,classifier")
+    ap.add_argument("--grid", action="store_true", help="only the stack-size grid (maps × batch)")
+    ap.add_argument("--old", action="store_true", help=argparse.SUPPRESS)   # the subprocess's mode
+    args = ap.parse_args()
+    if args.grid:
+        out = {"machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
+               "command": " ".join(sys.argv), "grid": grid()}
+        with open(os.path.join(ROOT, "benchmarks", "results", "training_stack_grid.json"), "w") as f:
+            json.dump(out, f, indent=1)
+        return
+    kinds = args.kinds.split(",")
+    if args.old:
+        print(json.dumps([measure_old(int(args.maps), kind, args.steps) for kind in kinds]))
+        return
+    rows = {"machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
+            "command": " ".join(sys.argv), "new": [], "old": []}
+    if args.baseline_tree:
+        env = dict(os.environ, PYTHONPATH=os.path.abspath(args.baseline_tree))
+        out = subprocess.run([sys.executable, os.path.abspath(__file__), "--old", "--maps", "2", "--steps",
+                              str(args.steps), "--kinds", args.kinds], env=env, cwd=args.baseline_tree,
+                             capture_output=True, text=True, check=True)
+        rows["old"] = json.loads(out.stdout.strip().splitlines()[-1])
+        for r in rows["old"]:
+            print(f"old  {r['kind']:10s} one at a time ×{r['maps']}: {r['samples_per_s'] / 1e6:.2f} M samples/s")
+    for kind in kinds:
+        for k in map(int, args.maps.split(",")):
+            r = measure_new(k, kind, args.steps)
+            rows["new"].append(r)
+            base = next((o["samples_per_s"] for o in rows["old"] if o["kind"] == kind), None)
+            ratio = f"  {r['samples_per_s'] / base:.2f}× the old trainer" if base else ""
+            print(f"new  {kind:10s} {k:2d} maps ({r['stacks']} stacks): {r['samples_per_s'] / 1e6:.2f} M samples/s{ratio}",
+                  flush=True)
+    os.makedirs(os.path.join(ROOT, "benchmarks", "results"), exist_ok=True)
+    with open(os.path.join(ROOT, "benchmarks", "results", "training_throughput.json"), "w") as f:
+        json.dump(rows, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
