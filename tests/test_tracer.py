@@ -125,6 +125,25 @@ def test_rotational_symmetry(wide22):
         np.testing.assert_allclose(rot.throughput[v], res.throughput[v], rtol=1e-12)
 
 
+def test_float32_rays_stay_float32_and_agree_with_the_float64_path(wide22):
+    """Lens.trace with float32 rays (precision float32) returns float32 results — no float64 copies in or
+    out — equal to the float64-array path at float32 precision; float64 rays still get float64 results."""
+    rng = np.random.default_rng(4)
+    o, d = field_rays(wide22, 5000, 25, rng)
+    lam = rng.uniform(420.0, 680.0, len(o))
+    r64 = wide22.trace(o, d, lam)
+    r32 = wide22.trace(o.astype(np.float32), d.astype(np.float32), lam.astype(np.float32))
+    assert r64.position.dtype == np.float64 and r32.position.dtype == np.float32
+    assert r32.direction.dtype == np.float32 and r32.throughput.dtype == np.float32
+    assert 0.05 < r32.valid.mean() < 1.0          # some pass, some are blocked
+    np.testing.assert_array_equal(r32.valid, r64.valid)
+    v = r64.valid
+    np.testing.assert_allclose(r32.position[v], r64.position[v], atol=2e-4)
+    np.testing.assert_allclose(r32.direction[v], r64.direction[v], atol=2e-6)
+    np.testing.assert_allclose(r32.throughput[v], r64.throughput[v], rtol=1e-5)
+    assert np.isnan(r32.position[~v]).all() and (r32.throughput[~v] == 0).all()
+
+
 def test_forward_backward_inverse(wide22):
     """Forward then backward (reversed ray from the image plane) returns to the input ray."""
     rng = np.random.default_rng(5)

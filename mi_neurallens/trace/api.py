@@ -21,7 +21,8 @@ class RayBundle:
     backward: the first-vertex plane z = 0); ``direction`` (N,3) unit; ``throughput`` (N,):
     product of Fresnel factors; ``valid`` (N,) bool.  Invalid rays have NaN position/direction
     and zero throughput.  ``points`` (N, M, 3), with ``record=True``: the input point, each
-    surface/stop hit in path order, and the output point (NaN where the ray is invalid).
+    surface/stop hit in path order, and the output point (NaN where the ray is invalid).  Float64, or
+    float32 when :func:`trace` was given float32 rays at float32 precision.
     """
 
     position: np.ndarray
@@ -67,42 +68,56 @@ def trace(lens, origins, directions, wavelength_nm, direction: str = "forward", 
     direction: ``"forward"`` (object → sensor) or ``"backward"`` (sensor → object).
     path: ``"transmit"``, an integer path id or a ghost ``(a, b)``; see :mod:`.paths`.
     fresnel: include Fresnel factors in the throughput.
-    precision: ``"float32"`` (rendering) or ``"float64"`` (reference data).
+    precision: ``"float32"`` (rendering) or ``"float64"`` (reference data).  With ``float32`` and
+        float32 ``origins`` and ``directions``, everything stays float32, the results included (the fast
+        path); otherwise the inputs are read as float64 and the results are float64.
     z_out: output plane z in lens space (default: image plane forward, z = 0 backward).
     record: also return every hit point (``RayBundle.points``).
     """
     import drjit as dr
-    o = np.asarray(origins, dtype=np.float64)
-    d = np.asarray(directions, dtype=np.float64)
+    F = float_type(precision)
+    dt = np.float32 if precision == "float32" else np.float64
+    # float32 in, float32 precision: float32 end to end (no float64 copies in or out)
+    f32 = dt == np.float32 and all(getattr(a, "dtype", None) == np.float32 for a in (origins, directions))
+    wd = np.float32 if f32 else np.float64
+    o = np.asarray(origins, dtype=wd)
+    d = np.asarray(directions, dtype=wd)
     if o.ndim != 2 or o.shape[1] != 3 or d.shape != o.shape:
         raise NeuralLensError(f"origins and directions must both be (N, 3) arrays, got {o.shape} and {d.shape}")
     n = o.shape[0]
-    lam = np.broadcast_to(np.asarray(wavelength_nm, dtype=np.float64), (n,))
+    lam = np.broadcast_to(np.asarray(wavelength_nm, dtype=wd), (n,))
     if not np.all(np.isfinite(lam)) or np.any(lam <= 0):
         raise NeuralLensError("wavelength_nm must be positive and finite (nanometres)")
-    d = d / np.linalg.norm(d, axis=1, keepdims=True)
-    F = float_type(precision)
-    dt = np.float32 if precision == "float32" else np.float64
     cols = lambda a: tuple(F(np.ascontiguousarray(a[:, i], dtype=dt)) for i in range(3))
     tr = tracer_for(lens, bool(fresnel))
-    res = tr.trace(cols(o), cols(d), F(np.ascontiguousarray(lam, dtype=dt)), path, direction,
-                   z_out=z_out, record=record)
-    arrays = [*res.position, *res.direction, res.throughput]
+    dx, dy, dz = cols(d)
+    inv = 1.0 / dr.sqrt(dx * dx + dy * dy + dz * dz)          # normalised in the kernel
+    res = tr.trace(cols(o), (dx * inv, dy * inv, dz * inv), F(np.ascontiguousarray(lam, dtype=dt)), path,
+                   direction, z_out=z_out, record=record)
+    # invalid rays: NaN position and direction, zero throughput (selected in the kernel as well)
+    position = [dr.select(res.valid, c, dr.nan) for c in res.position]
+    direction_ = [dr.select(res.valid, c, dr.nan) for c in res.direction]
+    throughput = dr.select(res.valid, res.throughput, 0.0)
+    arrays = [*position, *direction_, throughput]
     if record:
         for p in res.points:
             arrays += list(p)
         arrays += list(res.alive)
     dr.eval(arrays, res.valid)
     valid = res.valid.numpy().astype(bool)
-    pos = np.stack([a.numpy() for a in res.position], 1).astype(np.float64)
-    dirn = np.stack([a.numpy() for a in res.direction], 1).astype(np.float64)
-    thr = res.throughput.numpy().astype(np.float64)
-    pos[~valid] = np.nan
-    dirn[~valid] = np.nan
-    thr = np.where(valid, thr, 0.0)
+
+    def rows(vec):
+        """(N, 3) from three Dr.Jit columns: one contiguous copy per column into a (3, N) block."""
+        out = np.empty((3, n), wd)
+        for i, c in enumerate(vec):
+            out[i] = c.numpy()
+        return out.T
+
+    pos, dirn = rows(position), rows(direction_)
+    thr = throughput.numpy().astype(wd, copy=False)
     pts = None
     if record:
-        pts = np.stack([np.stack([c.numpy() for c in p], 1) for p in res.points], 1).astype(np.float64)
+        pts = np.stack([np.stack([c.numpy() for c in p], 1) for p in res.points], 1).astype(wd, copy=False)
         alive = np.stack([np.broadcast_to(a.numpy().astype(bool), (n,)) for a in res.alive], 1)
         # keep the hit where a ray is blocked: alive[k] is recorded when the ray reaches point k, before
         # that step's aperture, stop and TIR tests, so a ray blocked at point k still shows it and
