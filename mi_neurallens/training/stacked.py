@@ -310,6 +310,7 @@ def _train_one_stack(torch, dev, fits, nc, *, seeds, n_in: int, n_out: int, keys
             else:
                 st["evals_since_best"] += 1
             if nc.stop_at_goals and f.goals_met():
+                best[i] = net.snapshot(j)          # the weights that met the goals
                 finish(i, "goals")
                 out.append(j)
             elif st["evals_since_best"] >= nc.patience:
@@ -456,16 +457,25 @@ def load_stack(path, keys, net, opt, torch, dev):
     return meta["states"], best, list(meta["active"]), int(meta["step"])
 
 
-def peek_stack(path, keys):
-    """The per-map states of a checkpoint of ``keys`` (what a resume must restore before the pools are
-    built, e.g. a regressor's output transform), or None."""
-    if not path or not os.path.exists(path + ".json"):
-        return None
-    try:
-        meta = json.loads(open(path + ".json").read())
-    except Exception:
-        return None
-    return meta["states"] if meta.get("keys") == list(keys) else None
+def peek_stack(path, keys) -> dict:
+    """{map key: state} of the maps of ``keys`` found in the checkpoints of :func:`train_stack` at ``path``
+    (``path`` itself, or ``path.0``, ``path.1``… when it ran several stacks): what a resume must restore
+    before the pools are built, e.g. a regressor's output transform.  Empty when there is none."""
+    out = {}
+    if not path:
+        return out
+    files = [path] + [f"{path}.{c}" for c in range(len(keys))]
+    for f in files:
+        if not os.path.exists(f + ".json"):
+            continue
+        try:
+            meta = json.loads(open(f + ".json").read())
+        except Exception:
+            continue
+        for k, st in zip(meta.get("keys", []), meta.get("states", [])):
+            if k in keys:
+                out[k] = st
+    return out
 
 
 def stack_name(net: str, keys) -> str:

@@ -180,22 +180,23 @@ def train_regressors(problems, nc: NetConfig, *, ckpt: str | None = None, thread
     n_pool = pool_rows(nc, len(problems), 4 * (4 + 5 + 5 + 1))
     t_start = time.perf_counter()
     fits = []
-    for i, p in enumerate(problems):
+    for p in problems:
         odd_s = None
         if nc.odd_y:
             if p.get("s_max") is None:
                 raise NeuralLensError("train_regressor: odd_y needs the domain's s_max")
             odd_s = float(p["s_max"])
         stream, center, scale_in = p["stream"], p["center"], p["scale_in"]
-        state = _new_state() if prior is None else prior[i]
-        if prior is not None:
+        resumed = p["key"] in prior
+        state = prior[p["key"]] if resumed else _new_state()
+        if resumed:
             if bool(state.get("odd_y", False)) != (odd_s is not None):
                 raise NeuralLensError(f"{ckpt}: checkpoint was trained with odd_y={state.get('odd_y', False)}; "
                                       "use another work directory or the same setting")
             stream.rng = np.random.default_rng([int(p["seed"]), state["step"]])
         u0, x0, y0 = stream.sample(n_pool)
         xn0 = (x0 - center) / scale_in
-        if prior is None:
+        if not resumed:
             transform = fit_output_transform(xn0, y0, nc.residual, odd_factor(x0[:, 2], odd_s))
             state.update(odd_y=odd_s is not None, skip=transform[0].tolist(), shift=transform[1].tolist(),
                          oscale=transform[2].tolist())
@@ -392,9 +393,10 @@ def train_classifiers(problems, nc: NetConfig, *, ckpt: str | None = None, threa
     prior = peek_stack(ckpt, keys)
     ncp = dataclasses.replace(nc, pool=pool_rows(nc, len(problems), 4 * 5))
     fits = []
-    for i, p in enumerate(problems):
-        state = _new_state() if prior is None else prior[i]
-        rng = np.random.default_rng(p["seed"] if prior is None else [int(p["seed"]), state["step"]])
+    for p in problems:
+        resumed = p["key"] in prior
+        state = prior[p["key"]] if resumed else _new_state()
+        rng = np.random.default_rng([int(p["seed"]), state["step"]] if resumed else p["seed"])
         fits.append(ClassifierFit(torch, dev, None, ncp, p["ps"], p["valid_u_source"], p["val"], rng=rng, state=state,
                                   center=p["center"], scale_in=p["scale_in"], log=log,
                                   desc=f"{p['key']} classifier" if len(problems) > 1 else desc))
