@@ -105,7 +105,7 @@ def test_a_map_leaves_the_stack_at_its_goal_and_the_others_go_on(tmp_path):
             np.testing.assert_array_equal(W0, W1)
 
 
-def test_a_cpu_splits_many_maps_into_stacks_that_fit_its_cache(monkeypatch):
+def test_a_cpu_splits_many_maps_into_stacks_that_fit_its_cache(monkeypatch, tmp_path):
     """On a CPU, maps × batch rows per step are capped (CPU_STACK_ROWS): more maps train as several stacks,
     one after the other, each map with the same result semantics."""
     import mi_neurallens.training.stacked as st
@@ -114,6 +114,10 @@ def test_a_cpu_splits_many_maps_into_stacks_that_fit_its_cache(monkeypatch):
     nc = NetConfig(hidden=2, width=16, lr=1e-2, batch=256, max_steps=300, eval_every=50, patience=10 ** 6,
                    warmup_steps=10, refresh_every=100, max_minutes=5.0, pool=4096)
     res = train_stack(torch, "cpu", [_Line(0.5, 1e-2, 1), _Line(-0.8, 0.0, 2)], nc, seeds=[1, 2], n_in=1, n_out=1,
-                      keys=["a", "b"], progress=False)
+                      keys=["a", "b"], ckpt=str(tmp_path / "s.ckpt"), progress=False)
     assert [r["state"]["stack"] for r in res] == [0, 1]
+    # a resume finds every map's state across the stacks' checkpoints (s.ckpt.0, s.ckpt.1)
+    from mi_neurallens.training.stacked import peek_stack
+    got = peek_stack(str(tmp_path / "s.ckpt"), ["a", "b"])
+    assert sorted(got) == ["a", "b"] and got["b"]["stop_reason"] == "max_steps"
     assert res[0]["state"]["stop_reason"] == "goals" and res[1]["state"]["stop_reason"] == "max_steps"
