@@ -11,8 +11,9 @@ writing its own model file ``<work>/<lens>.job<i>.model.safetensors`` with check
 has GPUs (PyTorch then trains on it).  When a job's worker dies, Ray runs it again (``max_retries``) and it
 resumes: finished maps are in its model file, the stack in progress in its checkpoint; rerunning the whole
 command resumes the same way (the work folder must be on storage every worker sees).  The driver merges
-the jobs' maps into one model file per lens (:func:`~mi_neurallens.training.merge.merge_models`), with
-the lens's ghost ranking, and prints each job as it ends with an ETA.
+the jobs' maps into one model file per lens (:func:`~mi_neurallens.training.merge.merge_models`) — into
+the model already there when it has the same lens and planes, so its other maps stay — with the lens's
+ghost ranking, and prints each job as it ends with an ETA.
 """
 from __future__ import annotations
 
@@ -126,17 +127,33 @@ def train_on_ray(lenses, cfgs, out_dir: str, *, address: str | None = None, jobs
     results = {}
     for name, (lens, cfg, outs, ranking, selected) in plans.items():
         first = load_model(outs[0], lens)
-        model = NeuralLensModel(lens_name=lens.name, fingerprint=lens.fingerprint(), z_front=first.z_front,
-                                z_rear=first.z_rear, z_last_vertex=first.z_last_vertex,
-                                sensor_distance_range=first.sensor_distance_range)
+        path = os.path.join(out_dir, f"{lens.name}.model.safetensors")
+        model = _existing(path, lens, first)      # maps of an earlier model that were not retrained stay
+        if model is None:
+            model = NeuralLensModel(lens_name=lens.name, fingerprint=lens.fingerprint(), z_front=first.z_front,
+                                    z_rear=first.z_rear, z_last_vertex=first.z_last_vertex,
+                                    sensor_distance_range=first.sensor_distance_range)
         model.extra.update({"software": "mi-neurallens", "training_config": cfg.to_dict()})
         if ranking is not None:
             model.extra.update(ghost_ranking=ranking, ghosts_selected=selected)
         for out in outs:
             merge_models(load_model(out, lens), model)
-        path = os.path.join(out_dir, f"{lens.name}.model.safetensors")
         model.save(path)
         results[name] = path
         log(f"ray: {name}: {len(model.maps)} maps -> {path}")
     sys.stdout.flush()
     return {"models": results, "jobs": jobs_done}
+
+
+def _existing(path, lens, like):
+    """The model already at ``path`` when it is of ``lens`` with the planes of ``like``, else None."""
+    from ..errors import ModelError
+    from ..neural.model import load_model
+    if not os.path.exists(path):
+        return None
+    try:
+        m = load_model(path, lens)
+    except ModelError:
+        return None
+    same = abs(m.z_front - like.z_front) < 1e-9 and abs(m.z_rear - like.z_rear) < 1e-9
+    return m if same else None
