@@ -123,7 +123,7 @@ def grid(maps=(1, 2, 4, 8, 16), batches=(1024, 2048, 4096, 8192)):
         xn0 = (x0 - p["center"]) / p["scale_in"]
         tr = trainer.fit_output_transform(xn0, y0, nc.residual, trainer.odd_factor(x0[:, 2], p["s_max"]))
         fits.append(trainer.RegressorFit(torch, "cpu", None, nc, p["stream"], p["val"], (u0, x0, y0),
-                                         rng=np.random.default_rng(0), state=trainer._new_state(), heading=1,
+                                         state=trainer._new_state(), heading=1,
                                          center=p["center"], scale_in=p["scale_in"], transform=tr,
                                          odd_s=p["s_max"]))
     rng = np.random.default_rng(0)

@@ -11,7 +11,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from mi_neurallens.training.config import NetConfig  # noqa: E402
-from mi_neurallens.training.stacked import StackedAdam, StackedMLP, train_stack  # noqa: E402
+from mi_neurallens.training.stacked import Problem, StackedAdam, StackedMLP, train_stack  # noqa: E402
 
 
 def test_each_map_gets_its_own_gradient():
@@ -48,8 +48,10 @@ def test_stacked_adam_is_pytorch_adam_per_map():
     assert opt.m[0].shape == (1, 8, 4)
 
 
-class _Line:
-    """A toy problem with the Fit interface: fit y = a·x (1 input, 1 output); goal: validation MSE."""
+class _Line(Problem):
+    """A toy Problem: fit y = a·x (1 input, 1 output); goal: validation MSE."""
+
+    POOL = {"X": "X", "Y": "Y"}
 
     def __init__(self, a, goal, seed):
         self.a, self.goal, self.net = a, goal, None
@@ -59,15 +61,6 @@ class _Line:
         x = torch.as_tensor(self.rng.uniform(-1, 1, (4096, 1)), dtype=torch.float32)
         self.X, self.Y = x, a * x
         self.xv = torch.linspace(-1, 1, 257)[:, None]
-
-    def pool(self):
-        return {"X": self.X, "Y": self.Y}
-
-    def release_pool(self):
-        self.X = self.Y = None
-
-    def constants(self):
-        return {}
 
     def rows_loss(self, out, batch, const):
         return ((out - batch["Y"]) ** 2).mean(-1).mean(-1)

@@ -70,8 +70,9 @@ def plan_jobs(lens, cfg, paths: str | None = None, jobs: int = 1) -> list:
     return out, ranking, selected
 
 
-def _job(lens, cfg, paths: str, out_path: str, workdir: str) -> str:
-    """One job (runs in a Ray worker): train ``paths`` of ``lens`` into ``out_path``; returns it."""
+def _job(lens, cfg, paths: str, out_path: str, workdir: str) -> tuple:
+    """One job (runs in a Ray worker): train ``paths`` of ``lens`` into ``out_path``; returns (out_path,
+    wall seconds of this attempt)."""
     from .trainer import train_lens
     t0 = time.perf_counter()
     train_lens(lens, cfg, out_path, paths=paths, workdir=workdir, progress=False)

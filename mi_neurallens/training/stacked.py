@@ -13,17 +13,9 @@ derivative 1 − y² as its backward; without a compiler, ``torch.tanh``.
 
 A map leaves the stack when it meets its goals (``NetConfig.goals``), stops improving (``patience``) or
 the group's budget ends; the stack then shrinks, so finished maps cost nothing.  What each network's
-problem is — its sample pool, loss, validation and fresh data — stays with its ``*Fit`` class
-(:class:`~mi_neurallens.training.trainer.RegressorFit`, ``ClassifierFit``,
-:class:`~mi_neurallens.training.stop_head.StopFit`); this module only runs them together:
-
-* ``fit.pool()`` → dict of pool tensors ``(N, ·)`` (rows are samples);
-* ``fit.constants()`` → dict of per-map loss constants (tensors broadcasting against a batch);
-* ``fit.rows_loss(out, batch, const)`` → the loss of a batch (``out``: the network's outputs on
-  ``batch["X"]``), reduced over the sample axis only (so a
-  ``(K, B, ·)`` batch with ``(K, 1, ·)`` constants gives ``(K,)``);
-* ``fit.fresh_rows(k)`` → dict of ``k`` new pool rows; ``fit.validate(step, loss, seconds)`` →
-  (score, postfix) with ``fit.net`` the map's own network; ``fit.goals_met()`` → bool.
+problem is — its sample pool, loss, validation and fresh data — stays with its :class:`Problem` (the
+interface, below: :class:`~mi_neurallens.training.trainer.RegressorFit`, ``ClassifierFit``,
+:class:`~mi_neurallens.training.stop_head.StopFit`); this module only runs them together.
 
 Checkpoints (``<ckpt>.safetensors`` + ``.json``: weights, Adam moments, best weights, per-map state;
 tensors only) are written every ``CHECKPOINT_SECONDS`` and at the end; a rerun resumes, and a finished
@@ -46,6 +38,60 @@ CPU_STACK_ROWS = 32768
 POOL_BYTES = 3 << 30
 
 _ACT = {}
+
+
+# ----------------------------------------------------------------------------- the interface
+class Problem:
+    """One network's training problem, as :func:`train_stack` runs it.
+
+    * :meth:`pool` → dict of pool tensors ``(N, ·)`` (rows are samples), read from the attributes that
+      :attr:`POOL` names (pool name → attribute; an attribute that is None is left out);
+    * :meth:`constants` → dict of per-map loss constants (tensors broadcasting against a batch);
+    * :meth:`rows_loss` ``(out, batch, const)`` → the loss of a batch (``out``: the network's outputs on
+      ``batch["X"]``), reduced over the sample axis only, so a ``(K, B, ·)`` batch with ``(K, 1, ·)``
+      constants gives ``(K,)``;
+    * :meth:`fresh_rows` ``(k)`` → dict of ``k`` new pool rows; :meth:`validate` ``(step, loss, seconds)`` →
+      (score, postfix), lower is better, with ``self.net`` the map's own network, appending to
+      ``self.state["history"]``; :meth:`goals_met` → whether the last validation met the goals.
+    """
+
+    POOL: dict = {}
+
+    def pool(self) -> dict:
+        return {n: getattr(self, a) for n, a in self.POOL.items() if getattr(self, a) is not None}
+
+    def release_pool(self):
+        """Drop this problem's own pool (the stack holds a copy)."""
+        for a in self.POOL.values():
+            setattr(self, a, None)
+
+    def constants(self) -> dict:
+        return {}
+
+    def rows_loss(self, out, batch, const):
+        raise NotImplementedError
+
+    def fresh_rows(self, k: int) -> dict:
+        raise NotImplementedError
+
+    def validate(self, step, loss, seconds):
+        raise NotImplementedError
+
+    def goals_met(self) -> bool:
+        raise NotImplementedError
+
+
+def lr_at(step: int, nc, seconds: float = 0.0) -> float:
+    """Learning rate.  ``paper``: lr·decay^(step // decay_every).  ``fast``: linear warm-up, then a
+    cosine from lr to lr_min whose progress is the larger of the step fraction and the fraction of the
+    wall-clock budget used, so the decay completes whichever limit is hit first."""
+    if nc.schedule == "paper":
+        return nc.lr * nc.decay ** (step // max(nc.decay_every, 1))
+    if step < nc.warmup_steps:
+        return nc.lr * (step + 1) / nc.warmup_steps
+    t = min(max((step - nc.warmup_steps) / max(nc.max_steps - nc.warmup_steps, 1),
+                seconds / max(nc.max_minutes * 60.0, 1e-9)), 1.0)
+    return nc.lr_min + 0.5 * (nc.lr - nc.lr_min) * (1.0 + math.cos(math.pi * t))
 
 
 # ----------------------------------------------------------------------------- the activation
@@ -242,7 +288,7 @@ def stack_size(dev, batch: int) -> int:
 
 def train_stack(torch, dev, fits, nc, *, seeds, n_in: int, n_out: int, keys, ckpt: str | None = None,
                 progress: bool = True, desc: str = "", log=None):
-    """Train one network per problem in ``fits`` (all of one kind and shape, ``nc`` their settings) in
+    """Train one network per :class:`Problem` in ``fits`` (all of one kind and shape, ``nc`` their settings) in
     stacks of :func:`stack_size` maps, one after the other.  Returns a list of ``{"layers", "state"}`` (the
     best weights by each map's validation score) in the order of ``fits``.  ``keys``: the maps' names
     (checkpoints and progress); ``seeds``: one per map (initial weights)."""
@@ -325,7 +371,7 @@ def _train_one_stack(torch, dev, fits, nc, *, seeds, n_in: int, n_out: int, keys
                 pools.write(j, fits[i].fresh_rows(k), rng)
             pools.shuffle(rng)
         seconds = time.perf_counter() - t0
-        lr = _lr(step, nc, seconds / K)       # the schedule's clock: the stack's budget is K × max_minutes
+        lr = lr_at(step, nc, seconds / K)       # the schedule's clock: the stack's budget is K × max_minutes
         batch = pools.batch(int(rng.integers(0, pools.n - nc.batch + 1)), nc.batch)
         loss = fits[active[0]].rows_loss(net.forward(batch["X"]), batch, pools.const)
         loss.sum().backward()
@@ -370,11 +416,6 @@ def _train_one_stack(torch, dev, fits, nc, *, seeds, n_in: int, n_out: int, keys
     if ckpt:
         save_stack(ckpt, keys, net, opt, states, best, active, step)
     return [{"layers": StackedMLP.layers(best[i]), "state": states[i]} for i in range(K)]
-
-
-def _lr(step, nc, seconds):
-    from .trainer import lr_at
-    return lr_at(step, nc, seconds)
 
 
 # ----------------------------------------------------------------------------- progress and ETA

@@ -23,6 +23,7 @@ from ..errors import NeuralLensError
 from .config import NetConfig
 from .data import PathSampler, RegressorStream
 from .evaluate import heldout_valid, stop_errors
+from .stacked import Problem
 from .trainer import _torch, fit_output_transform, pick_device
 
 
@@ -33,16 +34,18 @@ def odd_columns(x_wy: np.ndarray, s_max: float, k: int) -> np.ndarray:
     return M
 
 
-class StopFit:
+class StopFit(Problem):
     """One stop head's training problem (pool, targets, loss, validation, fresh data) for
     :func:`~mi_neurallens.training.stacked.train_stack`.
 
     The network's output ``p`` times ``M`` relates to the crossings ``s`` (N, 2k) by
     ``s = M·(shift + skip·xn) + oscale·(M·p)``."""
 
-    def __init__(self, torch, dev, net, stream, val, pool0, *, center, scale_in, s_max, k, transform, rng,
+    POOL = {"X": "X", "Y": "Y"}         # normalised inputs, standardised crossings
+
+    def __init__(self, torch, dev, net, stream, val, pool0, *, center, scale_in, s_max, k, transform,
                  state, nc: NetConfig, log=None, desc="stop head"):
-        self.torch, self.dev, self.net, self.stream, self.rng, self.nc = torch, dev, net, stream, rng, nc
+        self.torch, self.dev, self.net, self.stream, self.nc = torch, dev, net, stream, nc
         self.center, self.scale_in, self.s_max, self.k = center, scale_in, float(s_max), int(k)
         self.skip, self.shift, self.oscale = transform
         self.state, self.log, self.desc = state, log, desc
@@ -75,15 +78,6 @@ class StopFit:
         return p * self.oscale + odd_columns(x[:, 2], self.s_max, self.k) * (self.shift + xn @ self.skip.T)
 
     # -- the pieces :func:`~mi_neurallens.training.stacked.train_stack` runs --------------------------
-    def pool(self):
-        return {"X": self.X, "Y": self.Y}
-
-    def release_pool(self):
-        self.X = self.Y = None
-
-    def constants(self):
-        return {}
-
     def rows_loss(self, out, batch, const):
         """Mean squared error of the standardised crossings, reduced over the samples ((B,) or (K, B)).
         The maps of one stack share the domain (the ωy scale of M)."""
@@ -162,7 +156,7 @@ def train_stop_heads(lens, tms, nc: NetConfig, *, seeds, fresnel: bool = True, m
         state = {"step": 0, "best_val": math.inf, "best_step": 0, "history": [], "evals_since_best": 0,
                  "seconds": 0.0, "samples": 0}
         fits.append(StopFit(torch, dev, None, stream, (xv, yv[:, 5:]), (x0, s0), center=center, scale_in=scale_in,
-                            s_max=s_max, k=k, transform=tr, rng=np.random.default_rng(seeds[j]), state=state,
+                            s_max=s_max, k=k, transform=tr, state=state,
                             nc=nc, log=log, desc=f"{tm.key} stop head"))
     if len(ks) != 1:
         raise NeuralLensError(f"train_stop_heads: one stack needs one crossing count, got {sorted(ks)}")

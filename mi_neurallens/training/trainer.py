@@ -21,6 +21,7 @@ import dataclasses
 import json
 import math
 import os
+import sys
 import time
 
 import numpy as np
@@ -30,6 +31,7 @@ from ..errors import NeuralLensError
 from ..fileio import atomic_write_text
 from .config import NetConfig, TrainConfig
 from .data import Domain, PathSampler, RegressorStream, classifier_samples
+from .stacked import Problem
 
 CLASSIFIER_VALIDATION = 400_000   # rays uniform over the domain that pick the classifier's best weights
 
@@ -63,19 +65,6 @@ def net_layers(net) -> list:
     import torch
     return [(m.weight.detach().cpu().double().numpy(), m.bias.detach().cpu().double().numpy())
             for m in net if isinstance(m, torch.nn.Linear)]
-
-
-def lr_at(step: int, nc: NetConfig, seconds: float = 0.0) -> float:
-    """Learning rate.  ``paper``: lr·decay^(step // decay_every).  ``fast``: linear warm-up, then a
-    cosine from lr to lr_min whose progress is the larger of the step fraction and the fraction of the
-    wall-clock budget used, so the decay completes whichever limit is hit first."""
-    if nc.schedule == "paper":
-        return nc.lr * nc.decay ** (step // max(nc.decay_every, 1))
-    if step < nc.warmup_steps:
-        return nc.lr * (step + 1) / nc.warmup_steps
-    t = min(max((step - nc.warmup_steps) / max(nc.max_steps - nc.warmup_steps, 1),
-                seconds / max(nc.max_minutes * 60.0, 1e-9)), 1.0)
-    return nc.lr_min + 0.5 * (nc.lr - nc.lr_min) * (1.0 + math.cos(math.pi * t))
 
 
 # ----------------------------------------------------------------------------- output standardisation
@@ -203,7 +192,7 @@ def train_regressors(problems, nc: NetConfig, *, ckpt: str | None = None, thread
         else:
             transform = tuple(np.asarray(state[n]) for n in ("skip", "shift", "oscale"))
         fits.append(RegressorFit(torch, dev, None, nc, stream, p["val"], (u0, x0, y0),
-                                 rng=np.random.default_rng(p["seed"]), state=state, heading=p["heading"],
+                                 state=state, heading=p["heading"],
                                  center=center, scale_in=scale_in, transform=transform, odd_s=odd_s, log=log,
                                  desc=f"{p['key']} regressor" if len(problems) > 1 else desc))
     res = train_stack(torch, dev, fits, nc, seeds=[p["seed"] for p in problems], n_in=4, n_out=5, keys=keys,
@@ -218,7 +207,7 @@ def train_regressors(problems, nc: NetConfig, *, ckpt: str | None = None, thread
     return out
 
 
-class RegressorFit:
+class RegressorFit(Problem):
     """One regressor's training problem, its pieces as methods (what :func:`train_regressor` runs and
     tests call): the sample pool and its targets, the loss, validation and pool refresh.
 
@@ -227,10 +216,12 @@ class RegressorFit:
     the odd-y factor (1 unless ``odd_s``).  ``pool0`` = (u, x, y) of the first pool.
     """
 
-    def __init__(self, torch, dev, net, nc: NetConfig, stream, val, pool0, *, rng, state, heading: int,
+    POOL = {"X": "X", "Y": "Y", "Yraw": "Yraw", "W": "Wedge"}   # inputs, targets, raw outputs, edge weights
+
+    def __init__(self, torch, dev, net, nc: NetConfig, stream, val, pool0, *, state, heading: int,
                  center, scale_in, transform, odd_s, log=None, desc="regressor"):
         self.torch, self.dev, self.net, self.nc, self.stream = torch, dev, net, nc, stream
-        self.rng, self.state, self.heading, self.log, self.desc = rng, state, heading, log, desc
+        self.state, self.heading, self.log, self.desc = state, heading, log, desc
         self.center, self.scale_in, self.odd_s = center, scale_in, odd_s
         self.skip, self.shift, self.oscale = transform
         self.T_skip, self.T_shift, self.T_scale = (self.f32(v) for v in transform)
@@ -286,16 +277,6 @@ class RegressorFit:
         return self.net(xb) * M, M
 
     # -- the pieces :func:`~mi_neurallens.training.stacked.train_stack` runs --------------------------
-    def pool(self):
-        """The sample pool: normalised inputs X, targets Y, raw outputs Yraw (and edge weights W)."""
-        out = {"X": self.X, "Y": self.Y, "Yraw": self.Yraw}
-        if self.Wedge is not None:
-            out["W"] = self.Wedge
-        return out
-
-    def release_pool(self):
-        self.X = self.Y = self.Yraw = self.Wedge = None
-
     def constants(self):
         """This map's loss constants, shaped to broadcast against a (B, ·) batch (stacked: (K, B, ·))."""
         t = self.torch
@@ -407,9 +388,11 @@ def train_classifiers(problems, nc: NetConfig, *, ckpt: str | None = None, threa
     return res
 
 
-class ClassifierFit:
+class ClassifierFit(Problem):
     """One classifier's training problem, its pieces as methods (what :func:`train_classifier` runs and
     tests call): the labelled (or margin-target) pool, the loss, validation and pool refresh."""
+
+    POOL = {"X": "X", "L": "L"}         # inputs, training targets (labels or scaled margins)
 
     def __init__(self, torch, dev, net, nc: NetConfig, ps: PathSampler, valid_u_source, val, *, rng, state,
                  center, scale_in, log=None, desc="classifier"):
@@ -448,15 +431,6 @@ class ClassifierFit:
         return (torch.relu(lo - logit) ** 2 + torch.relu(logit - hi) ** 2).mean(-1)
 
     # -- the pieces :func:`~mi_neurallens.training.stacked.train_stack` runs --------------------------
-    def pool(self):
-        return {"X": self.X, "L": self.L}
-
-    def release_pool(self):
-        self.X = self.L = None
-
-    def constants(self):
-        return {}
-
     def rows_loss(self, out, batch, const):
         """The loss of a batch ((B, ·) or stacked (K, B, ·); ``out``: the logits), reduced over the samples:
         the margin interval loss or binary cross-entropy."""
@@ -841,7 +815,6 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
                                  f"{sorted(base_model.maps)}")
             bases = [base_model.maps[f"{direction}.{t[0]}"] for t in group]
         if progress:
-            import sys
             print(f"{lens.name}: training {len(group)} {direction} map(s) together: "
                   f"{', '.join(str(t[0]) for t in group)}", file=sys.stderr, flush=True)
         tms = train_maps(lens, group, cfg, workdir, progress=progress, log=log, keep=keep, bases=bases)
