@@ -27,6 +27,7 @@ import time
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 from mi_neurallens.constants import LAMBDA_D  # noqa: E402
+from mi_neurallens.render_utils import add_variant_argument  # noqa: E402
 
 LENSES = ("wide-22mm", "ood-59mm", "canon-ef-24mm-f1.4l")
 SCENES = ("still_life", "chart", "bokeh", "night")
@@ -57,7 +58,7 @@ def main(argv=None):
     ap.add_argument("--lenses", default=",".join(LENSES))
     ap.add_argument("--scenes", default=",".join(SCENES))
     ap.add_argument("--mults", default="1,2,4,8")
-    ap.add_argument("--variant", default="llvm_ad_rgb")
+    add_variant_argument(ap)
     ap.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "aperture.json"))
     ap.add_argument("--speed", action="store_true",
                     help="only the cost of the iris: camera rays/s of both sensors at each f-number (idle machine)")

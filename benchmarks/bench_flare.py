@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse, os, platform, time
 
 from mi_neurallens.fileio import atomic_write_json
+from mi_neurallens.render_utils import default_variant
 
 
 def main(argv=None):
@@ -24,7 +25,7 @@ def main(argv=None):
     a = p.parse_args(argv)
     import mitsuba as mi
     import drjit as dr
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(default_variant())
     import mi_neurallens as nl
     nl.register()
     from mi_neurallens.flare.render import FlareOptions, FlareRenderer

@@ -17,6 +17,7 @@ import time
 import numpy as np
 
 from mi_neurallens.fileio import atomic_write_json
+from mi_neurallens.render_utils import default_variant
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -30,7 +31,7 @@ def main(argv=None):
     a = ap.parse_args(argv)
     import drjit as dr
     import mitsuba as mi
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(default_variant())
     from mi_neurallens import Lens
     from mi_neurallens.neural.model import bundled_model_path, load_model
     from mi_neurallens.trace.tracer import LensTracer

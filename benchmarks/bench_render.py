@@ -21,6 +21,7 @@ import time
 import xml.etree.ElementTree as ET
 
 from mi_neurallens.fileio import atomic_write_json
+from mi_neurallens.render_utils import add_variant_argument, default_variant
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -119,7 +120,7 @@ def furnace_table(mi):
     rows = []
     print("| setting | variant | centre | mid-edge | corner |")
     print("|---|---|---|---|---|")
-    for variant in ("llvm_ad_rgb", "llvm_ad_spectral"):
+    for variant in (default_variant(), default_variant("spectral")):
         mi.set_variant(variant)
         import mi_neurallens
         mi_neurallens.register()
@@ -144,7 +145,7 @@ def main(argv=None):
     p.add_argument("--spp", type=int, default=64)
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--lens", default="wide-22mm")
-    p.add_argument("--variant", default="llvm_ad_rgb")
+    add_variant_argument(p)
     p.add_argument("--pupil-table", action="store_true", help="also measure pupil-sampling pass fractions")
     p.add_argument("--furnace", action="store_true", help="also render the wide-22mm furnace table")
     p.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "bench_render.json"))

@@ -46,8 +46,9 @@ def main(argv=None):
                          "exit rays) that split the error between the regressor and the classifier")
     a = ap.parse_args(argv)
     import mitsuba as mi
-    mi.set_variant("llvm_ad_rgb")
     sys.path.insert(0, ROOT)
+    from mi_neurallens.render_utils import default_variant
+    mi.set_variant(default_variant())
     from scipy.ndimage import binary_erosion
     from mi_neurallens.commands.render import load_scene
     from mi_neurallens.fileio import atomic_write_json
@@ -57,7 +58,7 @@ def main(argv=None):
     HybridFlare = _hybrid_renderer()
     model = a.model or bundled_model_path(a.lens)
     ghosts = load_model(model).ghost_ids if a.ghosts == ["all"] else [int(g) for g in a.ghosts]
-    scene = load_scene(os.path.join(ROOT, "scenes", "night_point.xml"), variant="llvm_ad_rgb", lens=a.lens,
+    scene = load_scene(os.path.join(ROOT, "scenes", "night_point.xml"), variant=default_variant(), lens=a.lens,
                        sensor_type="neural_lens", sets=[f"model={model}"] + a.sets)
     n = 1 << a.samples
     rows = []

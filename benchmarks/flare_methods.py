@@ -26,6 +26,7 @@ import os
 import time
 
 from mi_neurallens.fileio import atomic_write_json
+from mi_neurallens.render_utils import default_variant
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 METHODS = ("exact", "neural", "fitted", "taylor5", "taylor3", "abcd")
@@ -41,7 +42,7 @@ def main(argv=None):
     ap.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "flare_methods.json"))
     a = ap.parse_args(argv)
     import mitsuba as mi
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(default_variant())
     from mi_neurallens.commands.render import load_scene
     from mi_neurallens.flare.render import render_flare
     from mi_neurallens.metrics import mape_masked
@@ -54,7 +55,7 @@ def main(argv=None):
         ghosts = load_model(bundled_model_path(lens)).ghost_ids
         n = len(ghosts)
         for fres in [x for x in a.fresnel.split(",") if x]:
-            scene = load_scene(os.path.join(ROOT, "scenes", "night_point.xml"), variant="llvm_ad_rgb", lens=lens,
+            scene = load_scene(os.path.join(ROOT, "scenes", "night_point.xml"), variant=default_variant(), lens=lens,
                                sensor_type="neural_lens",
                                sets=[f"model={lens}", f"fresnel={'true' if fres == 'on' else 'false'}"])
             t0 = time.perf_counter()

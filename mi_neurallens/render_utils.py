@@ -4,6 +4,7 @@ Nothing here sets a Mitsuba variant; functions that need Mitsuba import it lazil
 """
 from __future__ import annotations
 
+import os
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -11,6 +12,28 @@ import numpy as np
 from .fileio import atomic_write
 
 from .errors import NeuralLensError
+
+
+#: environment variable naming the Mitsuba variant of the command line, the benchmarks and the tests
+VARIANT_ENV = "MI_NEURALLENS_VARIANT"
+
+
+def default_variant(kind: str = "rgb") -> str:
+    """The Mitsuba variant the command line, the benchmarks and the tests use unless told otherwise:
+    ``$MI_NEURALLENS_VARIANT`` or ``llvm_ad_rgb``.  ``kind="spectral"``: its spectral sibling
+    (``cuda_ad_rgb`` → ``cuda_ad_spectral``).  ``MI_NEURALLENS_VARIANT=cuda_ad_rgb`` runs them on a GPU."""
+    v = os.environ.get(VARIANT_ENV, "").strip() or "llvm_ad_rgb"
+    if kind == "rgb":
+        return v
+    if kind == "spectral":
+        return v.replace("_rgb", "_spectral").replace("_mono", "_spectral")
+    raise NeuralLensError(f"default_variant(kind={kind!r}): use 'rgb' or 'spectral'")
+
+
+def add_variant_argument(parser) -> None:
+    """``--variant`` for an argparse parser (commands and benchmarks), defaulting to :func:`default_variant`."""
+    parser.add_argument("--variant", default=default_variant(),
+                        help=f"Mitsuba variant (default: ${VARIANT_ENV} or llvm_ad_rgb; now {default_variant()})")
 
 
 # ----------------------------------------------------------------------------- output

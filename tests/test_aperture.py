@@ -13,6 +13,7 @@ import pytest
 from mi_neurallens.constants import LAMBDA_D
 from mi_neurallens.neural.model import bundled_model_path, load_model
 from mi_neurallens.optics.prescription import Lens
+from mi_neurallens.render_utils import default_variant
 from mi_neurallens.trace.iris import Iris
 from mi_neurallens.transport.exact import ExactMap
 
@@ -145,7 +146,7 @@ def test_learned_map_with_an_iris_passes_what_the_tracer_passes(scale, blades, r
 def test_a_model_without_stop_head_keeps_the_clear_error(tmp_path):
     mi = pytest.importorskip("mitsuba")
     import mi_neurallens as nl
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(default_variant())
     nl.register()
     m = load_model(MODEL)
     for tm in m.maps.values():
@@ -168,7 +169,7 @@ def test_blades_near_wide_open_are_a_clear_error_where_they_cannot_be_rendered()
     the pupil bounds crashed on a lens validation error)."""
     mi = pytest.importorskip("mitsuba")
     import mi_neurallens as nl
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(default_variant())
     nl.register()
     film = {"type": "hdrfilm", "width": 8, "height": 8}
     n0 = Lens.load("wide-22mm").paraxial(LAMBDA_D).fnumber
@@ -189,7 +190,7 @@ def test_blades_near_wide_open_are_a_clear_error_where_they_cannot_be_rendered()
 def _mitsuba():
     mi = pytest.importorskip("mitsuba")
     import mi_neurallens as nl
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(default_variant())
     nl.register()
     return mi
 
@@ -283,7 +284,7 @@ def test_neural_ghosts_take_the_iris(tmp_path):
     path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "scenes", "night_point.xml")
 
     def scene(model="wide-22mm", rotation=0.0):
-        return load_scene(path, variant="llvm_ad_rgb", lens="wide-22mm", sensor_type="neural_lens",
+        return load_scene(path, variant=default_variant(), lens="wide-22mm", sensor_type="neural_lens",
                           sets=[f"model={model}", f"fstop={N!r}", "blades=6", f"blade_rotation={rotation!r}"])
 
     g, n = 2560, 1 << 22
@@ -321,19 +322,19 @@ def test_neural_and_exact_flares_select_the_same_ghosts():
     for k in (1.0, 4.0):
         for kind in ("realistic_lens", "neural_lens"):
             sets = [f"fstop={k * N0!r}"] + (["model=wide-22mm"] if kind == "neural_lens" else [])
-            sc = load_scene(path, variant="llvm_ad_rgb", lens="wide-22mm", sensor_type=kind, sets=sets)
+            sc = load_scene(path, variant=default_variant(), lens="wide-22mm", sensor_type=kind, sets=sets)
             picked[k, kind] = FlareRenderer(sc, 0, FlareOptions()).ghost_ids()
         assert picked[k, "neural_lens"] == picked[k, "realistic_lens"], k
     assert picked[1.0, "neural_lens"] != picked[4.0, "neural_lens"]
     # night_point.xml keeps the trained focus, so the neural flare read the stored ranking ...
-    sc = load_scene(path, variant="llvm_ad_rgb", lens="wide-22mm", sensor_type="neural_lens",
+    sc = load_scene(path, variant=default_variant(), lens="wide-22mm", sensor_type="neural_lens",
                     sets=["model=wide-22mm"])
     fr = FlareRenderer(sc, 0, FlareOptions())
     assert fr.ranking() == fr.model.extra["ghost_ranking"]
     # ... night.xml focuses at 6 m, where ood-59mm's 32nd ghost by energy is another one than at the
     # model's focus: ranked on the configured lens, the selections still agree
     night = os.path.join(os.path.dirname(path), "night.xml")
-    ids = {kind: FlareRenderer(load_scene(night, variant="llvm_ad_rgb", lens="ood-59mm", sensor_type=kind,
+    ids = {kind: FlareRenderer(load_scene(night, variant=default_variant(), lens="ood-59mm", sensor_type=kind,
                                           sets=["model=ood-59mm"] if kind == "neural_lens" else []),
                                0, FlareOptions()).ghost_ids()
            for kind in ("realistic_lens", "neural_lens")}

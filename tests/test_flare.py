@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 mi = pytest.importorskip("mitsuba")
-mi.set_variant("llvm_ad_rgb")
+from mi_neurallens.render_utils import default_variant  # noqa: E402
+mi.set_variant(default_variant())
 import drjit as dr  # noqa: E402
 
 import mi_neurallens as nl  # noqa: E402

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from mi_neurallens.errors import GlassError
+from mi_neurallens.render_utils import default_variant
 from mi_neurallens.optics import catalogs, glass as G
 from mi_neurallens.optics.glass import (AIR, LAMBDA_C, LAMBDA_D, LAMBDA_E, LAMBDA_F, Medium,
                                         catalog_glass, constant, lines_glass, model_glass,
@@ -417,7 +418,7 @@ def test_to_dict_from_dict_round_trip_every_formula():
 # ------------------------------------------------------------------ Dr.Jit evaluation
 def test_dr_index_matches_index_for_every_formula():
     mi = pytest.importorskip("mitsuba")
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(default_variant())
     lam = np.linspace(300.0, 900.0, 241)  # includes table extrapolation
     lam32 = np.asarray(mi.Float(lam), dtype=np.float64)
     media = _one_of_each()

@@ -9,7 +9,7 @@ import pytest
 mi = pytest.importorskip("mitsuba")
 
 from mi_neurallens.cli import main  # noqa: E402
-from mi_neurallens.render_utils import apply_sensor_overrides, tonemap  # noqa: E402
+from mi_neurallens.render_utils import apply_sensor_overrides, default_variant, tonemap  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCENES = os.path.join(ROOT, "scenes")
@@ -46,7 +46,7 @@ def test_overrides_reach_the_sensor(tmp_path):
     ia, ib = read_exr(str(a)), read_exr(str(b))
     assert ia.mean() > 1.3 * ib.mean()
     scene = __import__("mi_neurallens.commands.render", fromlist=["load_scene"]).load_scene(
-        os.path.join(SCENES, "chart.xml"), variant="llvm_ad_rgb", lens="dgauss-50mm", sets=["fstop=16"])
+        os.path.join(SCENES, "chart.xml"), variant=default_variant(), lens="dgauss-50mm", sets=["fstop=16"])
     s = str(scene.sensors()[0])
     assert "dgauss-50mm" in s and "f/16" in s
 
@@ -108,3 +108,18 @@ def test_focus_overrides_replace_each_other():
     assert 'name="sensor_distance"' in out and "focus_distance" not in out
     back = apply_sensor_overrides(out, sets=["focus_distance=2"])
     assert 'name="focus_distance"' in back and "sensor_distance" not in back
+
+
+def test_variant_env_sets_the_default_of_commands_benchmarks_and_tests(monkeypatch):
+    """$MI_NEURALLENS_VARIANT (how benchmarks/gpu_suite.sh runs everything on cuda_ad_rgb) is the default
+    --variant of the rendering commands, and its spectral sibling follows it."""
+    from mi_neurallens.cli import build_parser
+    from mi_neurallens.errors import NeuralLensError
+    monkeypatch.delenv("MI_NEURALLENS_VARIANT", raising=False)
+    assert (default_variant(), default_variant("spectral")) == ("llvm_ad_rgb", "llvm_ad_spectral")
+    monkeypatch.setenv("MI_NEURALLENS_VARIANT", "cuda_ad_rgb")
+    assert (default_variant(), default_variant("spectral")) == ("cuda_ad_rgb", "cuda_ad_spectral")
+    for cmd in (["render", "s.xml"], ["compare", "s.xml"], ["flare", "s.xml"]):
+        assert build_parser().parse_args(cmd).variant == "cuda_ad_rgb", cmd
+    with pytest.raises(NeuralLensError):
+        default_variant("polarized")

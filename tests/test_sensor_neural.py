@@ -13,8 +13,9 @@ mi = pytest.importorskip("mitsuba")
 import mi_neurallens as nl  # noqa: E402
 from mi_neurallens.metrics import mape  # noqa: E402
 from mi_neurallens.neural.model import bundled_model_path, load_model  # noqa: E402
+from mi_neurallens.render_utils import default_variant  # noqa: E402
 
-RGB, SPECTRAL = "llvm_ad_rgb", "llvm_ad_spectral"
+RGB, SPECTRAL = default_variant(), default_variant("spectral")   # $MI_NEURALLENS_VARIANT
 MODEL = bundled_model_path("wide-22mm")
 
 pytestmark = pytest.mark.skipif(not os.path.exists(MODEL), reason="bundled wide-22mm model not trained yet")

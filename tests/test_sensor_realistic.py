@@ -13,10 +13,11 @@ import drjit as dr  # noqa: E402
 import mi_neurallens as nl  # noqa: E402
 from mi_neurallens.optics.glass import AIR, constant  # noqa: E402
 from mi_neurallens.optics.prescription import Lens, Surface  # noqa: E402
+from mi_neurallens.render_utils import default_variant  # noqa: E402
 from mi_neurallens.sensors.common import configure_lens  # noqa: E402
 from mi_neurallens.sensors.pupil import PupilBounds, measure_pass_fraction  # noqa: E402
 
-RGB, SPECTRAL = "llvm_ad_rgb", "llvm_ad_spectral"
+RGB, SPECTRAL = default_variant(), default_variant("spectral")   # $MI_NEURALLENS_VARIANT
 
 
 def use(variant=RGB):

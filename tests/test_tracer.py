@@ -10,6 +10,7 @@ from conftest import bundled_names, plate
 from mi_neurallens import Lens
 from mi_neurallens.errors import NeuralLensError
 from mi_neurallens.optics.prescription import Coating
+from mi_neurallens.render_utils import default_variant
 from mi_neurallens.trace.paths import all_ghosts, ghost_id, ghost_surfaces, resolve_path
 
 WAVELENGTHS = (450.0, 550.0, 650.0)
@@ -323,7 +324,7 @@ def test_mitsuba_variants_match_numpy(wide22):
     rng = np.random.default_rng(9)
     o, d = field_rays(wide22, 512, 15, rng)
     ref = wide22.trace(o, d, 600.0)
-    for variant in ("llvm_ad_rgb", "llvm_ad_spectral"):
+    for variant in (default_variant(), default_variant("spectral")):
         mi.set_variant(variant)
         F = mi.Float
         res = LensTracer(wide22).trace(tuple(F(o[:, i]) for i in range(3)),

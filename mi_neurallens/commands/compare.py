@@ -19,6 +19,8 @@ import json
 import os
 import time
 
+from ..render_utils import add_variant_argument
+
 
 def add_parser(subparsers):
     p = subparsers.add_parser("compare", help="realistic_lens vs neural_lens side by side (PNG + MAPE table)",
@@ -33,7 +35,7 @@ def add_parser(subparsers):
                    help="sensor property for all three renders (repeatable)")
     p.add_argument("-D", dest="params", action="append", default=[], metavar="NAME=VALUE",
                    help="XML parameter ($NAME) value (repeatable)")
-    p.add_argument("--variant", default="llvm_ad_rgb")
+    add_variant_argument(p)
     p.add_argument("--out", "-o", help="output folder (default: out/compare-<scene>)")
     p.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops")
     p.add_argument("--no-progress", action="store_true")

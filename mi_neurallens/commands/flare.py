@@ -22,6 +22,7 @@ import time
 import numpy as np
 
 from ..metrics import mape_masked as mape  # the flare MAPE (definition in mi_neurallens.metrics)
+from ..render_utils import add_variant_argument
 
 
 def add_parser(subparsers):
@@ -42,7 +43,7 @@ def add_parser(subparsers):
     p.add_argument("--coating", choices=("lens", "none", "quarter_wave"), default="lens")
     p.add_argument("--blades", type=int)
     p.add_argument("--resolution", help="film size WxH")
-    p.add_argument("--variant", default="llvm_ad_rgb")
+    add_variant_argument(p)
     p.add_argument("-D", dest="params", action="append", default=[], metavar="NAME=VALUE")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops")

@@ -15,6 +15,8 @@ import os
 import sys
 import time
 
+from ..render_utils import add_variant_argument
+
 
 def add_parser(subparsers):
     p = subparsers.add_parser("render", help="render a Mitsuba XML scene (EXR + PNG)",
@@ -22,7 +24,7 @@ def add_parser(subparsers):
     p.add_argument("scene", help="Mitsuba XML scene file")
     p.add_argument("-o", "--output", help="output EXR (default: <scene name>.exr in the current directory)")
     p.add_argument("--spp", type=int, help="samples per pixel (overrides the scene's sampler)")
-    p.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (default: llvm_ad_rgb)")
+    add_variant_argument(p)
     p.add_argument("--lens", help="lens of the sensor: bundled name or file (sets the sensor's 'lens')")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                    help="set a sensor property (repeatable), e.g. --set fstop=8 --set focus_distance=2; "
