@@ -1,0 +1,61 @@
+#!/usr/bin/env bash
+# Build .whl/: the Python packages a GPU machine without package access lacks (Dr.Jit and Mitsuba), as
+# wheels for its Python, Mitsuba trimmed to the variants benchmarks/gpu_suite.sh uses so that wheels
+# and the working tree together stay under a 64 MiB transfer limit.
+#
+#   bash scripts/gpu_carry.sh [PYTHON_VERSION]      (default 3.12; needs pip and the package index)
+#
+# Then, on the GPU machine, from the repository root:  bash benchmarks/gpu_suite.sh
+# (it installs .whl/*.whl into /tmp/site with pip --no-index and puts it on PYTHONPATH).
+#
+# Kept Mitsuba variants: $KEEP_VARIANTS (default below).  Dropped: the other variants' extension
+# modules and the C++ headers, nothing the kept variants load; RECORD is rewritten to match.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PYV="${1:-3.12}"
+TAG="cp${PYV/./}"
+KEEP_VARIANTS="${KEEP_VARIANTS:-scalar_rgb llvm_ad_rgb llvm_ad_spectral cuda_ad_rgb cuda_ad_spectral}"
+MITSUBA="${MITSUBA_VERSION:-3.9.1}"
+DRJIT="${DRJIT_VERSION:-1.5.0}"
+OUT=.whl
+mkdir -p "$OUT"
+grep -qx '/.whl/' .git/info/exclude 2>/dev/null || grep -qx '.whl/' .gitignore || echo '/.whl/' >> .git/info/exclude
+
+tmp=$(mktemp -d)
+trap 'rm -rf "$tmp"' EXIT
+python3 -m pip download -q --no-deps --only-binary=:all: --python-version "$PYV" --implementation cp \
+    --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \
+    --platform manylinux2014_x86_64 -d "$tmp" "mitsuba==$MITSUBA" "drjit==$DRJIT"
+rm -f "$OUT"/mitsuba-*.whl "$OUT"/drjit-*.whl
+cp "$tmp"/drjit-*.whl "$OUT"/
+
+python3 - "$tmp"/mitsuba-*.whl "$OUT" "$KEEP_VARIANTS" <<'EOF'
+"""Copy the Mitsuba wheel without the unused variants' modules and the headers, RECORD rewritten."""
+import os, re, sys, zipfile
+src, out, keep = sys.argv[1], sys.argv[2], set(sys.argv[3].split())
+variant = re.compile(r"^mitsuba/((?:scalar|llvm|cuda)_[a-z_]+)\.cpython-[^/]+\.so$")
+def dropped(name):
+    m = variant.match(name)
+    return (m is not None and m.group(1) not in keep) or name.startswith("mitsuba/include/")
+dst = os.path.join(out, os.path.basename(src))
+kept = gone = 0
+with zipfile.ZipFile(src) as zi, zipfile.ZipFile(dst, "w", zipfile.ZIP_LZMA) as zo:
+    for info in zi.infolist():
+        if dropped(info.filename):
+            gone += info.file_size
+            continue
+        data = zi.read(info)
+        if info.filename.endswith(".dist-info/RECORD"):
+            rows = [r for r in data.decode().splitlines() if r and not dropped(r.split(",")[0])]
+            data = ("\n".join(rows) + "\n").encode()
+        info.compress_type = zipfile.ZIP_LZMA   # pip extracts with zipfile, which reads LZMA
+        zo.writestr(info, data)
+        kept += info.file_size
+print(f"{dst}: kept {kept / 2**20:.1f} MiB unpacked, dropped {gone / 2**20:.1f} MiB "
+      f"(variants kept: {' '.join(sorted(keep))}); {os.path.getsize(dst) / 2**20:.1f} MiB on disk")
+EOF
+git ls-files -z | python3 -c '
+import glob, os, sys
+tree = sum(os.path.getsize(f) for f in sys.stdin.read().split("\0") if f and os.path.isfile(f))
+whl = sum(os.path.getsize(f) for f in glob.glob(".whl/*.whl"))
+print(f"tracked tree {tree / 2**20:.1f} MiB + wheels {whl / 2**20:.1f} MiB = {(tree + whl) / 2**20:.1f} MiB (limit 64 MiB)")'
