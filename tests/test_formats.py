@@ -87,6 +87,7 @@ BUNDLED_REF = {  # name -> (wavelength, EFL, BFL, f-number)
     "fisheye-10mm": (LAMBDA_D, 9.9914, 23.1605, 3.95),
     "telephoto-250mm": (LAMBDA_D, 249.5666, 105.0704, 5.42),
     "canon-ef-24mm-f1.4l": (LAMBDA_D, 24.8151, 38.2150, 1.45),
+    "canon-rf-24mm-f1.4l-vcm": (LAMBDA_D, 24.7131, 15.1677, 1.46),
 }
 
 
@@ -128,7 +129,7 @@ def schema_ok(doc) -> bool:
 # ============================================================================ bundled lenses
 def test_bundled_names():
     assert set(F.bundled_lenses()) == {"wide-22mm", "ood-59mm", "canon-ef-24mm-f1.4l", "dgauss-50mm",
-                                       "fisheye-10mm", "telephoto-250mm"}
+                                       "fisheye-10mm", "telephoto-250mm", "canon-rf-24mm-f1.4l-vcm"}
 
 
 @pytest.mark.parametrize("name", sorted(BUNDLED_REF))
@@ -139,11 +140,11 @@ def test_bundled_paraxial_matches_formats_md(name):
     assert p.efl == pytest.approx(efl, abs=1.5e-4)
     assert p.bfl == pytest.approx(bfl, abs=1.5e-4)
     assert p.fnumber == pytest.approx(fno, abs=6e-3)
-    # the image plane sits at the BFL: pbrt files are focused at infinity, the Canon file keeps the
-    # patent's last d (36.467, which is not the paraxial BFL)
+    # the image plane sits at the BFL: pbrt files are focused at infinity, the Canon files keep the
+    # patents' last d (EF: 36.467, not the paraxial BFL; RF: 15.18, focused at 49.7 m)
     last = lens.surfaces[-1].thickness
     if name.startswith("canon"):
-        assert last == 36.467
+        assert last == {"canon-ef-24mm-f1.4l": 36.467, "canon-rf-24mm-f1.4l-vcm": 15.18}[name]
     else:
         assert last == pytest.approx(bfl, abs=1.5e-4)
 
@@ -166,7 +167,7 @@ def test_bundled_ood_59mm():
 
 
 @pytest.mark.parametrize("name", ["wide-22mm", "ood-59mm", "canon-ef-24mm-f1.4l", "dgauss-50mm",
-                                  "fisheye-10mm", "telephoto-250mm"])
+                                  "fisheye-10mm", "telephoto-250mm", "canon-rf-24mm-f1.4l-vcm"])
 def test_bundled_files_validate_and_round_trip(name, tmp_path):
     import jsonschema
     path = F.bundled_lens_path(name)

@@ -265,6 +265,12 @@ BUNDLED: dict[str, dict] = {
         description="Canon EF 24mm f/1.4L USM (JP H11-030743 A, Numerical Example 6); a candidate for the "
                     "paper's 'Canon 24 mm', whose own prescription is not public",
         reference="JP 1999-030743 A (JP H11-030743 A), Numerical Example 6, Canon / M. Misaka"),
+    "canon-rf-24mm-f1.4l-vcm": dict(
+        file="other/CanonRF24mmF14LVCM.json", repository="ronbuening/LensVisualizer",
+        path="src/lens-data/canon/CanonRF24mmF14LVCM.data.ts", commit="bf55b14f5ebdf8234ffb11cbace476fddb39b236",
+        description="Canon RF 24mm F1.4 L VCM (JP 2025-15010 A, Numerical Example 3): a modern many-element "
+                    "lens, 15 elements in 27 surfaces, two aspheres",
+        reference="JP 2025-15010 A, Numerical Example 3, Canon / K. Shinohara, Y. Matsuba"),
 }
 
 
