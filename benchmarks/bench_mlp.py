@@ -2,7 +2,7 @@
 literal weights (the default) vs Dr.Jit cooperative vectors (``drjit.nn``), beside the exact
 tracer on the same rays, in one run.  Also the kernel compile time of each (cold, in-process).
 
-    python benchmarks/bench_mlp.py [--lens wide-22mm] [--rays 22] [--repeats 5]
+    python benchmarks/bench_mlp.py [--lens wide-22mm] [--model FILE] [--rays 22] [--repeats 5]
 
 Prints a markdown table and writes benchmarks/results/bench_mlp.json.  The bar (issue 5):
 >= 10 M rays/s for classifier + regressor on this 2-core CPU.
@@ -25,6 +25,9 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--lens", default="wide-22mm")
+    ap.add_argument("--model", help="model file (default: the bundled model of --lens)")
+    ap.add_argument("--without-stop-head", action="store_true",
+                    help="leave the stop head out (the sensor at the trained aperture does not evaluate it)")
     ap.add_argument("--rays", type=int, default=22)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "bench_mlp.json"))
@@ -37,8 +40,10 @@ def main(argv=None):
     from mi_neurallens.trace.tracer import LensTracer
 
     lens = Lens.load(a.lens)
-    model = load_model(bundled_model_path(a.lens), lens)
+    model = load_model(a.model or bundled_model_path(a.lens), lens)
     tm = model.map("transmit", "backward")
+    if a.without_stop_head:
+        tm.stop_head = None
     n = 1 << a.rays
     rng = np.random.default_rng(0)
     d = tm.domain if isinstance(tm.domain, dict) else tm.domain.to_dict()   # a Domain since the transport spine
@@ -88,14 +93,17 @@ def main(argv=None):
     f = np.stack([v.numpy() for v in fused()], 1)
     c = np.stack([v.numpy() for v in coop()], 1)
     rows["neural, cooperative vectors"]["max_abs_diff_vs_fused"] = float(np.abs(f - c).max())
-    print(f"{a.lens}, backward transmit map (classifier 2x32 + regressor 5x32, tanh), 2^{a.rays} rays, "
+    widths = [[np.shape(W)[0] for W, _ in net][:-1] for net in (tm.classifier, tm.regressor)]
+    print(f"{a.lens}, backward transmit map (classifier {widths[0]}, regressor {widths[1]}, tanh"
+          f"{', stop head' if tm.stop_head is not None else ''}), 2^{a.rays} rays, "
           f"{dr.thread_count()} threads, best of {a.repeats}")
     print("| evaluation | Mrays/s | first call incl. compile (s) |")
     print("|---|---|---|")
     for k, r in rows.items():
         print(f"| {k} | {r['mrays_per_s']:.1f} | {r['first_call_s']:.2f} |")
     print(f"cooperative vectors vs fused: max |diff| = {rows['neural, cooperative vectors']['max_abs_diff_vs_fused']:.2e}")
-    res = {"lens": a.lens, "rays": n, "threads": dr.thread_count(), "machine": platform.processor() or platform.machine(),
+    res = {"lens": a.lens, "model": a.model or "bundled", "hidden_widths": widths, "rays": n,
+           "threads": dr.thread_count(), "machine": platform.processor() or platform.machine(),
            "cpus": os.cpu_count(), "rows": rows}
     atomic_write_json(a.out, res, indent=2)
     print(f"wrote {a.out}")
