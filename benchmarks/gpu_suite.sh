@@ -4,6 +4,9 @@
 #   bash scripts/gpu_carry.sh                  # here, once: .whl/ = drjit + a trimmed mitsuba for Python 3.12
 #   bash benchmarks/gpu_suite.sh STAGE [STAGE…]   # there (repository root), with .whl carried
 #
+# With the device tool: run(command="bash benchmarks/gpu_suite.sh tests bench", carry=[".whl"],
+# timeout_s=600), then the same with "train" and with "ghosts"; results.tar.gz comes back under files_at.
+#
 # Stages (each fits one 10-minute call; run `tests bench` in one call, `train` in another):
 #   setup   install .whl/*.whl into /tmp/site (pip --no-index), print the GPU and the Mitsuba variants
 #   tests   the sensor, flare and aperture tests under cuda_ad_rgb ($MI_NEURALLENS_VARIANT)
