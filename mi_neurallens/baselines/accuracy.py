@@ -27,6 +27,7 @@ import time
 import numpy as np
 
 from ..constants import ARCSEC_PER_RAD, FULL_FRAME_HALF_DIAGONAL_MM
+from ..jit import from_numpy
 from ..metrics import mape_masked
 from ..trace import symmetry
 from .common import bundled_model, default_domain, default_map_planes
@@ -101,9 +102,9 @@ def time_eval_dr(m, o, d, lam, repeats: int = 3) -> float:
     import drjit as dr
     from ..trace.api import float_type
     F = float_type("float32")
-    O = tuple(F(np.ascontiguousarray(o[:, i], np.float32)) for i in range(3))
-    D = tuple(F(np.ascontiguousarray(d[:, i], np.float32)) for i in range(3))
-    L = F(np.ascontiguousarray(lam, np.float32))
+    O = tuple(from_numpy(F, o[:, i]) for i in range(3))
+    D = tuple(from_numpy(F, d[:, i]) for i in range(3))
+    L = from_numpy(F, lam)
     dr.eval(O, D, L)
     best = math.inf
     for k in range(repeats + 1):

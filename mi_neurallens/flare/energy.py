@@ -21,6 +21,7 @@ import math
 import numpy as np
 
 from ..constants import FULL_FRAME_MM
+from ..jit import from_numpy
 from ..transport.planning import select_ghosts  # noqa: F401 (the one selection rule, re-exported)
 
 
@@ -96,7 +97,7 @@ def _ranking_cached(lens, w, h, fresnel, n_rays, n_angles, seed, ghost_ids):
         lams.append(_cie_y_samples(rng, n_rays))
         # flux per ray per unit irradiance: projected sampled area / n
         wts.append(np.full(n_rays, math.pi * R * R * math.cos(th) / n_rays / n_angles))
-    cat = lambda xs: F(np.concatenate(xs).astype(np.float32))
+    cat = lambda xs: from_numpy(F, np.concatenate(xs))
     o = (cat(ox), cat(oy), cat([np.full(n_rays, z_in)] * n_angles))
     d = (cat(dxs), cat(dys), cat(dzs))
     lam = cat(lams)

@@ -46,6 +46,7 @@ import numpy as np
 
 from ..constants import FULL_FRAME_MM, LUMINANCE_WEIGHTS
 from ..errors import ModelError
+from ..jit import from_numpy
 from ..trace.iris import Iris
 from .energy import front_radius, ghost_energy_ranking, input_plane, select_ghosts, trivial_ghost
 from .lights import scene_lights
@@ -405,8 +406,8 @@ class FlareRenderer:
         rng = mi.PCG32(size=n, initseq=mi.UInt64(dr.arange(mi.UInt32, n))
                          + dr.opaque(mi.UInt64, (0x51ed * (seed + 1) + 7 * ev_hash(ev)) & 0xFFFFFFFF))
         cid = np.repeat(cells, S).astype(np.uint32)
-        cx = mi.Float(x0[cid].astype(np.float32))
-        cy = mi.Float(y0[cid].astype(np.float32))
+        cx = from_numpy(mi.Float, x0[cid])
+        cy = from_numpy(mi.Float, y0[cid])
         c_o, R_o = dr.opaque(mi.Float, c), dr.opaque(mi.Float, R)
         qx = cx + rng.next_float32() * c_o
         qy = cy + rng.next_float32() * c_o
@@ -455,8 +456,8 @@ class FlareRenderer:
             ncell = len(cells)
             nc = dr.opaque(mi.UInt32, ncell)
             k = dr.minimum(mi.UInt32(u[0] * mi.Float(nc)), nc - 1)
-            cxs = mi.Float(cells[:, 0].astype(np.float32))
-            cys = mi.Float(cells[:, 1].astype(np.float32))
+            cxs = from_numpy(mi.Float, cells[:, 0])
+            cys = from_numpy(mi.Float, cells[:, 1])
             qx = dr.gather(mi.Float, cxs, k) + u[1] * c
             qy = dr.gather(mi.Float, cys, k) + u[2] * c
             area = ncell * c_ * c_

@@ -32,6 +32,7 @@ import numpy as np
 
 from ..constants import FULL_FRAME_HALF_DIAGONAL_MM, LAMBDA_C, LAMBDA_D, LAMBDA_F
 from ..errors import LensError
+from ..jit import from_numpy
 
 FIELD_FRACTIONS = (0.0, 0.7, 1.0)
 FIELD_COLORS = ("#1f6fb4", "#1a9850", "#d7301f")
@@ -115,10 +116,10 @@ def _raw_points(lens, o, d, wl):
     wl = np.broadcast_to(np.asarray(wl, dtype=np.float64), (len(o),))
     (o, d, wl), n = _pad(o, d, wl)
     F = float_type("float64")
-    col = lambda a, k: F(np.ascontiguousarray(a[:, k]))
+    col = lambda a, k: from_numpy(F, a[:, k])
     res = tracer_for(lens, False).trace(tuple(col(o, k) for k in range(3)),
                                         tuple(col(d, k) for k in range(3)),
-                                        F(np.ascontiguousarray(wl)), "transmit", "forward", record=True)
+                                        from_numpy(F, wl), "transmit", "forward", record=True)
     pts = np.stack([np.stack([c.numpy() for c in p], 1) for p in res.points], 1).astype(np.float64)
     return pts[:n]
 

@@ -28,6 +28,7 @@ import math
 
 import numpy as np
 
+from ..jit import from_numpy
 from .common import LensSetup
 
 EXIT_PUPIL, REAR_ELEMENT = "exit_pupil", "rear_element"
@@ -222,7 +223,7 @@ class PupilBounds:
 
     def _tables(self, mi):
         if self._dr is None:
-            self._dr = tuple(mi.Float(np.asarray(a, dtype=np.float32)) for a in (self.cx, self.ax, self.ay))
+            self._dr = tuple(from_numpy(mi.Float, a) for a in (self.cx, self.ax, self.ay))
         return self._dr
 
     def sample(self, mi, dr, fx, fy, u):

@@ -11,6 +11,7 @@ from functools import lru_cache
 import numpy as np
 
 from ..errors import NeuralLensError
+from ..jit import from_numpy
 
 
 @dataclass
@@ -88,11 +89,11 @@ def trace(lens, origins, directions, wavelength_nm, direction: str = "forward", 
     lam = np.broadcast_to(np.asarray(wavelength_nm, dtype=wd), (n,))
     if not np.all(np.isfinite(lam)) or np.any(lam <= 0):
         raise NeuralLensError("wavelength_nm must be positive and finite (nanometres)")
-    cols = lambda a: tuple(F(np.ascontiguousarray(a[:, i], dtype=dt)) for i in range(3))
+    cols = lambda a: tuple(from_numpy(F, a[:, i]) for i in range(3))
     tr = tracer_for(lens, bool(fresnel))
     dx, dy, dz = cols(d)
     inv = 1.0 / dr.sqrt(dx * dx + dy * dy + dz * dz)          # normalised in the kernel
-    res = tr.trace(cols(o), (dx * inv, dy * inv, dz * inv), F(np.ascontiguousarray(lam, dtype=dt)), path,
+    res = tr.trace(cols(o), (dx * inv, dy * inv, dz * inv), from_numpy(F, lam), path,
                    direction, z_out=z_out, record=record)
     # invalid rays: NaN position and direction, zero throughput (selected in the kernel as well)
     position = [dr.select(res.valid, c, dr.nan) for c in res.position]

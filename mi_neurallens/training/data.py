@@ -23,6 +23,7 @@ import time
 import numpy as np
 
 from ..errors import NeuralLensError
+from ..jit import from_numpy
 from ..transport.planning import Domain, sample_cie_wavelength
 
 #: names of the reduced input and output columns
@@ -88,7 +89,7 @@ class PathSampler:
     def _columns(self, a: np.ndarray) -> list:
         """(N, 4) numpy → 4 Dr.Jit arrays of this sampler's precision."""
         a = np.asarray(a)
-        return [self.F(np.ascontiguousarray(a[:, i], dtype=self.np_dtype)) for i in range(4)]
+        return [from_numpy(self.F, a[:, i]) for i in range(4)]
 
     def trace_x(self, x: np.ndarray):
         """Reduced inputs (N, 4) → (valid (N,), outputs (N, :attr:`n_out`) float64, NaN where invalid)."""

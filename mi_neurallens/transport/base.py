@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import NeuralLensError
+from ..jit import from_numpy
 from ..trace import symmetry
 
 
@@ -163,9 +164,9 @@ class TransportMap:
         d = np.asarray(d, np.float64)
         n = len(o)
         lam = np.broadcast_to(np.asarray(lam_nm, np.float64), (n,))
-        col = lambda a, i: F(np.ascontiguousarray(a[:, i]))
+        col = lambda a, i: from_numpy(F, a[:, i])
         res = self.eval_dr(tuple(col(o, i) for i in range(3)), tuple(col(d, i) for i in range(3)),
-                           F(np.ascontiguousarray(lam)))
+                           from_numpy(F, lam))
         return to_numpy(res, n)
 
     def core_reduced_np(self, x):
@@ -174,7 +175,7 @@ class TransportMap:
         import drjit as dr
         F = float64_type()
         x = np.asarray(x, np.float64)
-        xs = [F(np.ascontiguousarray(x[:, i])) for i in range(4)]
+        xs = [from_numpy(F, x[:, i]) for i in range(4)]
         valid, y, logit = self.core_reduced_dr(xs, True)
         arrays = list(y) + ([logit] if logit is not None else [])
         dr.eval(valid, arrays)
