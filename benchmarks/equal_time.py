@@ -78,11 +78,10 @@ def measure_lens(mi, dr, lens, a):
     tr = [r["seconds"] for r in rows["realistic_lens"]]
     tn = [r["seconds"] for r in rows["neural_lens"]]
     mn = [r["mape"] for r in rows["neural_lens"]]
-    for r in rows["realistic_lens"]:
-        m_n = interp_loglog(r["seconds"], tn, mn)
+    for r, t_n in zip(rows["realistic_lens"], tn):      # both rendered the same spp list
         out["equal_time"].append({"spp_realistic": r["spp"], "seconds": r["seconds"], "mape_realistic": r["mape"],
-                                  "mape_neural": m_n, "spp_neural": r["spp"] * r["seconds"] /
-                                  float(np.interp(r["spp"], a.spp, tn))})
+                                  "mape_neural": interp_loglog(r["seconds"], tn, mn),
+                                  "spp_neural": r["spp"] * r["seconds"] / t_n})
     out["time_per_spp_ratio"] = float(np.median(np.array(tn) / np.array(tr)))
     return out
 

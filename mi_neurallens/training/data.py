@@ -50,7 +50,6 @@ class PathSampler:
         self.tracer = self.map.tracer
         self.heading = self.map.heading
         self.F = float_type(precision)
-        self.np_dtype = np.float32 if precision == "float32" else np.float64
         self.rays_traced = 0
         #: optional :class:`~mi_neurallens.training.bounds.ValidBounds` used by :meth:`random_valid`
         self.bounds = None
