@@ -1,6 +1,8 @@
-"""Writing files so that nothing is ever left half-written: the one helper every writer uses."""
+"""Writing files so that nothing is ever left half-written (the one helper every writer uses), and the one
+conversion of results to JSON-ready values."""
 from __future__ import annotations
 
+import math
 import os
 import tempfile
 
@@ -41,3 +43,29 @@ def atomic_write_json(path, obj, indent: int = 1) -> str:
     """:func:`atomic_write_text` of ``obj`` as JSON (numpy scalars written as floats)."""
     import json
     return atomic_write_text(path, json.dumps(obj, indent=indent, default=float))
+
+
+def jsonable(o, round_keys: dict | None = None, digits: int | None = None):
+    """``o`` as JSON-ready Python values: numpy scalars and arrays to floats, ints and lists, non-finite floats
+    to ``None``.  ``round_keys`` maps a key suffix to significant digits: floats anywhere under a key ending in
+    that suffix are rounded to them (``digits`` is the rounding in force; callers leave it out)."""
+    import numpy as np
+    if isinstance(o, dict):
+        out = {}
+        for k, v in o.items():
+            k = str(k)
+            d = next((n for suffix, n in (round_keys or {}).items() if k.endswith(suffix)), digits)
+            out[k] = jsonable(v, round_keys, d)
+        return out
+    if isinstance(o, (list, tuple)):
+        return [jsonable(v, round_keys, digits) for v in o]
+    if isinstance(o, (float, np.floating)):
+        v = float(o)
+        if not math.isfinite(v):
+            return None
+        return float(f"{v:.{digits}g}") if digits else v
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, np.ndarray):
+        return jsonable(o.tolist(), round_keys, digits)
+    return o

@@ -83,6 +83,19 @@ def test_round_trip(model, lens, tmp_path):
     assert {m["key"] for m in doc["maps"]} == set(model.maps)
 
 
+
+def test_training_histories_keep_four_digits_and_metrics_keep_all(model, lens, tmp_path):
+    """The loss curves are a record for people: stored to 4 significant digits, so 32 ghosts' histories do
+    not outweigh their networks; the held-out metrics and everything the renderer reads stay exact."""
+    tm = model.maps["forward.2560"]
+    tm.training = {"regressor_history": [{"step": 500, "loss": 0.123456789, "pos_um_med": 3.14159265}],
+                   "lr": 0.0031234567}
+    tm.metrics = {"pos_um_med": 3.14159265}
+    m2 = load_model(_save(model, tmp_path), lens).maps["forward.2560"]
+    assert m2.training["regressor_history"] == [{"step": 500, "loss": 0.1235, "pos_um_med": 3.142}]
+    assert m2.training["lr"] == 0.0031234567 and m2.metrics == {"pos_um_med": 3.14159265}
+
+
 def _rewrite(p, drop=None, reshape=None, meta_edit=None):
     from safetensors.numpy import load_file, save_file
     from safetensors import safe_open

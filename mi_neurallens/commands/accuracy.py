@@ -59,7 +59,7 @@ def run(args):
     from ..baselines.common import bundled_model
     from ..optics.prescription import Lens
     from ..trace.paths import ghost_surfaces
-    from ..fileio import atomic_write_text
+    from ..fileio import atomic_write_text, jsonable
     lens = Lens.load(args.lens)
     model = bundled_model(lens)
     methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
@@ -95,7 +95,7 @@ def run(args):
     os.makedirs(args.out, exist_ok=True)
     jp = os.path.join(args.out, f"accuracy_{lens.name}.json")
     mp = os.path.join(args.out, f"accuracy_{lens.name}.md")
-    atomic_write_text(jp, json.dumps(_jsonable(doc), indent=1))
+    atomic_write_text(jp, json.dumps(jsonable(doc), indent=1))
     atomic_write_text(mp, md)
     print(md)
     print(f"wrote {jp} and {mp}")
@@ -110,23 +110,6 @@ def _argv(args):
     if args.fitted_valid != "auto":
         out += ["--fitted-valid", args.fitted_valid]
     return out
-
-
-def _jsonable(o):
-    import math
-    import numpy as np
-    if isinstance(o, dict):
-        return {str(k): _jsonable(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_jsonable(v) for v in o]
-    if isinstance(o, (float, np.floating)):
-        v = float(o)
-        return v if math.isfinite(v) else None
-    if isinstance(o, np.integer):
-        return int(o)
-    if isinstance(o, np.ndarray):
-        return _jsonable(o.tolist())
-    return o
 
 
 def _g(v, fmt="{:.3g}"):

@@ -54,9 +54,14 @@ import struct
 import numpy as np
 
 from ..errors import ModelError
+from ..fileio import jsonable
 from ..transport.base import TransportMap
 from ..transport.planning import Domain
 from .mlp import ACTIVATIONS, mlp_dr
+
+#: floats under a ``*history`` key (the training record's loss curves, read by people and never by the renderer)
+#: keep 4 significant digits: at full precision they were most of a model file's bytes
+HISTORY_KEY_DIGITS = {"history": 4}
 
 FORMAT = "mi-neurallens-transport-maps"
 FORMAT_VERSION = 1
@@ -332,7 +337,7 @@ class NeuralLensModel:
         for m in self.maps.values():
             tensors.update(m._tensors())
         meta = {"format": FORMAT, "format_version": str(FORMAT_VERSION),
-                "model": json.dumps(_jsonable(self.metadata()), sort_keys=True)}
+                "model": json.dumps(jsonable(self.metadata(), HISTORY_KEY_DIGITS), sort_keys=True)}
         from ..fileio import atomic_write
         atomic_write(path, lambda tmp: save_file(tensors, tmp, metadata=meta))
 
@@ -341,21 +346,6 @@ class NeuralLensModel:
         """Read and validate a model file; with ``lens``, also check it was trained for that lens.
         Every problem raises :class:`~mi_neurallens.errors.ModelError` naming the file."""
         return load_model(path, lens)
-
-
-def _jsonable(o):
-    if isinstance(o, dict):
-        return {str(k): _jsonable(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_jsonable(v) for v in o]
-    if isinstance(o, (np.floating, float)):
-        v = float(o)
-        return v if math.isfinite(v) else None
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    if isinstance(o, np.ndarray):
-        return _jsonable(o.tolist())
-    return o
 
 
 def _read_header(path: str):
