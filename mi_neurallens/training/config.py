@@ -96,6 +96,9 @@ class TrainConfig:
     close_focus_mm: float = 300.0       # nearest object distance (from the first vertex) to support
     film_half_diagonal_mm: float = FULL_FRAME_HALF_DIAGONAL_MM
     field_margin: float = 1.1
+    film_reach: float = 1.5             # forward maps learn the rays landing within this × film_half_diagonal_mm of
+                                        # the axis (at the nearest or farthest sensor plane); the rest count as
+                                        # blocked (0: every ray that passes the lens; transport.planning.Reach)
     mcmc_threshold: float = 0.02        # valid fraction below which regressor data comes from MCMC
     mcmc_chains: int = 1 << 16
     mcmc_p_large: float = 0.3

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..constants import FULL_FRAME_HALF_DIAGONAL_MM, LAMBDA_D
 from ..errors import NeuralLensError
+from ..transport.planning import Reach
 from .data import Domain, PathSampler
 
 
@@ -56,14 +57,23 @@ def planes(lens, s_min: float):
     return z_front, z_rear
 
 
-def forward_domain(lens, z_front: float, field_half_angle_deg: float, margin: float = 1.02) -> Domain:
+def forward_domain(lens, z_front: float, field_half_angle_deg: float, margin: float = 1.02,
+                   reach: Reach | None = None) -> Domain:
     """Rays entering the front within the field: r covers every ray that can still hit the front
-    surface's clear aperture at that angle."""
+    surface's clear aperture at that angle.  ``reach``: the film reach of the maps (:func:`film_reach`)."""
     s = lens.surfaces[lens.optical_indices[0]]
     rim = float(s.sag(s.semi_diameter)) if not s.is_stop else 0.0
     t = math.tan(math.radians(field_half_angle_deg))
     r = (s.semi_diameter + max(rim - z_front, 0.0) * t) * margin
-    return Domain(r_max=r, s_max=min(math.sin(math.radians(field_half_angle_deg)), 0.999))
+    return Domain(r_max=r, s_max=min(math.sin(math.radians(field_half_angle_deg)), 0.999), reach=reach)
+
+
+def film_reach(lens, s_range, radius_mm: float) -> Reach:
+    """The film reach of forward maps (:class:`~mi_neurallens.transport.planning.Reach`): the sensor planes
+    at both ends of the supported sensor distances ``s_range`` (mm behind the last vertex) and ``radius_mm``
+    (the film half diagonal times ``TrainConfig.film_reach``)."""
+    s0, s1 = s_range
+    return Reach(float(lens.total_track + s0), float(lens.total_track + s1), float(radius_mm))
 
 
 def backward_domain(lens, path_id: int, z_rear: float, z_front: float, rng, n: int = 1 << 22,

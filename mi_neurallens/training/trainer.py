@@ -515,6 +515,9 @@ def _check_keep(keep: str | None, base, path_id: int, direction: str, z_in: floa
                        [domain.r_max, domain.s_max, domain.lam_min, domain.lam_max], rtol=1e-9, atol=0.0):
         raise NeuralLensError(f"keep = {keep!r}: the base map {base.key} was trained on another input domain "
                               f"({base.domain}) than this training ({domain.to_dict()})")
+    if bd.reach != domain.reach:
+        raise NeuralLensError(f"keep = {keep!r}: the base map {base.key} was trained with film reach {bd.reach}, "
+                              f"this training with {domain.reach}")
 
 
 def _kept(base, network: str) -> dict:
@@ -764,8 +767,9 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
             pass
     model.extra.update({"software": "mi-neurallens", "training_config": cfg.to_dict()})
     groups = select_maps(cfg, paths)
+    reach = plan.film_reach(lens, (s0, s1), cfg.film_reach * cfg.film_half_diagonal_mm) if cfg.film_reach else None
     fwd_domain = plan.forward_domain(lens, z_front, plan.default_field_half_angle(
-        lens, cfg.film_half_diagonal_mm, cfg.field_margin))
+        lens, cfg.film_half_diagonal_mm, cfg.field_margin), reach=reach)
     todo = []
     for d, p in groups:
         if d == "backward":
@@ -814,6 +818,8 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
                 raise ModelError(f"{base_path}: no map {missing[0]!r} to keep the {keep} of; it has "
                                  f"{sorted(base_model.maps)}")
             bases = [base_model.maps[f"{direction}.{t[0]}"] for t in group]
+            # a kept network was trained on its map's domain: the new ones learn the same (film reach included)
+            group = [(*t[:4], Domain.from_dict(b.domain)) for t, b in zip(group, bases)]
         if progress:
             print(f"{lens.name}: training {len(group)} {direction} map(s) together: "
                   f"{', '.join(str(t[0]) for t in group)}", file=sys.stderr, flush=True)

@@ -16,7 +16,9 @@ class ExactMap(TransportMap):
 
     The tracer is frame independent, so :meth:`eval_dr` traces in lens space; :meth:`core_reduced_dr`
     traces the reduced ray (position (r, 0), direction (ωx, ωy)) for samplers that work in the reduced
-    frame.  ``domain``: optional, the reduced domain for :meth:`core_reduced_dr`'s callers.  Both give
+    frame.  ``domain``: optional, the reduced domain for :meth:`core_reduced_dr`'s callers; its film reach
+    (:class:`~mi_neurallens.transport.planning.Reach`), when it has one, blocks the reduced-frame rays that
+    land outside it (a forward map's training data), not :meth:`eval_dr`'s (flares test the film).  Both give
     the path's stop-plane crossings too (:attr:`stop_crossings` of them); the iris itself is the lens's
     stop, tested by the tracer.
     """
@@ -51,10 +53,18 @@ class ExactMap(TransportMap):
     def trace_reduced(self, x, margin: bool = False, active=True):
         """Reduced inputs ``x = (r, ωx, ωy, λ)`` → the tracer's
         :class:`~mi_neurallens.trace.tracer.TraceResult` (reduced frame; ``margin`` as the tracer's)."""
+        import dataclasses
+        import drjit as dr
         r, wx, wy, lam = x
         (px, py), d = symmetry.reduced_ray(r, wx, wy, self.heading)
-        return self.tracer.trace((px, py, px * 0.0 + self.z_in), d, lam, self.spec, self.direction,
-                                 z_out=self.z_out, margin=margin, active=active)
+        res = self.tracer.trace((px, py, px * 0.0 + self.z_in), d, lam, self.spec, self.direction,
+                                z_out=self.z_out, margin=margin, active=active)
+        reach = getattr(self.domain, "reach", None)
+        if reach is None:
+            return res
+        m = reach.margin_dr(res.position, res.direction)
+        return dataclasses.replace(res, valid=res.valid & (m >= 0.0),
+                                   margin=dr.minimum(res.margin, m) if margin else res.margin)
 
     def core_reduced_dr(self, x, active):
         res = self.trace_reduced(x, active=active)

@@ -9,6 +9,11 @@ The **reduced input domain** (:class:`Domain`, paper §4.1) of a map: ``(r, ωx,
 and λ in [``lam_min``, ``lam_max``] nm.  A sample is addressed by a point ``u`` of the unit cube [0, 1)⁴
 (:meth:`Domain.u_to_x`): ``r = r_max·u0``, ``(ωx, ωy) = s_max·√u1·(cos πu2, sin πu2)``, ``λ`` the CIE
 sample of u3 (:func:`sample_cie_wavelength`).
+
+A forward (flare) map's domain may also carry a **film reach** (:class:`Reach`): the map is defined for the
+rays that come near the film, and a ray that passes the lens but lands far outside it counts as blocked.
+Some ghosts (a reflection between the last two surfaces) leave the lens at grazing angles and land metres
+away; learning those would set the regressor's output scale and cost the film's rays their precision.
 """
 from __future__ import annotations
 
@@ -56,14 +61,46 @@ def cie_u_of_lambda(lam):
     return (_CIE_A - np.tanh((538.0 - lam) / _CIE_C)) / _CIE_B
 
 
+@dataclass(frozen=True)
+class Reach:
+    """The film reach of a forward map: a ray is part of the map only if it passes within ``radius_mm`` of
+    the axis on the plane ``z_near_mm`` or on ``z_far_mm`` (lens space, mm: the sensor plane at the nearest
+    and the farthest sensor distance the model supports; ``radius_mm``: the film's half diagonal times a
+    margin, so the reach's edge lies outside every supported film and never shows in a render)."""
+
+    z_near_mm: float
+    z_far_mm: float
+    radius_mm: float
+
+    def margin_dr(self, position, direction):
+        """The reach margin of exit rays (Dr.Jit): max over the two planes of 1 − r²/R², ≥ 0 inside (the
+        tracer's aperture-margin convention, :attr:`~mi_neurallens.trace.tracer.TraceResult.margin`).
+        ``position`` (x, y, z) and ``direction`` (dx, dy, dz): lens space, mm."""
+        import drjit as dr
+        (x, y, z), (dx, dy, dz) = position, direction
+        inv_r2 = 1.0 / (self.radius_mm * self.radius_mm)
+        m = None
+        for zp in (self.z_near_mm, self.z_far_mm):
+            t = (zp - z) / dz
+            px, py = dr.fma(t, dx, x), dr.fma(t, dy, y)
+            mk = 1.0 - dr.fma(px, px, py * py) * inv_r2
+            m = mk if m is None else dr.maximum(m, mk)
+        return dr.select(dr.isfinite(m), m, -1.0)
+
+    def to_dict(self):
+        return {"z_near_mm": self.z_near_mm, "z_far_mm": self.z_far_mm, "radius_mm": self.radius_mm}
+
+
 @dataclass
 class Domain:
-    """The sampled reduced input domain of one map (lens space, mm)."""
+    """The sampled reduced input domain of one map (lens space, mm), and for forward maps optionally the
+    film reach of its rays (:class:`Reach`; None: every ray that passes the lens)."""
 
     r_max: float
     s_max: float
     lam_min: float = CIE_MIN_NM
     lam_max: float = CIE_MAX_NM
+    reach: Reach | None = None
 
     def u_to_x(self, u: np.ndarray) -> np.ndarray:
         """(N, 4) unit-cube points → (N, 4) reduced inputs (r, ωx, ωy, λ), float64."""
@@ -86,8 +123,11 @@ class Domain:
         return c, s
 
     def to_dict(self):
-        return {"r_max_mm": self.r_max, "s_max": self.s_max, "lambda_min_nm": self.lam_min,
-                "lambda_max_nm": self.lam_max}
+        d = {"r_max_mm": self.r_max, "s_max": self.s_max, "lambda_min_nm": self.lam_min,
+             "lambda_max_nm": self.lam_max}
+        if self.reach is not None:
+            d["reach"] = self.reach.to_dict()
+        return d
 
     def contains_dr(self, x):
         """Mask of the reduced inputs ``x = (r, ωx, ωy, λ)`` (Dr.Jit floats) inside the domain."""
@@ -101,7 +141,9 @@ class Domain:
         """A :class:`Domain` from its :meth:`to_dict` form (a :class:`Domain` is returned as is)."""
         if isinstance(d, Domain):
             return d
-        return Domain(float(d["r_max_mm"]), float(d["s_max"]), float(d["lambda_min_nm"]), float(d["lambda_max_nm"]))
+        reach = Reach(**{k: float(v) for k, v in d["reach"].items()}) if d.get("reach") else None
+        return Domain(float(d["r_max_mm"]), float(d["s_max"]), float(d["lambda_min_nm"]), float(d["lambda_max_nm"]),
+                      reach)
 
 
 # ----------------------------------------------------------------------------- ghost selection
