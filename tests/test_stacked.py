@@ -114,3 +114,19 @@ def test_a_cpu_splits_many_maps_into_stacks_that_fit_its_cache(monkeypatch, tmp_
     got = peek_stack(str(tmp_path / "s.ckpt"), ["a", "b"])
     assert sorted(got) == ["a", "b"] and got["b"]["stop_reason"] == "max_steps"
     assert res[0]["state"]["stop_reason"] == "goals" and res[1]["state"]["stop_reason"] == "max_steps"
+
+
+def test_a_diverged_map_leaves_the_stack_with_its_best_weights_and_the_others_go_on(tmp_path):
+    """A map whose loss turns non-finite stops ("diverged") at the next validation instead of holding its place
+    in the stack until its patience runs out; its neighbours' gradients never see its NaNs."""
+    nc = NetConfig(hidden=2, width=16, lr=1e-2, batch=256, max_steps=600, eval_every=50, patience=10 ** 6,
+                   warmup_steps=10, refresh_every=100, max_minutes=5.0, pool=4096)
+    bad = _Line(0.5, 1e-2, 3)
+    bad.X[7, 0] = math.inf                        # one poisoned row: the first batch holding it gives NaN
+    bad.rng = np.random.default_rng(3)
+    fits = [_Line(0.5, 1e-2, 1), bad]
+    res = train_stack(torch, "cpu", fits, nc, seeds=[1, 2], n_in=1, n_out=1, keys=["a", "b"], progress=False)
+    a, b = (r["state"] for r in res)
+    assert b["stop_reason"] == "diverged" and b["step"] < nc.max_steps
+    assert a["stop_reason"] == "goals" and a["history"][-1]["mse"] <= 1e-2
+    assert all(np.isfinite(W).all() and np.isfinite(c).all() for W, c in res[1]["layers"])

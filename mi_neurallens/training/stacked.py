@@ -311,7 +311,8 @@ def _train_one_stack(torch, dev, fits, nc, *, seeds, n_in: int, n_out: int, keys
     """Train the networks of ``fits`` as one stack (what :func:`train_stack` runs per stack).
 
     A map stops when ``fit.goals_met()`` after a validation (``stop_reason = "goals"``, only when
-    ``nc.stop_at_goals``), after ``nc.patience`` validations without a better score (``"early_stop"``),
+    ``nc.stop_at_goals``), after ``nc.patience`` validations without a better score (``"early_stop"``), when
+    its loss or validation score is no longer finite (``"diverged"``: it keeps its best weights so far),
     at ``nc.max_steps`` or when the stack's wall-clock budget ends (``nc.max_minutes`` per map: K ×
     ``max_minutes`` for the stack, the time the maps would get one at a time)."""
     K = len(fits)
@@ -350,6 +351,10 @@ def _train_one_stack(torch, dev, fits, nc, *, seeds, n_in: int, n_out: int, keys
             f.net = net.one(j)
             with torch.no_grad():
                 score, postfix = f.validate(step, None if loss is None else loss[j], time.perf_counter() - t0)
+            if not math.isfinite(score) or (loss is not None and not bool(torch.isfinite(loss[j]))):
+                finish(i, "diverged")              # its best weights so far stay; the others go on
+                out.append(j)
+                continue
             if score < st["best_val"]:
                 st.update(best_val=score, best_step=step, evals_since_best=0)
                 best[i] = net.snapshot(j)
