@@ -293,6 +293,36 @@ def _model_with_ghost():
     return m, ""
 
 
+
+def test_auto_uses_a_learned_ghost_only_where_it_is_sharp_enough_for_the_film():
+    """Mode auto takes a ghost's learned map only if its held-out median exit-position error is at most
+    ``auto_max_error_px`` pixels of this film, and traces the ghost otherwise: on a 240-pixel-wide full-frame
+    film (150 µm pixels) a 9 µm map is used, on a 2048-pixel film (17.6 µm) it is traced; a map with no
+    recorded accuracy is traced; mode neural uses every map whatever its error."""
+    m, why = _model_with_ghost()
+    if m is None:
+        pytest.skip(why)
+    import copy
+    pid = 2560
+    err = m.map(pid, "forward").metrics["regressor"]["position_um_median"]
+    assert 3.0 < err < 15.0                            # 0.02-0.1 px at 240 px, 0.17-0.85 px at 2048 px
+
+    def kind(w, mode="auto", model=m, **kw):
+        scene = make_scene(point((0.3, 0.2, 5.0)), w=w, h=w * 2 // 3)
+        return FlareRenderer(scene, 0, FlareOptions(mode=mode, model=model, ghosts=[pid], **kw)).evaluator(pid).kind
+
+    assert kind(240) == "neural" and kind(2048) == "exact"
+    assert kind(2048, auto_max_error_px=1.0) == "neural" and kind(240, auto_max_error_px=0.0) == "exact"
+    assert kind(2048, mode="neural") == "neural"
+    blind = copy.copy(m)
+    blind.maps = dict(m.maps)
+    blind.maps[f"forward.{pid}"] = copy.copy(m.maps[f"forward.{pid}"])
+    blind.maps[f"forward.{pid}"].metrics = {}
+    assert kind(240, model=blind) == "exact"
+    with pytest.raises(NeuralLensError, match="auto_max_error"):
+        FlareOptions(auto_max_error_px=-1.0).validate()
+
+
 def test_neural_matches_exact_and_shuffled_fails():
     m, why = _model_with_ghost()
     if m is None:

@@ -34,6 +34,9 @@ def add_parser(subparsers):
     p.add_argument("--mode", choices=("auto", "exact", "neural", "abcd", "taylor3", "taylor5", "fitted"),
                    default="auto", help="ghost evaluator: exact tracer, learned maps, or a baseline")
     p.add_argument("--model", help="neural model: a file or a bundled lens name, e.g. wide-22mm (default: the sensor's model)")
+    p.add_argument("--auto-max-error", type=float, default=0.1, metavar="PX",
+                   help="mode auto: use a learned ghost map only where its held-out median exit-position error "
+                        "is at most PX film pixels, else trace the ghost (default 0.1, the per-ghost flare goal)")
     p.add_argument("--ghost", dest="ghosts", action="append", default=[], metavar="ID",
                    help="render only this ghost (path id or a:b surface pair; repeatable)")
     p.add_argument("--exclude", dest="exclude", action="append", default=[], metavar="ID")
@@ -72,7 +75,8 @@ def run(args) -> int:
     W, H = (int(v) for v in sensor.film().crop_size())
     n = args.samples or (args.spp * W * H if args.spp else 1 << 22)
     kw = dict(samples=int(n), ghosts=parse_id_list(args.ghosts) or None, exclude_ghosts=parse_id_list(args.exclude),
-              max_ghosts=args.max_ghosts, coating=args.coating, blades=args.blades, model=args.model)
+              max_ghosts=args.max_ghosts, coating=args.coating, blades=args.blades, model=args.model,
+              auto_max_error_px=args.auto_max_error)
     out = args.output or os.path.splitext(os.path.basename(args.scene))[0] + "_flare.png"
     base = os.path.splitext(out)[0]
     report = {"scene": args.scene, "samples_per_light": int(n), "film": [W, H]}

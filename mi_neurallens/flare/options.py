@@ -22,6 +22,9 @@ class FlareError(NeuralLensError, ValueError):
 @dataclass
 class FlareOptions:
     mode: str = "auto"                 #: auto | exact | neural | abcd | taylor3 | taylor5 | fitted
+    #: mode auto: a learned ghost map is used where its held-out median exit-position error is at most this many
+    #: film pixels, the tracer elsewhere
+    auto_max_error_px: float = 0.1
     ghosts: list | None = None         #: ghost path ids to render (None: automatic selection)
     exclude_ghosts: list = field(default_factory=list)
     max_ghosts: int = 32               #: cap of the automatic selection
@@ -67,6 +70,8 @@ class FlareOptions:
             raise FlareError(f"lens_flare: 'energy_fraction' must be in (0, 1], got {self.energy_fraction}")
         if self.blades is not None and self.blades != 0 and self.blades < 3:
             raise FlareError(f"lens_flare: 'blades' must be 0 (circular) or >= 3, got {self.blades}")
+        if not self.auto_max_error_px >= 0:
+            raise FlareError(f"lens_flare: 'auto_max_error' must be >= 0 (pixels), got {self.auto_max_error_px}")
         if not self.pilot_grid >= 4 or not self.pilot_spp >= 1:
             raise FlareError("lens_flare: 'pilot_grid' must be >= 4 and 'pilot_spp' >= 1")
         return self

@@ -303,11 +303,18 @@ class FlareRenderer:
                                  f"it has ghost maps {m.ghost_ids}; use mode='auto' (exact for missing ghosts) "
                                  f"or restrict 'ghosts'")
             tmap = self._learned(m.map(pid, "forward"), strict=True)
-        elif m is not None and not self.lens_modified and m.has(pid, "forward"):
+        elif m is not None and not self.lens_modified and m.has(pid, "forward") and self.sharp_enough(m.map(pid, "forward")):
             tmap = self._learned(m.map(pid, "forward"), strict=False) or self.exact_map(pid)
         else:
             tmap = self.exact_map(pid)
         return GhostEvaluator(tmap, self.z_img, self.fresnel)
+
+    def sharp_enough(self, tm) -> bool:
+        """Whether mode ``auto`` may use the learned map ``tm``: its held-out median exit-position error (the
+        model file's ``metrics``; none recorded: no) is at most ``auto_max_error_px`` pixels of this film."""
+        err_um = (tm.metrics.get("regressor") or {}).get("position_um_median")
+        pixel_um = 1000.0 * self.setup.sensor_width_mm / self.size[0]
+        return err_um is not None and err_um <= self.opts.auto_max_error_px * pixel_um
 
     def _learned(self, tm, strict: bool):
         """The learned map ``tm`` with this flare's iris (None, or an error when ``strict``, if it cannot

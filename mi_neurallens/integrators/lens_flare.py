@@ -40,10 +40,17 @@ sensor must be ``realistic_lens`` or ``neural_lens``.
 
  * - mode
    - |string|
-   - ``auto``: the learned ghost maps where the sensor (or ``model``) has them, the tracer otherwise;
-     ``exact``: the tracer for every path; ``neural``: learned maps only (an error names a missing
-     ghost); or a baseline for comparisons: ``abcd``, ``taylor3``, ``taylor5``, ``fitted``
-     (docs/baselines.md).  (Default: ``auto``)
+   - ``auto``: a ghost's learned map where the sensor (or ``model``) has one that is accurate enough for this
+     film (``auto_max_error``), the tracer otherwise; ``exact``: the tracer for every path; ``neural``:
+     learned maps only (an error names a missing ghost); or a baseline for comparisons: ``abcd``,
+     ``taylor3``, ``taylor5``, ``fitted`` (docs/baselines.md).  (Default: ``auto``)
+
+ * - auto_max_error
+   - |float|
+   - ``auto`` uses a learned ghost map only if its held-out median exit-position error (recorded in the model
+     file) is at most this many film pixels; a coarser map is traced instead, so a render never shows a
+     learned ghost less sharp than its pixels.  0.1 px is the per-ghost flare goal (MAPE ≤ 0.01 against
+     the exact ghost).  (Default: 0.1)
 
  * - model
    - |string|
@@ -174,7 +181,7 @@ _PROPS = {
     "small_emitters": ("int", "small_emitters"), "blades": ("int", "blades"),
     "energy_fraction": ("float", "energy_fraction"), "coating_index": ("float", "coating_index"),
     "coating_wavelength": ("float", "coating_wavelength"), "blade_rotation": ("float", "blade_rotation"),
-    "small_emitter_size": ("float", "small_emitter_size"),
+    "small_emitter_size": ("float", "small_emitter_size"), "auto_max_error": ("float", "auto_max_error_px"),
     "mode": ("string", "mode"), "model": ("string", "model"), "ghosts": ("string", "ghosts"),
     "exclude_ghosts": ("string", "exclude_ghosts"), "coating": ("string", "coating"),
     "coating_surfaces": ("string", "coating_surfaces"), "bounds": ("string", "bounds"),

@@ -1,0 +1,105 @@
+"""A lens's whole flare — every ghost of the default selection — learned against traced, at several light
+positions: the numbers a user decides ``lens_flare``'s mode by.
+
+    python benchmarks/complete_flare.py [--lens wide-22mm] [--model FILE] [--before FILE] [--samples 24]
+                                        [--reference 27] [--json OUT]
+
+``scenes/night_point.xml`` (one point light 5 m away, 240×160 full-frame film) with the light at four places
+across the field (``--positions``, x:y in m).  Per position, the default ghost selection of the flare
+renderer (99 % of the ghost energy, at most 32 ghosts) is rendered
+
+* ``exact`` at 2^samples (seed 1): the test budget's noise floor against the reference;
+* ``neural`` at 2^samples (seed 1), every ghost from ``--model`` (it must hold them all);
+* ``auto`` with ``--before`` (e.g. the model as it was before its ghost set was completed: learned where it
+  has a map, traced elsewhere), when given;
+
+each against an exact reference at 2^reference (seed 101): MAPE (``metrics.mape_masked``) and the luminance
+flux ratio; the neural render also paired against an exact one with the same samples (``pilot_with =
+"exact"``: the maps' own error, noise cancelled) and timed against it (second render, kernels compiled).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+POSITIONS = ("0.9:0.45", "0.15:0.1", "1.6:1.0", "-1.2:0.35")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--lens", default="wide-22mm")
+    ap.add_argument("--model", help="model file (default: the bundled model of the lens)")
+    ap.add_argument("--before", help="another model file, rendered in mode auto for comparison")
+    ap.add_argument("--samples", type=int, default=24, help="log2 samples of the test renders (all ghosts)")
+    ap.add_argument("--reference", type=int, default=27, help="log2 samples of the exact reference")
+    ap.add_argument("--positions", default=",".join(POSITIONS), help="light positions x:y (m, at z = 5 m)")
+    ap.add_argument("--json", help="write the rows here")
+    a = ap.parse_args(argv)
+    sys.path.insert(0, ROOT)
+    import numpy as np
+    import mitsuba as mi
+    from mi_neurallens.render_utils import default_variant
+    mi.set_variant(default_variant())
+    from mi_neurallens.commands.render import load_scene
+    from mi_neurallens.fileio import atomic_write_json
+    from mi_neurallens.flare.render import FlareOptions, FlareRenderer
+    from mi_neurallens.metrics import LUMINANCE, mape_masked
+    from mi_neurallens.neural.model import bundled_model_path
+    model = a.model or bundled_model_path(a.lens)
+    n, nref = 1 << a.samples, 1 << a.reference
+
+    def flux(img):
+        return float((img[..., :3] @ LUMINANCE).sum())
+
+    def render(scene, seed, samples, **opts):
+        r = FlareRenderer(scene, 0, FlareOptions(samples=samples, **opts))
+        t0 = time.perf_counter()
+        img = r.render(seed=seed).total
+        return img, time.perf_counter() - t0, r
+
+    rows = []
+    for pos in a.positions.split(","):
+        x, y = pos.split(":")
+        scene = load_scene(os.path.join(ROOT, "scenes", "night_point.xml"), lens=a.lens, sensor_type="neural_lens",
+                           sets=[f"model={model}"], params=[f"light_x={x}", f"light_y={y}"])
+        ref, t_ref, rr = render(scene, 101, nref, mode="exact")
+        ids = [g for g in rr.ghost_ids() if g != 0]
+        row = dict(light_m=[float(x), float(y), 5.0], ghosts=len(ids), log2_samples=a.samples,
+                   reference_log2_samples=a.reference)
+        ex, _, _ = render(scene, 1, n, mode="exact")
+        ex, t_ex, _ = render(scene, 1, n, mode="exact")            # warm: kernels compiled
+        ne, _, _ = render(scene, 1, n, mode="neural")
+        ne, t_ne, _ = render(scene, 1, n, mode="neural")
+        pe, _, _ = render(scene, 1, n, mode="exact", pilot_with="exact")
+        pn, _, _ = render(scene, 1, n, mode="neural", pilot_with="exact")
+        row.update(exact=dict(mape=float(mape_masked(ex, ref)), flux_ratio=flux(ex) / flux(ref), seconds=t_ex),
+                   neural=dict(mape=float(mape_masked(ne, ref)), flux_ratio=flux(ne) / flux(ref), seconds=t_ne,
+                               paired=float(mape_masked(pn, pe)), paired_flux_ratio=flux(pn) / flux(pe)))
+        if a.before:
+            sb = load_scene(os.path.join(ROOT, "scenes", "night_point.xml"), lens=a.lens, sensor_type="neural_lens",
+                            sets=[f"model={a.before}"], params=[f"light_x={x}", f"light_y={y}"])
+            au, _, _ = render(sb, 1, n, mode="auto")
+            au, t_au, _ = render(sb, 1, n, mode="auto")
+            row["auto_before"] = dict(mape=float(mape_masked(au, ref)), flux_ratio=flux(au) / flux(ref), seconds=t_au)
+        rows.append(row)
+        e, nn = row["exact"], row["neural"]
+        line = (f"light ({x}, {y}, 5) m, {len(ids)} ghosts, 2^{a.samples} vs 2^{a.reference}: exact {e['mape']:.4f} "
+                f"(flux {e['flux_ratio']:.4f}, {e['seconds']:.2f} s); neural {nn['mape']:.4f} = "
+                f"{nn['mape'] / e['mape']:.2f}x the floor (flux {nn['flux_ratio']:.4f}, {nn['seconds']:.2f} s), "
+                f"paired {nn['paired']:.4f} (flux {nn['paired_flux_ratio']:.4f})")
+        if a.before:
+            b = row["auto_before"]
+            line += f"; auto with --before {b['mape']:.4f} (flux {b['flux_ratio']:.4f}, {b['seconds']:.2f} s)"
+        print(line, flush=True)
+    if a.json:
+        atomic_write_json(a.json, dict(lens=a.lens, model=os.path.relpath(model, ROOT),
+                                       before=a.before and os.path.relpath(a.before, ROOT), rows=rows,
+                                       command="python " + " ".join([os.path.relpath(__file__, ROOT)] +
+                                                                    (argv or sys.argv[1:]))))
+
+
+if __name__ == "__main__":
+    main()
