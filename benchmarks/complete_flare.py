@@ -10,6 +10,7 @@ renderer (99 % of the ghost energy, at most 32 ghosts) is rendered
 
 * ``exact`` at 2^samples (seed 1): the test budget's noise floor against the reference;
 * ``neural`` at 2^samples (seed 1), every ghost from ``--model`` (it must hold them all);
+* ``auto`` at 2^samples (seed 1) with ``--model``: learned where a map is sharp enough for the film;
 * ``auto`` with ``--before`` (e.g. the model as it was before its ghost set was completed: learned where it
   has a map, traced elsewhere), when given;
 
@@ -73,6 +74,9 @@ def main(argv=None):
         ex, t_ex, _ = render(scene, 1, n, mode="exact")            # warm: kernels compiled
         ne, _, _ = render(scene, 1, n, mode="neural")
         ne, t_ne, _ = render(scene, 1, n, mode="neural")
+        au, _, _ = render(scene, 1, n, mode="auto")
+        au, t_au, _ = render(scene, 1, n, mode="auto")
+        row["auto"] = dict(mape=float(mape_masked(au, ref)), flux_ratio=flux(au) / flux(ref), seconds=t_au)
         pe, _, _ = render(scene, 1, n, mode="exact", pilot_with="exact")
         pn, _, _ = render(scene, 1, n, mode="neural", pilot_with="exact")
         row.update(exact=dict(mape=float(mape_masked(ex, ref)), flux_ratio=flux(ex) / flux(ref), seconds=t_ex),
@@ -81,15 +85,16 @@ def main(argv=None):
         if a.before:
             sb = load_scene(os.path.join(ROOT, "scenes", "night_point.xml"), lens=a.lens, sensor_type="neural_lens",
                             sets=[f"model={a.before}"], params=[f"light_x={x}", f"light_y={y}"])
-            au, _, _ = render(sb, 1, n, mode="auto")
-            au, t_au, _ = render(sb, 1, n, mode="auto")
-            row["auto_before"] = dict(mape=float(mape_masked(au, ref)), flux_ratio=flux(au) / flux(ref), seconds=t_au)
+            ab, _, _ = render(sb, 1, n, mode="auto")
+            ab, t_ab, _ = render(sb, 1, n, mode="auto")
+            row["auto_before"] = dict(mape=float(mape_masked(ab, ref)), flux_ratio=flux(ab) / flux(ref), seconds=t_ab)
         rows.append(row)
         e, nn = row["exact"], row["neural"]
         line = (f"light ({x}, {y}, 5) m, {len(ids)} ghosts, 2^{a.samples} vs 2^{a.reference}: exact {e['mape']:.4f} "
                 f"(flux {e['flux_ratio']:.4f}, {e['seconds']:.2f} s); neural {nn['mape']:.4f} = "
                 f"{nn['mape'] / e['mape']:.2f}x the floor (flux {nn['flux_ratio']:.4f}, {nn['seconds']:.2f} s), "
-                f"paired {nn['paired']:.4f} (flux {nn['paired_flux_ratio']:.4f})")
+                f"paired {nn['paired']:.4f} (flux {nn['paired_flux_ratio']:.4f}); auto {row['auto']['mape']:.4f} "
+                f"(flux {row['auto']['flux_ratio']:.4f}, {row['auto']['seconds']:.2f} s)")
         if a.before:
             b = row["auto_before"]
             line += f"; auto with --before {b['mape']:.4f} (flux {b['flux_ratio']:.4f}, {b['seconds']:.2f} s)"
