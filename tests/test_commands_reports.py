@@ -20,6 +20,18 @@ def test_evaluate_command_writes_reports(tmp_path, capsys):
     assert "pos" in capsys.readouterr().out
 
 
+
+def test_evaluate_recorded_reports_the_files_own_metrics(tmp_path):
+    """``--recorded`` writes the metrics stored at training (no tracing), and says so in the markdown."""
+    from mi_neurallens.neural.model import bundled_model_path, load_model
+    jp, mp = tmp_path / "e.json", tmp_path / "e.md"
+    assert main(["evaluate", "dgauss-50mm", "--recorded", "--json", str(jp), "--markdown", str(mp)]) == 0
+    doc = json.loads(jp.read_text())
+    stored = load_model(bundled_model_path("dgauss-50mm")).maps["backward.0"].metrics
+    assert doc["recorded_at_training"] and doc["maps"]["backward.0"]["regressor"] == stored["regressor"]
+    assert "recorded in the file at training" in mp.read_text()
+
+
 def test_accuracy_command_writes_reports(tmp_path):
     pytest.importorskip("mitsuba")
     assert main(["accuracy", "wide-22mm", "--paths", "2560", "--methods", "abcd,neural", "--n", "2000",
