@@ -85,15 +85,21 @@ def test_round_trip(model, lens, tmp_path):
 
 
 def test_training_histories_keep_four_digits_and_metrics_keep_all(model, lens, tmp_path):
-    """The loss curves are a record for people: stored to 4 significant digits, so 32 ghosts' histories do
-    not outweigh their networks; the held-out metrics and everything the renderer reads stay exact."""
+    """The loss curves are a record for people: stored to 4 significant digits and at most HISTORY_POINTS
+    validations, so 32 ghosts' histories do not outweigh their networks; the held-out metrics and everything the
+    renderer reads stay exact."""
     tm = model.maps["forward.2560"]
+    from mi_neurallens.neural.model import HISTORY_POINTS
     tm.training = {"regressor_history": [{"step": 500, "loss": 0.123456789, "pos_um_med": 3.14159265}],
+                   "classifier_history": [{"step": 500 * (i + 1), "loss": 1.0 / (i + 1)} for i in range(100)],
                    "lr": 0.0031234567}
     tm.metrics = {"pos_um_med": 3.14159265}
     m2 = load_model(_save(model, tmp_path), lens).maps["forward.2560"]
     assert m2.training["regressor_history"] == [{"step": 500, "loss": 0.1235, "pos_um_med": 3.142}]
     assert m2.training["lr"] == 0.0031234567 and m2.metrics == {"pos_um_med": 3.14159265}
+    h = m2.training["classifier_history"]            # a long curve keeps its ends and evenly spaced points
+    assert len(h) == HISTORY_POINTS and h[0]["step"] == 500 and h[-1] == {"step": 50000, "loss": 0.01}
+    assert np.all(np.diff([e["step"] for e in h]) > 0)
 
 
 def _rewrite(p, drop=None, reshape=None, meta_edit=None):

@@ -59,9 +59,25 @@ from ..transport.base import TransportMap
 from ..transport.planning import Domain
 from .mlp import ACTIVATIONS, mlp_dr
 
-#: floats under a ``*history`` key (the training record's loss curves, read by people and never by the renderer)
-#: keep 4 significant digits: at full precision they were most of a model file's bytes
+#: the training record's loss curves (lists under a ``*history`` key; read by people, never by the renderer) keep
+#: 4 significant digits and at most HISTORY_POINTS validations (the first, the last and evenly spaced ones between;
+#: the training log has them all): at full length and precision they were most of a model file's bytes
 HISTORY_KEY_DIGITS = {"history": 4}
+HISTORY_POINTS = 16
+
+
+def _thin_histories(o):
+    """``o`` with every list under a ``*history`` key cut to :data:`HISTORY_POINTS` entries."""
+    if isinstance(o, dict):
+        out = {}
+        for k, v in o.items():
+            if str(k).endswith("history") and isinstance(v, list) and len(v) > HISTORY_POINTS:
+                v = [v[int(i)] for i in np.unique(np.round(np.linspace(0, len(v) - 1, HISTORY_POINTS)))]
+            out[k] = _thin_histories(v)
+        return out
+    if isinstance(o, list):
+        return [_thin_histories(v) for v in o]
+    return o
 
 FORMAT = "mi-neurallens-transport-maps"
 FORMAT_VERSION = 1
@@ -337,7 +353,7 @@ class NeuralLensModel:
         for m in self.maps.values():
             tensors.update(m._tensors())
         meta = {"format": FORMAT, "format_version": str(FORMAT_VERSION),
-                "model": json.dumps(jsonable(self.metadata(), HISTORY_KEY_DIGITS), sort_keys=True)}
+                "model": json.dumps(jsonable(_thin_histories(self.metadata()), HISTORY_KEY_DIGITS), sort_keys=True)}
         from ..fileio import atomic_write
         atomic_write(path, lambda tmp: save_file(tensors, tmp, metadata=meta))
 
