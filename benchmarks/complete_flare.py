@@ -40,7 +40,6 @@ def main(argv=None):
     ap.add_argument("--json", help="write the rows here")
     a = ap.parse_args(argv)
     sys.path.insert(0, ROOT)
-    import numpy as np
     import mitsuba as mi
     from mi_neurallens.render_utils import default_variant
     mi.set_variant(default_variant())
@@ -66,7 +65,7 @@ def main(argv=None):
         x, y = pos.split(":")
         scene = load_scene(os.path.join(ROOT, "scenes", "night_point.xml"), lens=a.lens, sensor_type="neural_lens",
                            sets=[f"model={model}"], params=[f"light_x={x}", f"light_y={y}"])
-        ref, t_ref, rr = render(scene, 101, nref, mode="exact")
+        ref, _, rr = render(scene, 101, nref, mode="exact")
         ids = [g for g in rr.ghost_ids() if g != 0]
         row = dict(light_m=[float(x), float(y), 5.0], ghosts=len(ids), log2_samples=a.samples,
                    reference_log2_samples=a.reference)
