@@ -123,3 +123,24 @@ def test_variant_env_sets_the_default_of_commands_benchmarks_and_tests(monkeypat
         assert build_parser().parse_args(cmd).variant == "cuda_ad_rgb", cmd
     with pytest.raises(NeuralLensError):
         default_variant("polarized")
+
+
+def test_flare_neural_on_a_realistic_lens_scene_takes_the_lens_bundled_model(tmp_path, capsys):
+    """``flare --mode neural`` on a ``realistic_lens`` scene without ``--model`` uses the bundled model of
+    the scene's lens when there is one (the learned ghosts, not an error asking for a model); a lens whose
+    bundled model lacks the ghost gets an error that says how to train it."""
+    import json
+    if not os.path.exists(os.path.join(ROOT, "lenses", "models", "wide-22mm.model.safetensors")):
+        pytest.skip("no bundled wide-22mm model")
+    scene = os.path.join(SCENES, "night_point.xml")
+    js = tmp_path / "flare.json"
+    rc = main(["flare", scene, "--lens", "wide-22mm", "--mode", "neural", "--ghost", "2560", "--samples", "65536",
+               "--resolution", "48x32", "-o", str(tmp_path / "f.png"), "--json", str(js)])
+    assert rc == 0
+    ghosts = json.loads(js.read_text())["neural"]["ghosts"]
+    assert ghosts and all(g["evaluator"] == "neural" and g["path_id"] == 2560 for g in ghosts)
+    assert "wide-22mm.model.safetensors" in capsys.readouterr().err
+    rc = main(["flare", scene, "--lens", "canon-rf-24mm-f1.4l-vcm", "--mode", "neural", "--ghost", "2560",
+               "--samples", "65536", "--resolution", "48x32", "-o", str(tmp_path / "g.png")])
+    err = capsys.readouterr().err
+    assert rc != 0 and "no forward map for path 2560" in err and "mi-neurallens train canon-rf-24mm-f1.4l-vcm" in err

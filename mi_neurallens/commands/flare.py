@@ -33,7 +33,8 @@ def add_parser(subparsers):
     p.add_argument("--lens", help="lens of the sensor (bundled name or file)")
     p.add_argument("--mode", choices=("auto", "exact", "neural", "abcd", "taylor3", "taylor5", "fitted"),
                    default="auto", help="ghost evaluator: exact tracer, learned maps, or a baseline")
-    p.add_argument("--model", help="neural model: a file or a bundled lens name, e.g. wide-22mm (default: the sensor's model)")
+    p.add_argument("--model", help="neural model: a file or a bundled lens name, e.g. wide-22mm (default: the sensor's model, else "
+                   "the bundled model of the sensor's lens when it has one)")
     p.add_argument("--auto-max-error", type=float, default=0.1, metavar="PX",
                    help="mode auto: use a learned ghost map only where its held-out median exit-position error "
                         "is at most PX film pixels, else trace the ghost (default 0.1, the per-ghost flare goal)")
@@ -74,8 +75,22 @@ def run(args) -> int:
     sensor = scene.sensors()[0]
     W, H = (int(v) for v in sensor.film().crop_size())
     n = args.samples or (args.spp * W * H if args.spp else 1 << 22)
+    model = args.model
+    if model is None and (args.compare or args.mode == "neural") and getattr(sensor, "model", None) is None:
+        # a realistic_lens scene: the learned ghosts of its lens's bundled model, when there is one for
+        # this very lens (same fingerprint)
+        from ..errors import ModelError
+        from ..neural.model import bundled_model_path, load_model
+        lens = sensor.setup.base_lens
+        path = bundled_model_path(lens.name)
+        if os.path.exists(path):
+            try:
+                model = load_model(path, lens)
+                print(f"neural ghosts: {path}", file=sys.stderr)
+            except ModelError:
+                pass
     kw = dict(samples=int(n), ghosts=parse_id_list(args.ghosts) or None, exclude_ghosts=parse_id_list(args.exclude),
-              max_ghosts=args.max_ghosts, coating=args.coating, blades=args.blades, model=args.model,
+              max_ghosts=args.max_ghosts, coating=args.coating, blades=args.blades, model=model,
               auto_max_error_px=args.auto_max_error)
     out = args.output or os.path.splitext(os.path.basename(args.scene))[0] + "_flare.png"
     base = os.path.splitext(out)[0]

@@ -300,8 +300,9 @@ class FlareRenderer:
                                  "maps were trained for the lens as it is; use mode='exact'")
             if not m.has(pid, "forward"):
                 raise ModelError(f"lens_flare: the model {m.path or ''} has no forward map for path {pid}; "
-                                 f"it has ghost maps {m.ghost_ids}; use mode='auto' (exact for missing ghosts) "
-                                 f"or restrict 'ghosts'")
+                                 f"it has ghost maps {m.ghost_ids}; use mode='auto' (exact for missing ghosts), "
+                                 f"restrict 'ghosts', or train it (`mi-neurallens train {self.lens.name} "
+                                 f"--paths {pid} --out DIR`, then training/merge_maps.py: docs/training.md)")
             tmap = self._learned(m.map(pid, "forward"), strict=True)
         elif m is not None and not self.lens_modified and m.has(pid, "forward") and self.sharp_enough(m.map(pid, "forward")):
             tmap = self._learned(m.map(pid, "forward"), strict=False) or self.exact_map(pid)
