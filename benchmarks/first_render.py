@@ -1,13 +1,15 @@
 """The first flare render on a fresh kernel cache vs a warm one (issue 18's "one compilation" goal:
 first full-flare neural render on a fresh cache ≤ 2× a warm one).
 
-    python benchmarks/first_render.py [--lens wide-22mm] [--samples 20] [--modes exact,neural]
+    python benchmarks/first_render.py [--lens wide-22mm] [--samples 20] [--modes exact,neural:fused,neural:shared]
 
 Each mode runs in child processes whose ``HOME`` is a new empty folder, so Dr.Jit's kernel cache
 (``~/.drjit``) starts empty: process 1 times its first render (every kernel compiled) and its second
 of the same seed (in-memory cache: the warm time); process 2, same folder, times its first render (kernels
 from the disk cache).  The flare: ``scenes/night_point.xml`` through the lens's neural sensor, every ghost
-the model has a map for, 2^samples forward samples in all.  Prints a markdown table and writes ``benchmarks/results/first_render.json``.
+the model has a map for, 2^samples forward samples in all.  A mode ``neural:M`` sets the flare's ``mlp`` to M
+(``fused``: weights as kernel literals, a kernel per ghost map; ``shared``: kernel parameters, one kernel per
+architecture; plain ``neural``: the flare's default, ``auto``).  Prints a markdown table and writes ``benchmarks/results/first_render.json``.
 """
 from __future__ import annotations
 
@@ -34,18 +36,20 @@ model = bundled_model_path({lens!r})
 ghosts = load_model(model).ghost_ids
 scene = load_scene(os.path.join({root!r}, "scenes", "night_point.xml"), lens={lens!r}, sensor_type="neural_lens",
                    sets=[f"model={{model}}"])
-fr = FlareRenderer(scene, 0, FlareOptions(mode={mode!r}, ghosts=ghosts, samples=1 << {samples}, model=model))
+fr = FlareRenderer(scene, 0, FlareOptions(mode={mode!r}, ghosts=ghosts, samples=1 << {samples}, model=model,
+                                          mlp={mlp!r}))
 times = []
 for k in range(2):                       # the same seed twice: the second render compiles nothing
     t0 = time.perf_counter(); r = fr.render(seed=0); dr.eval(r.total); dr.sync_thread()
     times.append(time.perf_counter() - t0)
-print(json.dumps({{"ghosts": len(ghosts), "first": times[0], "second": times[1]}}))
+print(json.dumps({{"ghosts": len(ghosts), "first": times[0], "second": times[1], "mlp": fr.learned_mlp()}}))
 """
 
 
 def child(home, lens, mode, samples):
     env = dict(os.environ, HOME=home)
-    code = CHILD.format(root=ROOT, lens=lens, mode=mode, samples=samples)
+    mode, _, mlp = mode.partition(":")
+    code = CHILD.format(root=ROOT, lens=lens, mode=mode, samples=samples, mlp=mlp or "auto")
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
     return json.loads(out.strip().splitlines()[-1])
 
@@ -54,7 +58,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--lens", default="wide-22mm")
     ap.add_argument("--samples", type=int, default=20, help="log2 forward samples (split over the ghosts)")
-    ap.add_argument("--modes", default="exact,neural")
+    ap.add_argument("--modes", default="exact,neural:fused,neural:shared")
     ap.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "first_render.json"))
     a = ap.parse_args(argv)
     from mi_neurallens.fileio import atomic_write_json
@@ -63,7 +67,7 @@ def main(argv=None):
         with tempfile.TemporaryDirectory() as home:
             cold = child(home, a.lens, mode, a.samples)
             disk = child(home, a.lens, mode, a.samples)
-        rows[mode] = {"ghosts": cold["ghosts"], "fresh_cache_first_s": cold["first"], "warm_s": cold["second"],
+        rows[mode] = {"ghosts": cold["ghosts"], "mlp": cold["mlp"], "fresh_cache_first_s": cold["first"], "warm_s": cold["second"],
                       "disk_cache_first_s": disk["first"], "fresh_over_warm": cold["first"] / cold["second"],
                       "disk_over_warm": disk["first"] / cold["second"]}
     print(f"{a.lens}, night_point.xml, 2^{a.samples} samples over the ghosts")

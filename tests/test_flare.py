@@ -323,6 +323,31 @@ def test_auto_uses_a_learned_ghost_only_where_it_is_sharp_enough_for_the_film():
         FlareOptions(auto_max_error_px=-1.0).validate()
 
 
+def test_learned_ghosts_share_one_kernel_per_architecture_from_several_maps_on():
+    """mlp = auto: a render with at least SHARED_FROM learned ghost maps evaluates them with kernel parameters
+    (one kernel per architecture), fewer with literals; exact renders and an explicit mlp are left alone."""
+    from mi_neurallens.flare.render import SHARED_FROM
+    from mi_neurallens.neural.model import bundled_model_path, load_model
+    m = load_model(bundled_model_path("wide-22mm"))
+    ids = m.ghost_ids
+    assert len(ids) > SHARED_FROM > 1
+    scene = make_scene(point((0.3, 0.2, 5.0)), w=240, h=160)
+
+    def renderer(ghosts, **kw):
+        return FlareRenderer(scene, 0, FlareOptions(model=m, ghosts=ghosts, **kw))
+
+    assert renderer(ids[:SHARED_FROM]).learned_mlp() == "shared"
+    assert renderer(ids[:SHARED_FROM - 1]).learned_mlp() == "fused"
+    assert renderer(ids, mode="exact").learned_mlp() == "fused"
+    assert renderer(ids[:1], mlp="shared").learned_mlp() == "shared"
+    assert renderer(ids, mlp="fused").learned_mlp() == "fused"
+    r = renderer(ids[:SHARED_FROM], mode="neural")
+    assert r.evaluator(ids[0]).map.mlp == "shared"
+    assert r.evaluator(ids[0]).map.params_pool is m.map(ids[0], "forward").params_pool   # reused across renders
+    with pytest.raises(NeuralLensError, match="'mlp' must be one of"):
+        FlareOptions(mlp="literal").validate()
+
+
 def test_neural_matches_exact_and_shuffled_fails():
     m, why = _model_with_ghost()
     if m is None:

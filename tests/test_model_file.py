@@ -279,3 +279,43 @@ def test_merge_maps_script(tmp_path):
         mm.merge(src, dst_path, ["forward.7"])
     with pytest.raises(ModelError, match="lens"):
         mm.merge(bundled_model_path("ood-59mm"), dst_path)
+
+
+def test_shared_kernel_parameters_one_kernel_per_architecture():
+    """mlp = "shared": every number of a map is a kernel parameter, so two maps of one architecture (other
+    weights, planes, normalisation and domain) run the same kernel, and their results are the fused ones."""
+    import dataclasses
+    import drjit as dr
+    from mi_neurallens.jit import from_numpy
+    rng = np.random.default_rng(11)
+    maps = [_map(rng, "forward", 2560, width=8) for _ in range(2)]
+    maps[1] = dataclasses.replace(maps[1], z_in=-1.5, input_center=np.array([4.0, 0.1, 0.2, 600.0]),
+                                  domain={"r_max_mm": 9.0, "s_max": 0.55, "lambda_min_nm": 380.0,
+                                          "lambda_max_nm": 800.0})
+    maps[1].regressor[1][0][3, 4] = 0.0           # a zero weight (literals skip it) must not change the kernel
+    o, d, lam = _rays(4096, +1, seed=3)
+    F = float_type("float32")
+    args = (tuple(from_numpy(F, o[:, i]) for i in range(3)), tuple(from_numpy(F, d[:, i]) for i in range(3)),
+            from_numpy(F, lam))
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        kernels, outs = {}, {}
+        for mode in ("fused", "shared"):
+            for k, tm in enumerate(maps):
+                tm = dataclasses.replace(tm, mlp=mode)
+                dr.kernel_history()
+                res = tm.eval_dr(*args)
+                dr.eval(res.valid, res.position, res.direction, res.throughput)
+                kernels[mode, k] = [h["hash"] for h in dr.kernel_history() if h["type"] == dr.KernelType.JIT]
+                outs[mode, k] = np.stack([res.valid.numpy()] + [c.numpy() for c in res.position + res.direction]
+                                         + [res.throughput.numpy()], 1)
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert kernels["shared", 0] == kernels["shared", 1] and len(kernels["shared", 0]) == 1
+    assert kernels["fused", 0] != kernels["fused", 1]
+    assert len(maps[0].params_pool) > 0 and maps[0].params_pool is not maps[1].params_pool
+    for k in range(2):
+        v = outs["fused", k][:, 0].astype(bool)
+        assert 0.05 < v.mean() < 0.95
+        np.testing.assert_array_equal(outs["shared", k][:, 0], outs["fused", k][:, 0])
+        np.testing.assert_allclose(outs["shared", k][v], outs["fused", k][v], rtol=1e-6, atol=1e-6)

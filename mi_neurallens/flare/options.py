@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import NeuralLensError
+from ..neural.model import MLP_MODES
 
 #: who evaluates the ghost paths (see the ``lens_flare`` docs)
 MODES = ("auto", "exact", "neural")
@@ -51,6 +52,10 @@ class FlareOptions:
     include_transmit: bool = False     #: also splat the transmit path (radiometric checks)
     transmit_only: bool = False        #: splat only the transmit path
     model: object = None               #: NeuralLensModel or a file (default: the sensor's model)
+    #: how learned ghost maps enter their kernels: "fused" (weights as literals: a kernel per map), "shared"
+    #: (weights as kernel parameters: one kernel per architecture), "coopvec", or "auto" (shared from
+    #: SHARED_FROM learned maps of one render on; docs/results.md, "One compilation")
+    mlp: str = "auto"
 
     def validate(self):
         if self.mode not in MODES + BASELINE_MODES:
@@ -72,6 +77,8 @@ class FlareOptions:
             raise FlareError(f"lens_flare: 'blades' must be 0 (circular) or >= 3, got {self.blades}")
         if not self.auto_max_error_px >= 0:
             raise FlareError(f"lens_flare: 'auto_max_error' must be >= 0 (pixels), got {self.auto_max_error_px}")
+        if self.mlp not in ("auto",) + MLP_MODES:
+            raise FlareError(f"lens_flare: 'mlp' must be one of auto, {', '.join(MLP_MODES)}, got {self.mlp!r}")
         if not self.pilot_grid >= 4 or not self.pilot_spp >= 1:
             raise FlareError("lens_flare: 'pilot_grid' must be >= 4 and 'pilot_spp' >= 1")
         return self

@@ -52,6 +52,11 @@ from .energy import front_radius, ghost_energy_ranking, input_plane, select_ghos
 from .lights import scene_lights
 from .options import BASELINE_MODES, FlareError, FlareOptions
 
+#: ``mlp = "auto"``: from this many learned ghost maps in one render on, their networks are evaluated with
+#: kernel parameters (``"shared"``: one compilation per architecture) instead of literals (one per map);
+#: the break-even of the two first renders on an empty kernel cache (docs/results.md, "One compilation")
+SHARED_FROM = 4
+
 # golden-ratio style additive recurrence (R_d sequence, d = 6) in 32-bit fixed point
 _PHI6 = 1.0
 for _ in range(64):
@@ -237,6 +242,7 @@ class FlareRenderer:
         self._to_world = sensor.m_to_world
         self._to_cam = sensor.m_to_world.inverse()
         self._box = mi.load_dict({"type": "box"})
+        self._mlp = None            # learned_mlp(), resolved at the first learned map
 
     # -------------------------------------------------------------- ghost selection
     def ranking(self):
@@ -317,9 +323,28 @@ class FlareRenderer:
         pixel_um = 1000.0 * self.setup.sensor_width_mm / self.size[0]
         return err_um is not None and err_um <= self.opts.auto_max_error_px * pixel_um
 
+    def learned_mlp(self, ids=None) -> str:
+        """How this render's learned maps enter their kernels (:class:`~mi_neurallens.neural.model.NeuralMap`'s
+        ``mlp``): ``opts.mlp``, or for ``auto`` ``shared`` (one kernel per architecture) when the render uses at
+        least :data:`SHARED_FROM` learned ghost maps, ``fused`` (a kernel per map, each quicker to compile)
+        below that.  ``ids``: the render's paths (default: :meth:`ghost_ids`)."""
+        if self.opts.mlp != "auto":
+            return self.opts.mlp
+        m = self.model
+        if m is None or self.opts.mode == "exact" or self.opts.mode in BASELINE_MODES:
+            return "fused"
+        ids = self.ghost_ids() if ids is None else ids
+        learned = [pid for pid in ids if pid and m.has(pid, "forward")
+                   and (self.opts.mode == "neural" or not self.lens_modified and self.sharp_enough(m.map(pid, "forward")))]
+        return "shared" if len(learned) >= SHARED_FROM else "fused"
+
     def _learned(self, tm, strict: bool):
-        """The learned map ``tm`` with this flare's iris (None, or an error when ``strict``, if it cannot
-        apply it: no stop head, or an iris outside the trained one)."""
+        """The learned map ``tm`` evaluated as :meth:`learned_mlp` says, with this flare's iris (None, or an
+        error when ``strict``, if it cannot apply it: no stop head, or an iris outside the trained one)."""
+        if self._mlp is None:
+            self._mlp = self.learned_mlp()
+        if tm.mlp != self._mlp:
+            tm = dataclasses.replace(tm, mlp=self._mlp)
         if self.iris is None:
             return tm
         if tm.stop_head is not None and self._iris_ok:
@@ -486,6 +511,7 @@ class FlareRenderer:
         opts = self.opts
         N = int(samples or opts.samples)
         ids = self.ghost_ids()
+        self._mlp = self.learned_mlp(ids)
         from ..trace.paths import ghost_surfaces
         total = self.new_block()
         blocks = {}

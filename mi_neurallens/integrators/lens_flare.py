@@ -57,6 +57,14 @@ sensor must be ``realistic_lens`` or ``neural_lens``.
    - Neural model whose ghost maps are used: a file, or a bundled lens name as the ``neural_lens`` sensor's
      ``model``.  (Default: the ``neural_lens`` sensor's model)
 
+ * - mlp
+   - |string|
+   - How learned ghost maps are evaluated in their kernels: ``fused`` (every weight a literal: the fastest
+     code, one kernel compiled per ghost map, 2–7 s each the first time on a CPU), ``shared`` (every number
+     of a map a kernel parameter: the ghost maps of one architecture share one kernel, compiled once),
+     ``coopvec`` (Dr.Jit cooperative vectors), or ``auto``: ``shared`` when the render uses several learned
+     maps (docs/results.md, "One compilation").  (Default: ``auto``)
+
  * - ghosts
    - |string|
    - Ghost path ids (or ``a:b`` optical-surface pairs: reflect at ``a``, then at ``b < a``) to render,
@@ -185,7 +193,7 @@ _PROPS = {
     "mode": ("string", "mode"), "model": ("string", "model"), "ghosts": ("string", "ghosts"),
     "exclude_ghosts": ("string", "exclude_ghosts"), "coating": ("string", "coating"),
     "coating_surfaces": ("string", "coating_surfaces"), "bounds": ("string", "bounds"),
-    "pilot_with": ("string", "pilot_with"),
+    "pilot_with": ("string", "pilot_with"), "mlp": ("string", "mlp"),
     "visibility": ("bool", "visibility"), "include_transmit": ("bool", "include_transmit"),
     "transmit_only": ("bool", "transmit_only"),
 }

@@ -5,9 +5,11 @@ A network is a list of ``(W, b)`` layers, ``W`` of shape (out, in) (PyTorch's ``
 
 The Dr.Jit evaluation (:func:`mlp_dr`) unrolls every multiply-add with the weights as Python-float
 **literals** (notes §4: the fastest fp32-exact way on the LLVM backend; the kernel is cached per
-weight set) and uses Eigen's 13/6 rational tanh (:func:`tanh_eigen`), clamped to ±7.90531, whose
-maximum error is 2.6e-7 (float64 inputs get the exact tanh: that is the maps' numpy reference path).  It is plain Dr.Jit arithmetic on the float type of its inputs, so it runs in
-any Mitsuba variant (``mi.Float``) and on CUDA.
+weight set) — or, given a :class:`KernelParams` pool, as opaque scalars (kernel parameters), so that
+every network of one architecture compiles to the same kernel — and uses Eigen's 13/6 rational tanh
+(:func:`tanh_eigen`), clamped to ±7.90531, whose maximum error is 2.6e-7 (float64 inputs get the exact
+tanh: that is the maps' numpy reference path).  It is plain Dr.Jit arithmetic on the float type of its
+inputs, so it runs in any Mitsuba variant (``mi.Float``) and on CUDA.
 """
 from __future__ import annotations
 
@@ -69,13 +71,49 @@ def mlp_np(x: np.ndarray, layers, activation: str = "tanh") -> np.ndarray:
 ACCUMULATORS = 4
 
 
-def mlp_dr(xs, layers, activation: str = "tanh"):
+class KernelParams:
+    """The numbers of one learned map as **kernel parameters**: opaque Dr.Jit scalars instead of literals.
+
+    A literal is part of the kernel's source, so every weight set compiles its own kernel (2–7 s each on a
+    CPU; a flare with 32 learned ghosts compiled 32 of them).  Opaque scalars are inputs of the kernel: maps
+    of one architecture then produce the same source and share one compiled kernel (Dr.Jit's in-memory and
+    disk caches), at the price of a longer compilation of that one kernel.  ``params(key, value, like)``
+    returns the scalar named ``key`` (any hashable, stable across evaluations) holding ``value`` in the
+    float type of the Dr.Jit array ``like``; it is created once and reused while its value is unchanged."""
+
+    def __init__(self):
+        self._vars = {}
+
+    def __call__(self, key, value, like):
+        import drjit as dr
+        value = float(value)
+        t = type(like)
+        k = (t, key)
+        hit = self._vars.get(k)
+        if hit is None or hit[0] != value:
+            hit = (value, dr.opaque(t, value))
+            self._vars[k] = hit
+        return hit[1]
+
+    def __len__(self):
+        return len(self._vars)
+
+
+def number(params, key, value, like):
+    """``value`` for a kernel: a Python-float literal without ``params``, else ``params``'s opaque scalar."""
+    return float(value) if params is None else params(key, value, like)
+
+
+def mlp_dr(xs, layers, activation: str = "tanh", params: KernelParams | None = None, tag="mlp"):
     """Fused Dr.Jit evaluation: ``xs`` a list of Dr.Jit floats (one per input) → list of outputs.
-    Weights become kernel literals (a kernel per weight set, cached by Dr.Jit).  Each neuron's dot
+    Weights become kernel literals (a kernel per weight set, cached by Dr.Jit), or with ``params`` kernel
+    parameters named ``(tag, layer, row, column)`` (one kernel per architecture; zero weights then stay in,
+    so that the source does not depend on the values).  Each neuron's dot
     product is split into :data:`ACCUMULATORS` interleaved partial sums added pairwise at the end, so
     the multiply-adds do not form one long dependency chain."""
     import drjit as dr
     h = list(xs)
+    like = h[0]
     for li, (W, b) in enumerate(layers):
         W = np.asarray(W, dtype=np.float64).tolist()
         b = np.asarray(b, dtype=np.float64).tolist()
@@ -84,15 +122,17 @@ def mlp_dr(xs, layers, activation: str = "tanh"):
             parts = [None] * ACCUMULATORS
             for i in range(len(h)):
                 w = float(W[j][i])
-                if w == 0.0:
+                if w == 0.0 and params is None:
                     continue
+                w = number(params, (tag, li, j, i), w, like)
                 k = i % ACCUMULATORS
                 parts[k] = h[i] * w if parts[k] is None else dr.fma(h[i], w, parts[k])
+            bj = number(params, (tag, li, j, "b"), b[j], like)
             parts = [p for p in parts if p is not None]
             if not parts:
-                out.append(h[0] * 0.0 + float(b[j]))
+                out.append(h[0] * 0.0 + bj)
                 continue
-            parts[0] = parts[0] + float(b[j])
+            parts[0] = parts[0] + bj
             while len(parts) > 1:
                 parts = [parts[a] + parts[a + 1] if a + 1 < len(parts) else parts[a]
                          for a in range(0, len(parts), 2)]

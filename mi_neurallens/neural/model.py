@@ -57,7 +57,7 @@ from ..errors import ModelError
 from ..fileio import jsonable
 from ..transport.base import TransportMap
 from ..transport.planning import Domain
-from .mlp import ACTIVATIONS, mlp_dr
+from .mlp import ACTIVATIONS, KernelParams, mlp_dr, number
 
 #: the training record's loss curves (lists under a ``*history`` key; read by people, never by the renderer) keep
 #: 4 significant digits and at most HISTORY_POINTS validations (the first, the last and evenly spaced ones between;
@@ -82,6 +82,8 @@ def _thin_histories(o):
 FORMAT = "mi-neurallens-transport-maps"
 FORMAT_VERSION = 1
 OUTPUTS = ("x", "y", "dx", "dy", "throughput")
+#: how a learned map's networks are evaluated in a kernel (:class:`NeuralMap`'s ``mlp``)
+MLP_MODES = ("fused", "shared", "coopvec")
 
 
 def _fold(layers, out_scale, out_shift):
@@ -93,14 +95,15 @@ def _fold(layers, out_scale, out_shift):
     return layers
 
 
-def _add_skip(y, xn, skip):
-    """``y + skip·xn`` on lists of Dr.Jit floats (zero coefficients skipped): the linear skip term."""
+def _add_skip(y, xn, skip, params=None, tag="skip"):
+    """``y + skip·xn`` on lists of Dr.Jit floats: the linear skip term (zero coefficients skipped, except
+    with kernel ``params``, where the source must not depend on the values)."""
     import drjit as dr
     A = np.asarray(skip, np.float64)
     for j in range(len(y)):
         for i in range(len(xn)):
-            if A[j, i] != 0.0:
-                y[j] = dr.fma(xn[i], float(A[j, i]), y[j])
+            if A[j, i] != 0.0 or params is not None:
+                y[j] = dr.fma(xn[i], number(params, (tag, j, i), A[j, i], xn[i]), y[j])
     return y
 
 
@@ -126,11 +129,12 @@ class StopHead:
             self._fold = _fold(self.layers, self.out_scale, self.out_shift)
         return self._fold
 
-    def eval_dr(self, x, xn, s_max: float):
-        """Reduced inputs ``x`` and their normalised ``xn`` (Dr.Jit) → the 2k outputs (Dr.Jit list)."""
-        y = _add_skip(mlp_dr(xn, self._folded(), self.activation), xn, self.skip)
+    def eval_dr(self, x, xn, s_max: float, params: KernelParams | None = None):
+        """Reduced inputs ``x`` and their normalised ``xn`` (Dr.Jit) → the 2k outputs (Dr.Jit list);
+        ``params``: the map's kernel parameters (None: literals)."""
+        y = _add_skip(mlp_dr(xn, self._folded(), self.activation, params, "stop"), xn, self.skip, params, "stop.skip")
         if self.odd_y:
-            m = x[2] * (1.0 / float(s_max))
+            m = x[2] * number(params, "stop.1/s_max", 1.0 / float(s_max), x[2])
             for j in range(1, len(y), 2):
                 y[j] = y[j] * m
         return y
@@ -166,8 +170,10 @@ class NeuralMap(TransportMap):
     inside the trained opening, tested on the stop head's crossings; None: the trained aperture),
     ``use_classifier`` (``False``: the paper's ablation,
     every in-domain ray is valid and the classifier is not evaluated at all) and ``mlp`` (``"fused"``:
-    weights as kernel literals, rational tanh in float32, exact tanh in float64; ``"coopvec"``: Dr.Jit
-    cooperative vectors, :mod:`mi_neurallens.neural.coopvec`)."""
+    weights as kernel literals, rational tanh in float32, exact tanh in float64; ``"shared"``: the same
+    arithmetic with every number of the map — weights, normalisation, domain, planes — a kernel parameter
+    (:class:`~mi_neurallens.neural.mlp.KernelParams`), so that all maps of one architecture share one
+    compiled kernel; ``"coopvec"``: Dr.Jit cooperative vectors, :mod:`mi_neurallens.neural.coopvec`)."""
 
     path_id: int
     direction: str
@@ -190,12 +196,26 @@ class NeuralMap(TransportMap):
     use_classifier: bool = field(default=True, compare=False)
     mlp: str = field(default="fused", compare=False)
     iris: object = field(default=None, compare=False)
+    #: the opaque scalars of ``mlp = "shared"``; one pool per map, handed on by ``dataclasses.replace``
+    params_pool: KernelParams | None = field(default=None, compare=False, repr=False)
 
     method = "neural"
     reduced = True
 
     def __post_init__(self):
         self.domain = Domain.from_dict(self.domain)
+        if self.mlp not in MLP_MODES:
+            raise ModelError(f"unknown MLP evaluation {self.mlp!r}: use one of {MLP_MODES}")
+        if self.params_pool is None:
+            self.params_pool = KernelParams()
+
+    @property
+    def params(self) -> KernelParams | None:
+        """The kernel parameters of this map's numbers (``mlp = "shared"``), or None (literals)."""
+        return self.params_pool if self.mlp == "shared" else None
+
+    def number(self, key, value, like):
+        return number(self.params, key, value, like)
 
     @property
     def stop_crossings(self) -> int:
@@ -223,27 +243,28 @@ class NeuralMap(TransportMap):
 
     def eval_reduced_dr(self, x, mlp: str | None = None):
         """Reduced inputs (4 Dr.Jit floats) → (logit, [5 outputs, then 2k stop outputs when the map has
-        a stop head]) fused into one kernel.  ``mlp``: ``"fused"`` or ``"coopvec"`` (default:
-        :attr:`mlp`; the stop head is always fused)."""
+        a stop head]) fused into one kernel.  ``mlp``: one of :data:`MLP_MODES` (default: :attr:`mlp`; the
+        stop head is fused, with kernel parameters under ``"shared"``)."""
         import drjit as dr
         mlp = self.mlp if mlp is None else mlp
-        xn = [dr.fma(v, 1.0 / float(s), -float(c) / float(s))
-              for v, c, s in zip(x, self.input_center, self.input_scale)]
-        if mlp == "fused":
-            logit = mlp_dr(xn, self.classifier, self.classifier_activation)[0]
-            y = mlp_dr(xn, self._folded(), self.regressor_activation)
+        P = self.params_pool if mlp == "shared" else None
+        xn = [dr.fma(v, number(P, ("norm.a", i), 1.0 / float(s), v), number(P, ("norm.b", i), -float(c) / float(s), v))
+              for i, (v, c, s) in enumerate(zip(x, self.input_center, self.input_scale))]
+        if mlp in ("fused", "shared"):
+            logit = mlp_dr(xn, self.classifier, self.classifier_activation, P, "classifier")[0]
+            y = mlp_dr(xn, self._folded(), self.regressor_activation, P, "regressor")
         elif mlp == "coopvec":
             cls, reg = self._coopvec()
             logit = cls(xn)[0]
             y = reg(xn)
         else:
-            raise ModelError(f"unknown MLP evaluation {mlp!r}: use 'fused' or 'coopvec'")
-        y = _add_skip(y, xn, self.skip)
+            raise ModelError(f"unknown MLP evaluation {mlp!r}: use one of {MLP_MODES}")
+        y = _add_skip(y, xn, self.skip, P, "regressor.skip")
         if self.odd_y:
-            m = x[2] * (1.0 / float(self.domain.s_max))
+            m = x[2] * number(P, "1/s_max", 1.0 / float(self.domain.s_max), x[2])
             y[1], y[3] = y[1] * m, y[3] * m
         if self.stop_head is not None:
-            y = list(y) + self.stop_head.eval_dr(x, xn, self.domain.s_max)
+            y = list(y) + self.stop_head.eval_dr(x, xn, self.domain.s_max, P)
         return logit, y
 
     def core_reduced_dr(self, x, active):

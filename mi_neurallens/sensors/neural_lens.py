@@ -12,7 +12,7 @@ import dataclasses
 import os
 
 from ..errors import ModelError
-from ..neural.model import bundled_model_path, load_model
+from ..neural.model import MLP_MODES, bundled_model_path, load_model
 from ..trace.iris import Iris
 from .base import LensSensorBase
 from .common import SensorPropertyError, load_lens
@@ -53,7 +53,10 @@ Neural lens camera (:monosp:`neural_lens`)
    - How the networks are evaluated in the kernel.  ``fused`` (default): every weight is a literal in
      the generated kernel and tanh is a rational approximation accurate to float32 — the fastest on
      the CPU (11.5 M rays/s for classifier + regressor on 2 cores vs 5.8 M for ``coopvec``), but a new
-     weight set compiles a new kernel (~0.6 s).  ``coopvec``: Dr.Jit cooperative vectors
+     weight set compiles a new kernel (2–7 s on 2 cores).  ``shared``: the same arithmetic, bit for bit,
+     with every number of the map a kernel parameter: maps of one architecture share one compiled kernel,
+     which takes longer to compile once (docs/results.md, "One compilation"; ``lens_flare`` uses it for
+     its ghosts).  ``coopvec``: Dr.Jit cooperative vectors
      (``drjit.nn``), weights in a packed buffer: no recompilation when weights change, tensor cores on
      CUDA (fp16 there).  (Default: ``fused``)
 
@@ -138,7 +141,7 @@ class NeuralLens(LensSensorBase):
         self.model_spec = rd.string("model", "wide-22mm")
         self.lens_prop = rd.string("lens", None)
         self.use_classifier = rd.bool("use_classifier", True)
-        self.mlp = rd.string("mlp", "fused", choices=("fused", "coopvec"))
+        self.mlp = rd.string("mlp", "fused", choices=MLP_MODES)
         self.method = rd.string("method", "neural", choices=METHODS)
 
     def _load_lens(self, rd):

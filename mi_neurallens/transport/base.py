@@ -107,6 +107,12 @@ class TransportMap:
         """Floating-point operations per ray of the core (0: not counted, e.g. the tracer)."""
         return 0
 
+    def number(self, key, value, like):
+        """A number of this map (a plane, a domain bound) as it enters the kernel: a literal here; learned
+        maps evaluated with ``mlp = "shared"`` return a kernel parameter instead
+        (:class:`~mi_neurallens.neural.mlp.KernelParams`), so that maps of one architecture share a kernel."""
+        return float(value)
+
     def describe(self) -> dict:
         return {"method": self.method, "path_id": self.path_id, "direction": self.direction,
                 "z_in": self.z_in, "z_out": self.z_out, "flops_per_ray": self.flops()}
@@ -128,7 +134,7 @@ class TransportMap:
         import drjit as dr
         ox, oy, oz = o
         dx, dy, dz = d
-        t = (self.z_in - oz) / dz
+        t = (self.number("z_in", self.z_in, oz) - oz) / dz
         px, py = dr.fma(t, dx, ox), dr.fma(t, dy, oy)
         lam = lam_nm if not isinstance(lam_nm, (int, float)) else px * 0.0 + float(lam_nm)
         ok = ((dz > 0.0) if self.heading > 0 else (dz < 0.0)) & active
@@ -138,7 +144,7 @@ class TransportMap:
             x = (r, wx, wy, lam)
             domain = getattr(self, "domain", None)
             if domain is not None:
-                ok &= domain.contains_dr(x)
+                ok &= domain.contains_dr(x, self.number)
             valid, y, logit = self.core_reduced_dr(x, ok)
             X, Y, DX, DY = symmetry.undo(y[0], y[1], y[2], y[3], frame)
             T, DZ = y[4], None
@@ -154,7 +160,7 @@ class TransportMap:
                                       "cannot apply an iris")
             for sx, sy in stop:
                 valid &= self.iris.contains_dr(sx, sy)
-        return MapResult(valid, (X, Y, X * 0.0 + self.z_out), (DX, DY, DZ), T, logit, stop)
+        return MapResult(valid, (X, Y, X * 0.0 + self.number("z_out", self.z_out, X)), (DX, DY, DZ), T, logit, stop)
 
     def eval_np(self, o, d, lam_nm) -> MapResult:
         """The same evaluation on numpy rays, in Dr.Jit ``Float64``: ``o``, ``d`` (N, 3), ``lam_nm``

@@ -129,12 +129,15 @@ class Domain:
             d["reach"] = self.reach.to_dict()
         return d
 
-    def contains_dr(self, x):
-        """Mask of the reduced inputs ``x = (r, ωx, ωy, λ)`` (Dr.Jit floats) inside the domain."""
+    def contains_dr(self, x, number=None):
+        """Mask of the reduced inputs ``x = (r, ωx, ωy, λ)`` (Dr.Jit floats) inside the domain.
+        ``number(key, value, like)``: how the bounds enter the kernel (a map's
+        :meth:`~mi_neurallens.transport.base.TransportMap.number`; None: literals)."""
         import drjit as dr
+        k = number or (lambda key, v, like: float(v))
         r, wx, wy, lam = x
-        ok = (r <= self.r_max) & (dr.fma(wx, wx, wy * wy) <= self.s_max ** 2)
-        return ok & (lam >= self.lam_min) & (lam <= self.lam_max)
+        ok = (r <= k("domain.r_max", self.r_max, r)) & (dr.fma(wx, wx, wy * wy) <= k("domain.s_max^2", self.s_max ** 2, wx))
+        return ok & (lam >= k("domain.lam_min", self.lam_min, lam)) & (lam <= k("domain.lam_max", self.lam_max, lam))
 
     @staticmethod
     def from_dict(d):
