@@ -10,8 +10,9 @@ from mi_neurallens.cli import main
 
 
 def test_evaluate_command_writes_reports(tmp_path, capsys):
+    # a model with one map (the paper lenses' hold 34 since their ghost sets are complete: a kernel each)
     jp, mp = tmp_path / "e.json", tmp_path / "e.md"
-    assert main(["evaluate", "canon-ef-24mm-f1.4l", "-n", "3000", "--json", str(jp), "--markdown", str(mp)]) == 0
+    assert main(["evaluate", "canon-rf-24mm-f1.4l-vcm", "-n", "3000", "--json", str(jp), "--markdown", str(mp)]) == 0
     doc = json.loads(jp.read_text())
     r = doc["maps"]["backward.0"]["regressor"]
     assert r["n"] == 3000 and 0 < r["position_um_median"] < 100

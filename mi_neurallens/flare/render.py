@@ -55,7 +55,7 @@ from .options import BASELINE_MODES, FlareError, FlareOptions
 #: ``mlp = "auto"``: from this many learned ghost maps in one render on, their networks are evaluated with
 #: kernel parameters (``"shared"``: one compilation per architecture) instead of literals (one per map);
 #: the break-even of the two first renders on an empty kernel cache (docs/results.md, "One compilation")
-SHARED_FROM = 4
+SHARED_FROM = 6
 
 # golden-ratio style additive recurrence (R_d sequence, d = 6) in 32-bit fixed point
 _PHI6 = 1.0
