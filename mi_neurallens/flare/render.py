@@ -310,11 +310,18 @@ class FlareRenderer:
                                  f"restrict 'ghosts', or train it (`mi-neurallens train {self.lens.name} "
                                  f"--paths {pid} --out DIR`, then training/merge_maps.py: docs/training.md)")
             tmap = self._learned(m.map(pid, "forward"), strict=True)
-        elif m is not None and not self.lens_modified and m.has(pid, "forward") and self.sharp_enough(m.map(pid, "forward")):
+        elif self.auto_learns(pid):
             tmap = self._learned(m.map(pid, "forward"), strict=False) or self.exact_map(pid)
         else:
             tmap = self.exact_map(pid)
         return GhostEvaluator(tmap, self.z_img, self.fresnel)
+
+    def auto_learns(self, pid) -> bool:
+        """Whether mode ``auto`` evaluates ghost ``pid`` with its learned map: the model has one, the lens is
+        as trained, and the map is :meth:`sharp_enough` for this film."""
+        m = self.model
+        return (self.opts.mode == "auto" and pid != 0 and m is not None and not self.lens_modified
+                and m.has(pid, "forward") and self.sharp_enough(m.map(pid, "forward")))
 
     def sharp_enough(self, tm) -> bool:
         """Whether mode ``auto`` may use the learned map ``tm``: its held-out median exit-position error (the
@@ -334,9 +341,8 @@ class FlareRenderer:
         if m is None or self.opts.mode == "exact" or self.opts.mode in BASELINE_MODES:
             return "fused"
         ids = self.ghost_ids() if ids is None else ids
-        learned = [pid for pid in ids if pid and m.has(pid, "forward")
-                   and (self.opts.mode == "neural" or not self.lens_modified and self.sharp_enough(m.map(pid, "forward")))]
-        return "shared" if len(learned) >= SHARED_FROM else "fused"
+        n = sum(1 for pid in ids if pid and (m.has(pid, "forward") if self.opts.mode == "neural" else self.auto_learns(pid)))
+        return "shared" if n >= SHARED_FROM else "fused"
 
     def _learned(self, tm, strict: bool):
         """The learned map ``tm`` evaluated as :meth:`learned_mlp` says, with this flare's iris (None, or an
