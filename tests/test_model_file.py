@@ -281,6 +281,33 @@ def test_merge_maps_script(tmp_path):
         mm.merge(bundled_model_path("ood-59mm"), dst_path)
 
 
+def test_merge_keeps_the_stop_head_of_the_map_a_retrained_one_replaces(tmp_path):
+    """A map retrained without a stop head (classifier and regressor only) keeps the stop head of the map
+    it replaces, which maps the same rays; not when its domain differs."""
+    import dataclasses
+    from mi_neurallens.neural.model import bundled_model_path, load_model
+    from mi_neurallens.training.merge import merge_models
+    dst = load_model(bundled_model_path("wide-22mm"))
+    old = dst.maps["forward.2560"]
+    assert old.stop_head is not None and "stop" in old.metrics
+    src = load_model(bundled_model_path("wide-22mm"))
+    src.maps = {"forward.2560": dataclasses.replace(old, stop_head=None, metrics={"regressor": {"x": 1}},
+                                                     training={"config_digest": "new"})}
+    merge_models(src, dst)
+    got = dst.maps["forward.2560"]
+    assert got.stop_head is old.stop_head and got.metrics["stop"] == old.metrics["stop"]
+    assert got.metrics["regressor"] == {"x": 1} and got.training["stop_head_kept_from"] == old.training.get("config_digest")
+    path = str(tmp_path / "m.model.safetensors")
+    dst.save(path)
+    assert load_model(path).maps["forward.2560"].stop_head is not None
+    # another domain: the old head would map other rays, so it is not kept
+    dst = load_model(bundled_model_path("wide-22mm"))
+    other = dataclasses.replace(old, stop_head=None, domain={**old.domain.to_dict(), "r_max_mm": old.domain.r_max * 1.1})
+    src.maps = {"forward.2560": other}
+    merge_models(src, dst)
+    assert dst.maps["forward.2560"].stop_head is None
+
+
 def test_shared_kernel_parameters_one_kernel_per_architecture():
     """mlp = "shared": every number of a map is a kernel parameter, so two maps of one architecture (other
     weights, planes, normalisation and domain) run the same kernel, and their results are the fused ones."""

@@ -5,7 +5,9 @@ longer budget into the bundled model).
 
 Without ``--keys`` every map of SRC replaces (or joins) DST's.  Both files must belong to the same lens
 (fingerprint) and planes; DST keeps its ghost ranking, and its ``ghosts_trained`` list is updated to the
-ghost maps it now holds, in ranking order.  DST is rewritten atomically.
+ghost maps it now holds, in ranking order.  A map of SRC without a stop head keeps the one of the DST map it
+replaces (same path, planes and domain: ``mi_neurallens.training.merge.keep_stop_head``), so maps retrained
+with ``--set forward_stop.max_minutes=0`` keep their render-time aperture.  DST is rewritten atomically.
 """
 from __future__ import annotations
 
@@ -32,6 +34,13 @@ def main(argv=None):
     keys = [k.strip() for k in a.keys.split(",") if k.strip()]
     done = merge(a.src, a.dst, keys)
     print(f"merged {', '.join(done)} into {a.dst}")
+    out = load_model(a.dst)
+    kept = [k for k in done if "stop_head_kept_from" in out.maps[k].training]
+    none = [k for k in done if out.maps[k].stop_head is None]
+    if kept:
+        print(f"kept the destination's stop heads of {', '.join(kept)}")
+    if none:
+        print(f"without a stop head (the aperture is fixed for them): {', '.join(none)}")
 
 
 if __name__ == "__main__":

@@ -54,6 +54,9 @@ class NetConfig:
     pool: int = 2_000_000               # samples held in memory per map; refreshed from the tracer
     refresh_every: int = 2000           # steps between pool refreshes (fresh tracer data)
     refresh_fraction: float = 0.25
+    sizes: tuple = ()                   # regressor / classifier: architectures to try, smallest first, as "HxW"
+                                        # (hidden layers × width); each map keeps the first that meets its goals,
+                                        # the last when none does (empty: hidden × width alone; trainer.train_sized)
 
 
 def regressor_defaults() -> NetConfig:
@@ -72,11 +75,15 @@ def stop_defaults() -> NetConfig:
                      pool=1_000_000)
 
 
-#: forward maps (ghosts, forward transmit) serve flares: a 2 K full-frame pixel is 17 µm, so their goals
-#: are looser than a camera ray's; the ghosts' edges are the flare error, so their classifier is deeper and
-#: regresses the aperture margin (docs/training.md)
-FORWARD_REGRESSOR = dict(goal_position_um=(3.0, 30.0), goal_direction_arcsec=(30.0, 200.0), max_minutes=3.0,
-                         max_steps=40000)
+#: forward maps (ghosts, forward transmit) serve flares, so their goals are stated in film pixels at
+#: ``TrainConfig.flare_resolution`` (:func:`flare_goals`: 3 / 30 µm at 2 K full frame) and are looser than a
+#: camera ray's; the ghosts' edges are the flare error, so their classifier is deeper and regresses the
+#: aperture margin (docs/training.md)
+FORWARD_REGRESSOR = dict(max_minutes=3.0, max_steps=40000)
+#: the forward regressor's goals at 2048 pixels across full frame (a 17.6 µm pixel): position (median, p99)
+#: µm, 0.17 / 1.7 pixels; direction (median, p99) arcsec.  Both scale with the pixel (:func:`flare_goals`)
+FLARE_GOAL_UM_2K = (3.0, 30.0)
+FLARE_GOAL_ARCSEC_2K = (30.0, 200.0)
 FORWARD_CLASSIFIER = dict(hidden=3, target="margin", goal_misclassification=0.0005, max_minutes=3.0,
                           max_steps=40000, patience=30)
 
@@ -95,6 +102,8 @@ class TrainConfig:
     ship_ghosts: int = 32               # …but train at most this many (CPU budget)
     close_focus_mm: float = 300.0       # nearest object distance (from the first vertex) to support
     film_half_diagonal_mm: float = FULL_FRAME_HALF_DIAGONAL_MM
+    flare_resolution: int = 2048        # pixels across the film's width the forward (flare) maps' goals are stated
+                                        # for (flare_goals); fewer pixels: looser goals, smaller networks (sizes)
     field_margin: float = 1.1
     film_reach: float = 1.5             # forward maps learn the rays landing within this × film_half_diagonal_mm of
                                         # the axis (at the nearest or farthest sensor plane); the rest count as
@@ -125,7 +134,34 @@ class TrainConfig:
         """The network settings of ``kind`` (``regressor``, ``classifier`` or ``stop``) for maps in
         ``direction`` (forward maps apply the ``forward_<kind>`` overrides)."""
         base, over = getattr(self, kind), getattr(self, f"forward_{kind}")
-        return _apply(base, over, f"forward_{kind}") if direction == "forward" and over else base
+        if direction != "forward":
+            return base
+        if kind == "regressor":
+            over = {**flare_goals(self.flare_resolution, self.film_half_diagonal_mm), **over}
+        return _apply(base, over, f"forward_{kind}") if over else base
+
+
+def flare_goals(resolution: int, film_half_diagonal_mm: float = FULL_FRAME_HALF_DIAGONAL_MM) -> dict:
+    """The forward regressor's goals for flares rendered ``resolution`` pixels across a 3:2 film of this
+    half diagonal (mm): :data:`FLARE_GOAL_UM_2K` (µm) and :data:`FLARE_GOAL_ARCSEC_2K` (arcsec), both scaled
+    by the pixel's size against a 2048-pixel full-frame one (17.6 µm): the same fraction of a pixel at any
+    resolution.  ``flare_resolution = 1024`` doubles them."""
+    if not isinstance(resolution, int) or resolution <= 0:
+        raise NeuralLensError(f"training config: flare_resolution = {resolution!r}; give pixels across the film (> 0)")
+    scale = (2048.0 / resolution) * (film_half_diagonal_mm / FULL_FRAME_HALF_DIAGONAL_MM)
+    return dict(goal_position_um=tuple(g * scale for g in FLARE_GOAL_UM_2K),
+                goal_direction_arcsec=tuple(g * scale for g in FLARE_GOAL_ARCSEC_2K))
+
+
+def parse_size(size) -> tuple:
+    """``"3x16"`` → (3, 16): hidden layers × width, as ``NetConfig.sizes`` lists them."""
+    try:
+        h, w = (int(v) for v in str(size).lower().split("x"))
+        if h >= 1 and w >= 1:
+            return h, w
+    except ValueError:
+        pass
+    raise NeuralLensError(f"training config: size {size!r}; write hidden layers x width, e.g. \"3x16\"")
 
 
 #: the allowed values of NetConfig's string options
@@ -144,6 +180,10 @@ def _apply(nc: NetConfig, d: dict, where: str) -> NetConfig:
     for k, allowed in CHOICES.items():
         if k in d and d[k] not in allowed:
             raise NeuralLensError(f"training config [{where}]: {k} = {d[k]!r}; choose one of {list(allowed)}")
+    for size in d.get("sizes", ()):
+        parse_size(size)
+    if "sizes" in d:
+        d["sizes"] = tuple(d["sizes"])
     return replace(nc, **d)
 
 

@@ -29,7 +29,7 @@ import numpy as np
 from ..constants import ARCSEC_PER_RAD
 from ..errors import NeuralLensError
 from ..fileio import atomic_write_text
-from .config import NetConfig, TrainConfig
+from .config import NetConfig, TrainConfig, parse_size
 from .data import Domain, PathSampler, RegressorStream, classifier_samples
 from .stacked import Problem
 
@@ -388,6 +388,44 @@ def train_classifiers(problems, nc: NetConfig, *, ckpt: str | None = None, threa
     return res
 
 
+def train_sized(train, problems, nc: NetConfig, ckpt, net: str, **kw) -> list:
+    """Train one network per problem with ``train`` (:func:`train_regressors` or :func:`train_classifiers`),
+    trying the architectures of ``nc.sizes`` smallest first: every map starts at the first size; a map
+    whose network met its goals there keeps it (``stop_reason == "goals"``), the others move on to the next
+    size, and at the last size every map keeps what it got.  So each map ends with the smallest network
+    that meets its goals within ``nc.max_minutes`` per size — the cheapest to evaluate in a render — and a
+    map that needs a large one pays the small ones' budgets first.  Without ``nc.sizes`` it is ``train``
+    at ``nc.hidden`` × ``nc.width``.  ``ckpt(name)`` → the checkpoint path of a stack (or None);
+    ``net``: "regressor" or "classifier".  Each result carries its ``config`` (the size it was trained
+    at) and ``sizes_tried``: per size, its stop reason, seconds, steps and best validation score."""
+    sizes = [parse_size(z) for z in nc.sizes] or [(nc.hidden, nc.width)]
+    out = [None] * len(problems)
+    tried = [[] for _ in problems]
+    todo = list(range(len(problems)))
+    for i, (h, w) in enumerate(sizes):
+        ncs = dataclasses.replace(nc, hidden=h, width=w)
+        keys = [problems[j]["key"] for j in todo]
+        name = net if not nc.sizes else f"{net}-{h}x{w}"
+        desc = f"{len(keys)} {net}s" if len(keys) > 1 else f"{keys[0]} {net}"
+        if nc.sizes:
+            desc += f" {h}x{w}"
+        res = train([problems[j] for j in todo], ncs, ckpt=ckpt(name, keys), desc=desc, **kw)
+        last, nxt = i == len(sizes) - 1, []
+        for j, r in zip(todo, res):
+            st = r["state"]
+            tried[j].append({"size": f"{h}x{w}", "stop": st.get("stop_reason"), "seconds": st.get("seconds"),
+                             "steps": st.get("step"),
+                             "best_val": st["best_val"] if math.isfinite(st.get("best_val", math.inf)) else None})
+            if st.get("stop_reason") == "goals" or last:
+                out[j] = {**r, "config": dataclasses.asdict(ncs), "sizes_tried": tried[j]}
+            else:
+                nxt.append(j)
+        todo = nxt
+        if not todo:
+            break
+    return out
+
+
 class ClassifierFit(Problem):
     """One classifier's training problem, its pieces as methods (what :func:`train_classifier` runs and
     tests call): the labelled (or margin-target) pool, the loss, validation and pool refresh."""
@@ -585,8 +623,7 @@ def train_maps(lens, specs, cfg: TrainConfig, workdir: str | None = None, progre
     keys = [f"{d}.{p}" for p, d, *_ in specs]
     seeds = [map_seed(cfg, p, d) for p, d, *_ in specs]
     rc, cc = cfg.net("regressor", direction), cfg.net("classifier", direction)
-    ck = (lambda net: os.path.join(workdir, stack_name(net, keys) + ".ckpt")) if workdir else (lambda net: None)
-    many = len(specs) > 1
+    ck = (lambda net, ks=keys: os.path.join(workdir, stack_name(net, ks) + ".ckpt")) if workdir else (lambda net, ks=keys: None)
     t0 = time.perf_counter()
     samplers, streams = [], []
     for (p, d, zi, zo, dom), seed in zip(specs, seeds):
@@ -604,9 +641,8 @@ def train_maps(lens, specs, cfg: TrainConfig, workdir: str | None = None, progre
                                 cfg.fresnel)
             problems.append(dict(stream=stream, val=val, heading=1 if d == "forward" else -1, center=center,
                                  scale_in=scale_in, seed=seed, s_max=dom.s_max, key=key))
-        regs = train_regressors(problems, rc, ckpt=ck("regressor"), threads=cfg.threads, device=cfg.device,
-                                progress=progress, log=log,
-                                desc=f"{len(specs)} regressors" if many else f"{keys[0]} regressor")
+        regs = train_sized(train_regressors, problems, rc, ck, "regressor", threads=cfg.threads, device=cfg.device,
+                           progress=progress, log=log)
     t1 = time.perf_counter()
     if keep == "classifier":
         clss = [_kept(b, "classifier") for b in bases]
@@ -622,9 +658,8 @@ def train_maps(lens, specs, cfg: TrainConfig, workdir: str | None = None, progre
             center, scale_in = dom.norm_center_scale()
             problems.append(dict(ps=ps, valid_u_source=(lambda n, s=stream: s.sample(n)[0]), val=(xcv, lcv),
                                  center=center, scale_in=scale_in, seed=seed + 1, key=key))
-        clss = train_classifiers(problems, cc, ckpt=ck("classifier"), threads=cfg.threads, device=cfg.device,
-                                 progress=progress, log=log,
-                                 desc=f"{len(specs)} classifiers" if many else f"{keys[0]} classifier")
+        clss = train_sized(train_classifiers, problems, cc, ck, "classifier", threads=cfg.threads, device=cfg.device,
+                           progress=progress, log=log)
     t2 = time.perf_counter()
     tms = []
     for j, ((p, d, zi, zo, dom), reg, cls, stream) in enumerate(zip(specs, regs, clss, streams)):
@@ -633,6 +668,7 @@ def train_maps(lens, specs, cfg: TrainConfig, workdir: str | None = None, progre
         training = {"config_digest": cfg.digest(),
                     "regressor": reg.get("config", {k: v for k, v in rc.__dict__.items()}),
                     "classifier": cls.get("config", {k: v for k, v in cc.__dict__.items()}),
+                    "regressor_sizes_tried": reg.get("sizes_tried"), "classifier_sizes_tried": cls.get("sizes_tried"),
                     "regressor_steps": reg["state"]["step"], "classifier_steps": cls["state"]["step"],
                     "regressor_seconds": reg["state"]["seconds"], "classifier_seconds": cls["state"]["seconds"],
                     "regressor_stop": reg["state"].get("stop_reason"), "classifier_stop": cls["state"].get("stop_reason"),
