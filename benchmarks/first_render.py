@@ -2,6 +2,7 @@
 first full-flare neural render on a fresh cache ≤ 2× a warm one).
 
     python benchmarks/first_render.py [--lens wide-22mm] [--samples 20] [--modes exact,neural:fused,neural:shared]
+                                      [--model LABEL=FILE ...]
 
 Each mode runs in child processes whose ``HOME`` is a new empty folder, so Dr.Jit's kernel cache
 (``~/.drjit``) starts empty: process 1 times its first render (every kernel compiled) and its second
@@ -9,7 +10,8 @@ of the same seed (in-memory cache: the warm time); process 2, same folder, times
 from the disk cache).  The flare: ``scenes/night_point.xml`` through the lens's neural sensor, every ghost
 the model has a map for, 2^samples forward samples in all.  A mode ``neural:M`` sets the flare's ``mlp`` to M
 (``fused``: weights as kernel literals, a kernel per ghost map; ``shared``: kernel parameters, one kernel per
-architecture; plain ``neural``: the flare's default, ``auto``).  Prints a markdown table and writes ``benchmarks/results/first_render.json``.
+architecture; plain ``neural``: the flare's default, ``auto``).  ``--model LABEL=FILE`` (repeatable) runs
+the modes for each model file in turn (rows "LABEL mode"); default: the lens's bundled model.  Prints a markdown table and writes ``benchmarks/results/first_render.json``.
 """
 from __future__ import annotations
 
@@ -32,7 +34,7 @@ mi.set_variant(default_variant())
 from mi_neurallens.commands.render import load_scene
 from mi_neurallens.flare.render import FlareOptions, FlareRenderer
 from mi_neurallens.neural.model import bundled_model_path, load_model
-model = bundled_model_path({lens!r})
+model = {model!r} or bundled_model_path({lens!r})
 ghosts = load_model(model).ghost_ids
 scene = load_scene(os.path.join({root!r}, "scenes", "night_point.xml"), lens={lens!r}, sensor_type="neural_lens",
                    sets=[f"model={{model}}"])
@@ -46,10 +48,11 @@ print(json.dumps({{"ghosts": len(ghosts), "first": times[0], "second": times[1],
 """
 
 
-def child(home, lens, mode, samples):
+def child(home, lens, mode, samples, model=None):
     env = dict(os.environ, HOME=home)
     mode, _, mlp = mode.partition(":")
-    code = CHILD.format(root=ROOT, lens=lens, mode=mode, samples=samples, mlp=mlp or "auto")
+    code = CHILD.format(root=ROOT, lens=lens, mode=mode, samples=samples, mlp=mlp or "auto",
+                        model=os.path.abspath(model) if model else None)
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
     return json.loads(out.strip().splitlines()[-1])
 
@@ -59,17 +62,22 @@ def main(argv=None):
     ap.add_argument("--lens", default="wide-22mm")
     ap.add_argument("--samples", type=int, default=20, help="log2 forward samples (split over the ghosts)")
     ap.add_argument("--modes", default="exact,neural:fused,neural:shared")
+    ap.add_argument("--model", action="append", default=[], metavar="LABEL=FILE",
+                    help="run the modes with this model file (repeatable; default: the bundled model)")
     ap.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "first_render.json"))
     a = ap.parse_args(argv)
     from mi_neurallens.fileio import atomic_write_json
+    models = [m.split("=", 1) for m in a.model] or [("", None)]
     rows = {}
-    for mode in a.modes.split(","):
-        with tempfile.TemporaryDirectory() as home:
-            cold = child(home, a.lens, mode, a.samples)
-            disk = child(home, a.lens, mode, a.samples)
-        rows[mode] = {"ghosts": cold["ghosts"], "mlp": cold["mlp"], "fresh_cache_first_s": cold["first"], "warm_s": cold["second"],
-                      "disk_cache_first_s": disk["first"], "fresh_over_warm": cold["first"] / cold["second"],
-                      "disk_over_warm": disk["first"] / cold["second"]}
+    for label, model in models:
+        for mode in a.modes.split(","):
+            with tempfile.TemporaryDirectory() as home:
+                cold = child(home, a.lens, mode, a.samples, model)
+                disk = child(home, a.lens, mode, a.samples, model)
+            rows[f"{label} {mode}".strip()] = {
+                "ghosts": cold["ghosts"], "mlp": cold["mlp"], "model": model, "fresh_cache_first_s": cold["first"],
+                "warm_s": cold["second"], "disk_cache_first_s": disk["first"],
+                "fresh_over_warm": cold["first"] / cold["second"], "disk_over_warm": disk["first"] / cold["second"]}
     print(f"{a.lens}, night_point.xml, 2^{a.samples} samples over the ghosts")
     print("| mode | ghosts | first render, fresh cache (s) | first, disk cache (s) | warm (s) | fresh / warm | disk / warm |")
     print("|---|---|---|---|---|---|---|")
