@@ -23,7 +23,9 @@ def add_parser(subparsers):
     p.add_argument("--config", help="TOML training config (default: training/<lens>.toml when present)")
     p.add_argument("--out", default=None, help="output folder (default: lenses/models)")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a config value, e.g. --set seed=3 --set regressor.max_steps=2000 (JSON values)")
+                   help="override a config value, e.g. --set seed=3 --set regressor.max_steps=2000, --set flare_resolution=1024 "
+                        "(looser flare-map goals), --set 'forward_regressor.sizes=[\"3x16\",\"5x32\"]' (the smallest "
+                        "network that meets them) (JSON values)")
     p.add_argument("--keep", choices=("regressor", "classifier", "both"),
                    help="keep this network of each selected map from --base and train the rest; 'both': train "
                         "only the stop heads (a render-time aperture for an existing model)")

@@ -395,9 +395,10 @@ def train_sized(train, problems, nc: NetConfig, ckpt, net: str, **kw) -> list:
     size, and at the last size every map keeps what it got.  So each map ends with the smallest network
     that meets its goals within ``nc.max_minutes`` per size — the cheapest to evaluate in a render — and a
     map that needs a large one pays the small ones' budgets first.  Without ``nc.sizes`` it is ``train``
-    at ``nc.hidden`` × ``nc.width``.  ``ckpt(name)`` → the checkpoint path of a stack (or None);
-    ``net``: "regressor" or "classifier".  Each result carries its ``config`` (the size it was trained
-    at) and ``sizes_tried``: per size, its stop reason, seconds, steps and best validation score."""
+    at ``nc.hidden`` × ``nc.width``.  ``ckpt(name, keys)`` → the checkpoint path of the stack of the maps
+    ``keys`` for the network ``name`` (``net``, or ``net-HxW`` with sizes), or None; ``net``: "regressor" or
+    "classifier".  Each result carries its ``config`` (the size it was trained at; its ``state`` is that
+    size's run) and ``sizes_tried``: per size, its stop reason, seconds, steps and best validation score."""
     sizes = [parse_size(z) for z in nc.sizes] or [(nc.hidden, nc.width)]
     out = [None] * len(problems)
     tried = [[] for _ in problems]
