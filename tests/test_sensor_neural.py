@@ -134,6 +134,23 @@ def test_errors(tmp_path):
         mi.load_dict(sensor(model="wide-22mm", ignore_me=1.0))
 
 
+def test_the_lens_brings_its_bundled_model(tmp_path):
+    """``lens`` without ``model`` takes the lens's bundled model (not the wide-22mm default, which would
+    refuse another lens); a lens file with no bundled model asks for one."""
+    import json
+    use(RGB)
+    s = mi.load_dict(sensor(lens="dgauss-50mm"))
+    assert "dgauss-50mm.model" in str(s)
+    assert "wide-22mm.model" in str(mi.load_dict(sensor()))
+    from mi_neurallens.optics.prescription import Lens
+    d = Lens.load("dgauss-50mm").to_dict()
+    d["name"] = "my-double-gauss"
+    f = tmp_path / "my-double-gauss.json"
+    f.write_text(json.dumps(d))
+    with pytest.raises(Exception, match="no bundled model for lens 'my-double-gauss'.*mi-neurallens train"):
+        mi.load_dict(sensor(lens=str(f)))
+
+
 def test_coopvec_equals_fused():
     """The cooperative-vector evaluation renders the same image as the literal-weight one."""
     use(RGB)

@@ -34,7 +34,8 @@ Neural lens camera (:monosp:`neural_lens`)
    - |string|
    - A model file (``*.model.safetensors``, written by ``mi-neurallens train``) or the name of a
      bundled lens whose model ships in ``lenses/models/`` (``wide-22mm``, ``ood-59mm``,
-     ``canon-ef-24mm-f1.4l``).  (Default: ``wide-22mm``)
+     ``canon-ef-24mm-f1.4l``).  (Default: the bundled model of ``lens`` when ``lens`` is given, else
+     ``wide-22mm``)
 
  * - lens
    - |string|
@@ -138,13 +139,26 @@ class NeuralLens(LensSensorBase):
     PLUGIN = PLUGIN
 
     def _read_properties(self, rd):
-        self.model_spec = rd.string("model", "wide-22mm")
         self.lens_prop = rd.string("lens", None)
+        self.model_spec = rd.string("model", None)      # None: the lens's bundled model (_default_model)
         self.use_classifier = rd.bool("use_classifier", True)
         self.mlp = rd.string("mlp", "fused", choices=MLP_MODES)
         self.method = rd.string("method", "neural", choices=METHODS)
 
+    def _default_model(self) -> str:
+        """The ``model`` when none is given: the bundled model of ``lens`` (a bundled name, or a file whose
+        lens has one), or ``wide-22mm`` without ``lens``."""
+        if not self.lens_prop:
+            return "wide-22mm"
+        name = load_lens(self.lens_prop, PLUGIN).name
+        if os.path.exists(bundled_model_path(name)):
+            return name
+        raise SensorPropertyError(PLUGIN, "model", f"not given, and no bundled model for lens '{name}': give the "
+                                  f"model file `mi-neurallens train {self.lens_prop}` writes")
+
     def _load_lens(self, rd):
+        if self.model_spec is None:
+            self.model_spec = self._default_model()
         self.model_path = resolve_model_path(self.model_spec)
         try:
             probe = load_model(self.model_path)  # header + tensors; lens check below
