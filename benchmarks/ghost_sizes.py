@@ -25,14 +25,6 @@ import time
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def network_cost(layers) -> tuple:
-    """(multiply-adds, activations) per evaluation of an MLP given as [(W (out, in), b (out,)), ...]:
-    the sum of the weight matrices' sizes, and of the hidden layers' widths."""
-    fma = sum(int(W.shape[0]) * int(W.shape[1]) for W, _ in layers)
-    act = sum(int(b.shape[0]) for _, b in layers[:-1])
-    return fma, act
-
-
 def _best_time(fr, seeds=(1, 2, 3)):
     import drjit as dr
     fr.render(seed=0)                                  # compile
@@ -63,6 +55,7 @@ def main(argv=None):
     from mi_neurallens.fileio import atomic_write_json
     from mi_neurallens.flare.render import FlareOptions, FlareRenderer
     from mi_neurallens.metrics import mape_masked
+    from mi_neurallens.neural.mlp import mlp_cost
     from mi_neurallens.neural.model import load_model
     models = dict(m.split("=", 1) for m in a.models)
     loaded = {k: load_model(v) for k, v in models.items()}
@@ -83,8 +76,8 @@ def main(argv=None):
             tm = loaded[label].map(g, "forward")
             if tm is None:
                 continue
-            cost_r, act_r = network_cost(tm.regressor)
-            cost_c, act_c = network_cost(tm.classifier)
+            cost_r, act_r = mlp_cost(tm.regressor)
+            cost_c, act_c = mlp_cost(tm.classifier)
             arch = (f"{len(tm.regressor) - 1}x{tm.regressor[0][1].shape[0]} + "
                     f"{len(tm.classifier) - 1}x{tm.classifier[0][1].shape[0]}")   # hidden layers x width
             opts = dict(mode="neural", ghosts=[g], model=path)

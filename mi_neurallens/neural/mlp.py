@@ -71,6 +71,14 @@ def mlp_np(x: np.ndarray, layers, activation: str = "tanh") -> np.ndarray:
 ACCUMULATORS = 4
 
 
+def mlp_cost(layers) -> tuple:
+    """(multiply-adds, activations) of one evaluation of the network ``layers`` ([(W (out, in), b), ...]):
+    the weight matrices' sizes, and the hidden layers' widths (the output layer is linear)."""
+    fma = sum(int(np.shape(W)[0]) * int(np.shape(W)[1]) for W, _ in layers)
+    act = sum(int(np.shape(W)[0]) for W, _ in layers[:-1])
+    return fma, act
+
+
 class KernelParams:
     """The numbers of one learned map as **kernel parameters**: opaque Dr.Jit scalars instead of literals.
 

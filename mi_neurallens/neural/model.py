@@ -57,7 +57,7 @@ from ..errors import ModelError
 from ..fileio import jsonable
 from ..transport.base import TransportMap
 from ..transport.planning import Domain
-from .mlp import ACTIVATIONS, KernelParams, mlp_dr, number
+from .mlp import ACTIVATIONS, KernelParams, mlp_cost, mlp_dr, number
 
 #: the training record's loss curves (lists under a ``*history`` key; read by people, never by the renderer) keep
 #: 4 significant digits and at most HISTORY_POINTS validations (the first, the last and evenly spaced ones between;
@@ -140,8 +140,8 @@ class StopHead:
         return y
 
     def flops(self) -> int:
-        return sum(2 * np.shape(W)[0] * np.shape(W)[1] + (24 * np.shape(W)[0] if i < len(self.layers) - 1 else 0)
-                   for i, (W, _) in enumerate(self.layers)) + 2 * 4 * 2 * self.crossings
+        fma, act = mlp_cost(self.layers)
+        return 2 * fma + 24 * act + 2 * 4 * 2 * self.crossings
 
     def meta(self) -> dict:
         return {"layers": _widths(self.layers), "activation": self.activation, "crossings": int(self.crossings),
@@ -232,8 +232,8 @@ class NeuralMap(TransportMap):
         symmetry reduction, domain test and undo, 40 for the skip connection."""
         f = 0
         for layers in (self.classifier, self.regressor):
-            for i, (W, _) in enumerate(layers):
-                f += 2 * np.shape(W)[0] * np.shape(W)[1] + (24 * np.shape(W)[0] if i < len(layers) - 1 else 0)
+            fma, act = mlp_cost(layers)
+            f += 2 * fma + 24 * act
         f += self.stop_head.flops() if (self.stop_head is not None and self.iris is not None) else 0
         return f + 40 + 2 * 5 * 4
 
