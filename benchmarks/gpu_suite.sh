@@ -4,20 +4,29 @@
 #   bash scripts/gpu_carry.sh                  # here, once: .whl/ = drjit + a trimmed mitsuba for Python 3.12
 #   bash benchmarks/gpu_suite.sh STAGE [STAGE…]   # there (repository root), with .whl carried
 #
-# With the device tool: run(command="bash benchmarks/gpu_suite.sh tests bench", carry=[".whl"],
-# timeout_s=600), then the same with "train" and with "ghosts"; results.tar.gz comes back under files_at.
+# With the device tool: run(command="SUITE_DEADLINE=570 bash benchmarks/gpu_suite.sh bench flare tests equal",
+# carry=[".whl"], timeout_s=600); results.tar.gz and suite.log come back under files_at.
 #
-# Stages (each fits one 10-minute call; run `tests bench` in one call, `train` in another):
+# Stages (in the order given; `setup` always runs first):
 #   setup   install .whl/*.whl into /tmp/site (pip --no-index), print the GPU and the Mitsuba variants
-#   tests   the sensor, flare and aperture tests under cuda_ad_rgb ($MI_NEURALLENS_VARIANT)
 #   bench   fused literals vs cooperative vectors (bench_mlp.py) and render time thinlens / realistic_lens /
-#           neural_lens (bench_render.py) on the three paper lenses and the 27-surface RF 24 mm; the flare
-#           benchmark (bench_flare.py: samples/s and equal-time MAPE, exact vs neural) on wide-22mm
+#           neural_lens (bench_render.py) on the three paper lenses and the 27-surface RF 24 mm
+#   equal   equal render time, neural vs exact (equal_time.py), on every bundled lens
+#   flare   the Canon EF's whole flare, all 32 ghosts learned vs traced (complete_flare.py), its first render
+#           on a fresh kernel cache (first_render.py: literals vs shared kernels), and the wide-22mm flare
+#           benchmark (bench_flare.py: samples/s and equal-time MAPE, exact vs neural)
+#   tests   the sensor, flare and aperture tests under cuda_ad_rgb ($MI_NEURALLENS_VARIANT)
+#   throughput  the stacked trainer's samples/s on the GPU (training_throughput.py)
 #   train   a whole new lens with the defaults on the GPU: dgauss-50mm, transmit maps and the ghosts of the
 #           default selection (issue 17: <= 10 min), then its held-out evaluation
 #   ghosts  every ghost of the default selection for $GHOST_LENSES (default: the three paper lenses; one
 #           lens per call if they do not fit), recipe as in training/<lens>.toml; each model comes back in
 #           results.tar.gz, to be merged into the bundled one with training/merge_maps.py
+#
+# Time: SUITE_DEADLINE=S (seconds from the start) makes every step stop by then (each Python step runs under
+# `timeout` with what is left, and a step left with < 20 s is skipped), and results.tar.gz is rewritten after
+# every stage, so a call cut short by the device tool still brings back what finished.  The device tool
+# brings back at most 8 files: everything lands in results.tar.gz and suite.log.
 #
 # Results go to $OUT (the device tool's folder; ./gpu-results otherwise) as one results.tar.gz plus the
 # logs, so they come back within the tool's 8-file limit.  Every stage also runs on a CPU:
@@ -28,22 +37,47 @@ ROOT=$(pwd)
 OUT="${OUT:-$ROOT/gpu-results}"
 RES="$OUT/results"
 mkdir -p "$RES"
+exec > >(tee -a "$OUT/suite.log") 2>&1
 export PYTHONUNBUFFERED=1
 export MI_NEURALLENS_VARIANT="${GPU_SUITE_VARIANT:-cuda_ad_rgb}"
 export PYTHONPATH="$ROOT${PYTHONPATH:+:$PYTHONPATH}"
+for d in /usr/local/nvidia/lib64 /usr/local/nvidia/lib; do      # the driver's OptiX, for Mitsuba's cuda variants
+    [ -d "$d" ] && export LD_LIBRARY_PATH="$d${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
+done
 PY=python3
+DEADLINE="${SUITE_DEADLINE:-}"
 PAPER_LENSES="wide-22mm ood-59mm canon-ef-24mm-f1.4l canon-rf-24mm-f1.4l-vcm"
+ALL_LENSES="wide-22mm,ood-59mm,canon-ef-24mm-f1.4l,dgauss-50mm,canon-rf-24mm-f1.4l-vcm"
+FLARE_LENS=canon-ef-24mm-f1.4l
 if [ -n "${GPU_SUITE_QUICK:-}" ]; then
-    PAPER_LENSES="wide-22mm"; RAYS=18; FILM=160x120; SPP=16; FLARE="--ghosts 1 --samples 65536 --ref-samples 262144"
+    PAPER_LENSES="wide-22mm"; ALL_LENSES="wide-22mm"; RAYS=18; FILM=160x120; SPP=16
+    FLARE="--ghosts 1 --samples 65536 --ref-samples 262144"; COMPLETE="--samples 16 --reference 18 --positions 0.6:0.35"
+    EQUAL="--res 64x48 --spp 4,16 --reference-spp 64 --repeats 1"; FIRST=14
     TRAIN="--paths backward-transmit --set regressor.max_steps=200 --set classifier.max_steps=200 --set stop.max_steps=200"
     GHOST_LENSES="${GHOST_LENSES:-wide-22mm}"
     GHOST_ARGS="--set max_ghosts=1 --set forward_regressor.max_steps=200 --set forward_classifier.max_steps=200 --set forward_stop.max_steps=200"
-    EVAL_N=2000
+    EVAL_N=2000; THROUGHPUT="--steps 20 --maps 1,4"
 else
     RAYS=24; FILM=1280x960; SPP=64; FLARE="--ghosts 8 --samples $((1 << 24)) --ref-samples $((1 << 27))"
-    TRAIN="--paths transmit,ghosts"; EVAL_N=100000
+    COMPLETE="--samples 24 --reference 28"; EQUAL="--res 640x480 --spp 4,16,64,256 --reference-spp 4096 --repeats 2"
+    FIRST=22; TRAIN="--paths transmit,ghosts"; EVAL_N=100000; THROUGHPUT="--steps 300 --maps 1,4,16,32"
 fi
 status=0
+
+left() {   # seconds left before SUITE_DEADLINE (a large number without one)
+    if [ -n "$DEADLINE" ]; then echo $((DEADLINE - SECONDS)); else echo 100000; fi
+}
+
+py() {     # py BOX_SECONDS script args…: Python under `timeout`, within the box and the deadline
+    local box=$1 l rc; shift
+    l=$(left)
+    [ "$l" -lt "$box" ] && box=$l
+    if [ "$box" -lt 20 ]; then echo "skipped (deadline): $*"; return 1; fi
+    timeout -k 5 "$box" $PY "$@"
+    rc=$?
+    [ $rc -eq 124 ] && echo "stopped after ${box} s (timeout): $*"
+    return $rc
+}
 
 stage_setup() {
     if ls .whl/*.whl >/dev/null 2>&1; then
@@ -51,7 +85,8 @@ stage_setup() {
             || return 1
         export PYTHONPATH="/tmp/site:$PYTHONPATH"
     fi
-    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv 2>/dev/null | tee "$RES/gpu.txt"
+    nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.max.sm --format=csv 2>/dev/null | tee "$RES/gpu.txt"
+    ldconfig -p 2>/dev/null | grep -i optix | head -3
     $PY - <<'EOF' 2>&1 | tee "$RES/setup.txt"
 import os, platform, sys
 import drjit as dr, mitsuba as mi
@@ -61,6 +96,8 @@ print("mitsuba", mi.__version__, "from", os.path.dirname(mi.__file__), "drjit", 
 mi.set_variant(v)
 x = mi.Float(1.0) + 1.0
 print("variant", v, "ok:", float(x[0]) == 2.0)
+scene = mi.load_dict({"type": "scene", "s": {"type": "sphere"}})      # OptiX (cuda) or Embree (llvm)
+print("scene ok:", scene.ray_intersect(mi.Ray3f([0, 0, -3], [0, 0, 1])).is_valid())
 try:
     import torch
     print("torch", torch.__version__, "cuda:", torch.cuda.is_available(),
@@ -68,31 +105,53 @@ try:
 except ImportError:
     print("torch: not installed")
 EOF
-}
-
-stage_tests() {
-    $PY -m pytest -q -ra -p no:cacheprovider tests/test_sensor_realistic.py tests/test_sensor_neural.py \
-        tests/test_flare.py tests/test_aperture.py 2>&1 | tee "$RES/tests.log"
     return "${PIPESTATUS[0]}"
 }
 
 stage_bench() {
     local rc=0
     for lens in $PAPER_LENSES; do
-        $PY benchmarks/bench_mlp.py --lens "$lens" --rays $RAYS --out "$RES/mlp_$lens.json" 2>&1 | tee -a "$RES/bench.log" || rc=1
-        $PY benchmarks/bench_render.py --lens "$lens" --res $FILM --spp $SPP --repeats 3 \
-            --out "$RES/render_$lens.json" 2>&1 | tee -a "$RES/bench.log" || rc=1
+        py 60 benchmarks/bench_mlp.py --lens "$lens" --rays $RAYS --out "$RES/mlp_$lens.json" || rc=1
     done
-    $PY benchmarks/bench_flare.py --lens wide-22mm $FLARE --out "$RES/flare_wide-22mm.json" 2>&1 | tee -a "$RES/bench.log" || rc=1
+    for lens in $PAPER_LENSES; do
+        py 90 benchmarks/bench_render.py --lens "$lens" --res $FILM --spp $SPP --repeats 3 \
+            --out "$RES/render_$lens.json" || rc=1
+    done
     return $rc
+}
+
+stage_equal() {
+    py 150 benchmarks/equal_time.py --lenses $ALL_LENSES $EQUAL --out "$RES/equal_time.json"
+}
+
+stage_flare() {
+    local rc=0
+    py 120 benchmarks/complete_flare.py --lens $FLARE_LENS $COMPLETE --json "$RES/complete_flare_$FLARE_LENS.json" || rc=1
+    py 90 benchmarks/first_render.py --lens $FLARE_LENS --samples $FIRST --modes exact,neural:fused,neural:shared \
+        --out "$RES/first_render_$FLARE_LENS.json" || rc=1
+    py 90 benchmarks/bench_flare.py --lens wide-22mm $FLARE --out "$RES/flare_wide-22mm.json" || rc=1
+    return $rc
+}
+
+stage_tests() {
+    local box=240 l; l=$(left); [ "$l" -lt "$box" ] && box=$l
+    [ "$box" -lt 30 ] && { echo "skipped (deadline): tests"; return 1; }
+    timeout -k 5 "$box" $PY -m pytest -q -ra -p no:cacheprovider tests/test_sensor_realistic.py \
+        tests/test_sensor_neural.py tests/test_flare.py tests/test_aperture.py 2>&1 | tee "$RES/tests.log"
+    return "${PIPESTATUS[0]}"
+}
+
+stage_throughput() {
+    py 120 benchmarks/training_throughput.py $THROUGHPUT --out "$RES/training_throughput.json" 2>&1 | tee "$RES/throughput.log"
+    return "${PIPESTATUS[0]}"
 }
 
 stage_train() {
     local t0=$SECONDS rc=0
-    $PY -m mi_neurallens train dgauss-50mm $TRAIN --out "$RES/train" --no-progress \
+    py 100000 -m mi_neurallens train dgauss-50mm $TRAIN --out "$RES/train" --no-progress \
         2>&1 | tee "$RES/train.log" || rc=1
     echo "wall: $((SECONDS - t0)) s for dgauss-50mm ($TRAIN) with data on $MI_NEURALLENS_VARIANT" | tee -a "$RES/train.log"
-    $PY -m mi_neurallens evaluate "$RES/train/dgauss-50mm.model.safetensors" -n $EVAL_N --seed 4242 \
+    py 300 -m mi_neurallens evaluate "$RES/train/dgauss-50mm.model.safetensors" -n $EVAL_N --seed 4242 \
         2>&1 | tee -a "$RES/train.log" || rc=1
     rm -rf "$RES/train/"*.work
     return $rc
@@ -102,7 +161,7 @@ stage_ghosts() {
     local rc=0 t0
     for lens in ${GHOST_LENSES:-wide-22mm ood-59mm canon-ef-24mm-f1.4l}; do
         t0=$SECONDS
-        $PY -m mi_neurallens train "$lens" --paths ghosts ${GHOST_ARGS:-} --out "$RES/ghosts" --no-progress \
+        py 100000 -m mi_neurallens train "$lens" --paths ghosts ${GHOST_ARGS:-} --out "$RES/ghosts" --no-progress \
             2>&1 | tee "$RES/ghosts_$lens.log" || rc=1
         echo "wall: $((SECONDS - t0)) s for the ghosts of $lens" | tee -a "$RES/ghosts_$lens.log"
         rm -rf "$RES/ghosts/"*.work
@@ -110,12 +169,13 @@ stage_ghosts() {
     return $rc
 }
 
-[ $# -gt 0 ] || set -- setup tests bench
+[ $# -gt 0 ] || set -- setup bench flare tests equal
 case " $* " in *" setup "*) ;; *) set -- setup "$@" ;; esac   # every call installs the wheels first
 for stage in "$@"; do
-    echo "=== $stage ($(date -u +%H:%M:%S))"
+    echo "=== $stage ($(date -u +%H:%M:%S), ${SECONDS} s in)"
     t=$SECONDS
     if "stage_$stage"; then echo "=== $stage ok, $((SECONDS - t)) s"; else echo "=== $stage FAILED, $((SECONDS - t)) s"; status=1; fi
+    tar -czf "$OUT/results.tar.gz.part" -C "$OUT" results && mv "$OUT/results.tar.gz.part" "$OUT/results.tar.gz"
 done
-tar -czf "$OUT/results.tar.gz" -C "$OUT" results && echo "results: $OUT/results.tar.gz"
+echo "results: $OUT/results.tar.gz"
 exit $status

@@ -158,6 +158,7 @@ def main():
     ap.add_argument("--maps", default="1,4,16")
     ap.add_argument("--kinds", default="regressor,classifier")
     ap.add_argument("--grid", action="store_true", help="only the stack-size grid (maps × batch)")
+    ap.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "training_throughput.json"))
     ap.add_argument("--old", action="store_true", help=argparse.SUPPRESS)   # the subprocess's mode
     args = ap.parse_args()
     if args.grid:
@@ -189,7 +190,7 @@ def main():
             print(f"new  {kind:10s} {k:2d} maps ({r['stacks']} stacks): {r['samples_per_s'] / 1e6:.2f} M samples/s{ratio}",
                   flush=True)
     os.makedirs(os.path.join(ROOT, "benchmarks", "results"), exist_ok=True)
-    with open(os.path.join(ROOT, "benchmarks", "results", "training_throughput.json"), "w") as f:
+    with open(args.out, "w") as f:
         json.dump(rows, f, indent=1)
 
 
