@@ -93,6 +93,17 @@ def main(argv=None):
     f = np.stack([v.numpy() for v in fused()], 1)
     c = np.stack([v.numpy() for v in coop()], 1)
     rows["neural, cooperative vectors"]["max_abs_diff_vs_fused"] = float(np.abs(f - c).max())
+    # per output, on the rays the fused classifier passes (logit: all rays); outputs in the map's units
+    # (positions mm, direction cosines, throughput); fp16 on CUDA is where they part
+    names = ["logit"] + [f"y{i}" for i in range(f.shape[1] - 1)]
+    ok = f[:, 0] > 0
+    per = {}
+    for i, nm in enumerate(names):
+        sel = slice(None) if i == 0 else ok
+        d = np.abs(f[sel, i] - c[sel, i])
+        per[nm] = {"max": float(d.max()) if d.size else 0.0, "p99": float(np.percentile(d, 99)) if d.size else 0.0}
+    rows["neural, cooperative vectors"]["diff_vs_fused_per_output"] = per
+    rows["neural, cooperative vectors"]["validity_flips"] = float(np.mean((f[:, 0] > 0) != (c[:, 0] > 0)))
     widths = [[np.shape(W)[0] for W, _ in net][:-1] for net in (tm.classifier, tm.regressor)]
     print(f"{a.lens}, backward transmit map (classifier {widths[0]}, regressor {widths[1]}, tanh"
           f"{', stop head' if tm.stop_head is not None else ''}), 2^{a.rays} rays, "
@@ -101,7 +112,10 @@ def main(argv=None):
     print("|---|---|---|")
     for k, r in rows.items():
         print(f"| {k} | {r['mrays_per_s']:.1f} | {r['first_call_s']:.2f} |")
-    print(f"cooperative vectors vs fused: max |diff| = {rows['neural, cooperative vectors']['max_abs_diff_vs_fused']:.2e}")
+    cv = rows["neural, cooperative vectors"]
+    print(f"cooperative vectors vs fused: max |diff| = {cv['max_abs_diff_vs_fused']:.2e}; validity flips "
+          f"{cv['validity_flips']:.2e}; per output max / p99 (passing rays): "
+          + ", ".join(f"{k} {v['max']:.2e} / {v['p99']:.2e}" for k, v in cv["diff_vs_fused_per_output"].items()))
     res = {"lens": a.lens, "model": a.model or "bundled", "hidden_widths": widths, "rays": n,
            "threads": dr.thread_count(), "machine": platform.processor() or platform.machine(),
            "cpus": os.cpu_count(), "rows": rows}

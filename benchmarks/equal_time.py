@@ -61,6 +61,7 @@ def measure_lens(mi, dr, lens, a):
     for spp in a.spp:
         for s in SENSORS:                                   # warm-up: compile this spp's kernels
             dr.eval(mi.render(scenes[s], spp=spp, seed=0))
+        dr.sync_thread()     # launches are asynchronous (CUDA): the first timed render must not inherit them
         best = {s: float("inf") for s in SENSORS}
         imgs = {}
         for r in range(a.repeats):

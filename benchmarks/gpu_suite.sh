@@ -59,8 +59,8 @@ if [ -n "${GPU_SUITE_QUICK:-}" ]; then
     EVAL_N=2000; THROUGHPUT="--steps 20 --maps 1,4"
 else
     RAYS=24; FILM=1280x960; SPP=64; FLARE="--ghosts 8 --samples $((1 << 24)) --ref-samples $((1 << 27))"
-    COMPLETE="--samples 24 --reference 28"; EQUAL="--res 640x480 --spp 4,16,64,256 --reference-spp 4096 --repeats 2"
-    FIRST=22; TRAIN="--paths transmit,ghosts"; EVAL_N=100000; THROUGHPUT="--steps 300 --maps 1,4,16,32"
+    COMPLETE="--samples 24 --reference 28"; EQUAL="--res 640x480 --spp 4,16,64 --reference-spp 1024 --repeats 2"
+    FIRST=22; TRAIN="--paths transmit,ghosts"; EVAL_N=100000; THROUGHPUT="--steps 300 --maps 1,16"
 fi
 status=0
 
@@ -142,7 +142,7 @@ stage_tests() {
 }
 
 stage_throughput() {
-    py 120 benchmarks/training_throughput.py $THROUGHPUT --out "$RES/training_throughput.json" 2>&1 | tee "$RES/throughput.log"
+    py 150 benchmarks/training_throughput.py $THROUGHPUT --out "$RES/training_throughput.json" 2>&1 | tee "$RES/throughput.log"
     return "${PIPESTATUS[0]}"
 }
 
