@@ -71,7 +71,8 @@ def grid(images, titles, path, suptitle, cols):
         ax.imshow(tonemap(img))
         ax.set_title(t, fontsize=8)
         ax.axis("off")
-    fig.suptitle(suptitle, fontsize=9)
+    import textwrap
+    fig.suptitle(textwrap.fill(suptitle, 50 * cols), fontsize=9)     # long titles wrap instead of clipping
     fig.subplots_adjust(left=0.01, right=0.99, top=0.86, bottom=0.01, wspace=0.03, hspace=0.18)
     fig.savefig(path + ".tmp.png")
     os.replace(path + ".tmp.png", path)
