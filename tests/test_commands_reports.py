@@ -33,6 +33,18 @@ def test_evaluate_recorded_reports_the_files_own_metrics(tmp_path):
     assert "recorded in the file at training" in mp.read_text()
 
 
+def test_evaluate_recorded_shows_the_verified_flare_errors(tmp_path):
+    """The paper lenses' ghost maps carry their verified flare error (``evaluate --flare --write``); the
+    report shows it in a column; ``--write`` without ``--flare`` is refused before any work."""
+    jp, mp = tmp_path / "e.json", tmp_path / "e.md"
+    assert main(["evaluate", "canon-ef-24mm-f1.4l", "--recorded", "--json", str(jp), "--markdown", str(mp)]) == 0
+    f = json.loads(jp.read_text())["maps"]["forward.12"]["flare"]
+    assert 0 < f["paired_mape"] < 1 and f["log2_samples"] == 24 and len(f["per_light"]) == 2
+    assert f["paired_mape"] == max(f["per_light"])
+    assert "flare, paired MAPE" in mp.read_text()
+    assert main(["evaluate", "canon-ef-24mm-f1.4l", "--recorded", "--write", "--json", str(jp)]) == 1
+
+
 def test_accuracy_command_writes_reports(tmp_path):
     pytest.importorskip("mitsuba")
     assert main(["accuracy", "wide-22mm", "--paths", "2560", "--methods", "abcd,neural", "--n", "2000",

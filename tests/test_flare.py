@@ -294,16 +294,28 @@ def _model_with_ghost():
 
 
 
+def _with_map_change(m, pid, **fields):
+    """A shallow copy of model ``m`` whose forward map of ``pid`` has ``fields`` replaced."""
+    import copy
+    import dataclasses
+    out = copy.copy(m)
+    out.maps = dict(m.maps)
+    out.maps[f"forward.{pid}"] = dataclasses.replace(m.maps[f"forward.{pid}"], **fields)
+    return out
+
+
 def test_auto_uses_a_learned_ghost_only_where_it_is_sharp_enough_for_the_film():
     """Mode auto takes a ghost's learned map only if its held-out median exit-position error is at most
     ``auto_max_error_px`` pixels of this film, and traces the ghost otherwise: on a 240-pixel-wide full-frame
     film (150 µm pixels) a 9 µm map is used, on a 2048-pixel film (17.6 µm) it is traced; a map with no
-    recorded accuracy is traced; mode neural uses every map whatever its error."""
+    recorded accuracy is traced; mode neural uses every map whatever its error.  (The position gate alone:
+    the map's verified flare error, which the bundled model records, is taken out; it has its own test.)"""
     m, why = _model_with_ghost()
     if m is None:
         pytest.skip(why)
     import copy
     pid = 2560
+    m = _with_map_change(m, pid, metrics={k: v for k, v in m.map(pid, "forward").metrics.items() if k != "flare"})
     err = m.map(pid, "forward").metrics["regressor"]["position_um_median"]
     assert 3.0 < err < 15.0                            # 0.02-0.1 px at 240 px, 0.17-0.85 px at 2048 px
 
@@ -323,6 +335,60 @@ def test_auto_uses_a_learned_ghost_only_where_it_is_sharp_enough_for_the_film():
         FlareOptions(auto_max_error_px=-1.0).validate()
 
 
+def test_auto_reads_the_verified_flare_error_where_the_model_records_one():
+    """Where a map records a verified flare error (``metrics["flare"]``, mi_neurallens.flare.verify), mode
+    auto learns the ghost only if that paired MAPE is within ``auto_max_flare_error`` — on top of the
+    position gate; a record without a value (the ghost reached no pixel) is traced."""
+    m, why = _model_with_ghost()
+    if m is None:
+        pytest.skip(why)
+    pid = 2560
+    base = {k: v for k, v in m.map(pid, "forward").metrics.items() if k != "flare"}
+
+    def kind(model, **kw):
+        scene = make_scene(point((0.3, 0.2, 5.0)), w=240, h=160)
+        return FlareRenderer(scene, 0, FlareOptions(mode="auto", model=model, ghosts=[pid], **kw)).evaluator(pid).kind
+
+    def recorded(err):
+        return _with_map_change(m, pid, metrics={**base, "flare": {"paired_mape": err}})
+
+    assert kind(recorded(0.005)) == "neural"
+    assert kind(recorded(0.05)) == "exact"
+    assert kind(recorded(0.05), auto_max_flare_error=0.1) == "neural"
+    assert kind(recorded(None)) == "exact"
+    assert kind(recorded(0.005), auto_max_error_px=0.0) == "exact"     # the position gate still applies
+    with pytest.raises(NeuralLensError, match="auto_max_flare_error"):
+        FlareOptions(auto_max_flare_error=-0.1).validate()
+
+
+def test_flare_verification_sees_a_shifted_map(tmp_path):
+    """The paired flare error of a learned ghost against the tracer on the same samples: small for the
+    shipped map (0.013 on a 48×32 film at 2^18 samples), four times larger for the same map with its exit
+    position shifted by 0.3 mm (0.055: its classifier unchanged); verify_model returns the per-light values
+    and the protocol."""
+    m, why = _model_with_ghost()
+    if m is None:
+        pytest.skip(why)
+    from mi_neurallens.flare.verify import paired_flare_error, verification_scene, verify_model
+    pid = 2560
+    film = (48, 32)
+    good = paired_flare_error(verification_scene("wide-22mm", MODEL, film=film), pid, samples=1 << 18)
+    assert good["pixels"] > 500 and good["paired_mape"] < 0.025 and abs(good["flux_ratio"] - 1) < 0.01
+    tm = m.map(pid, "forward")
+    shift = np.zeros_like(tm.out_shift)
+    shift[0] = 0.3
+    bad_file = tmp_path / "shifted.model.safetensors"
+    _with_map_change(m, pid, out_shift=tm.out_shift + shift).save(bad_file)
+    bad = paired_flare_error(verification_scene("wide-22mm", bad_file, film=film), pid, samples=1 << 18)
+    assert bad["paired_mape"] > 3 * good["paired_mape"] and bad["paired_mape"] > 0.04
+    rec = verify_model(MODEL, ghosts=[pid], samples_log2=14, lights=((0.9, 0.45), (0.15, 0.1)), film=film,
+                       log=None)
+    assert set(rec) == {pid}
+    r = rec[pid]
+    assert len(r["per_light"]) == 2 and r["paired_mape"] == max(v for v in r["per_light"] if v is not None)
+    assert r["log2_samples"] == 14 and r["film"] == [48, 32]
+
+
 def test_learned_ghosts_share_one_kernel_per_architecture_from_several_maps_on():
     """mlp = auto: a render with at least SHARED_FROM learned ghost maps evaluates them with kernel parameters
     (one kernel per architecture), fewer with literals; exact renders and an explicit mlp are left alone."""
@@ -333,8 +399,8 @@ def test_learned_ghosts_share_one_kernel_per_architecture_from_several_maps_on()
     assert len(ids) > SHARED_FROM > 1
     scene = make_scene(point((0.3, 0.2, 5.0)), w=240, h=160)
 
-    def renderer(ghosts, **kw):
-        return FlareRenderer(scene, 0, FlareOptions(model=m, ghosts=ghosts, **kw))
+    def renderer(ghosts, **kw):       # auto learns every map here: the verified-flare gate is left open
+        return FlareRenderer(scene, 0, FlareOptions(model=m, ghosts=ghosts, auto_max_flare_error=1.0, **kw))
 
     assert renderer(ids[:SHARED_FROM]).learned_mlp() == "shared"
     assert renderer(ids[:SHARED_FROM - 1]).learned_mlp() == "fused"

@@ -5,6 +5,10 @@ classifier's misclassification / false-valid / false-blocked rates and the dista
 from the true boundary, and the regressor's exit-position (µm), direction (arcsec) and relative
 throughput errors, checked against the goals of docs/training.md.  Writes JSON and markdown
 (``--json``, ``--markdown``; default next to the model: ``<model>.eval.json`` / ``.md``).
+
+``--flare`` also renders every forward ghost map's flare against the tracer's on the same samples
+(:mod:`mi_neurallens.flare.verify`: paired MAPE, the largest over two light positions); ``--write`` records
+it in the model file, where the flare's mode ``auto`` uses it (``auto_max_flare_error``).
 """
 from __future__ import annotations
 
@@ -24,6 +28,12 @@ def add_parser(subparsers):
     p.add_argument("--recorded", action="store_true",
                    help="report the held-out metrics recorded in the model file at training instead of tracing "
                         "fresh rays (seconds instead of ~30 s per map)")
+    p.add_argument("--flare", action="store_true",
+                   help="also verify each ghost map's flare against the tracer on the same samples (paired MAPE)")
+    p.add_argument("--flare-samples", type=int, default=24, metavar="LOG2",
+                   help="log2 samples of each verification render (default 24)")
+    p.add_argument("--write", action="store_true",
+                   help="with --flare: record the verified flare errors in the model file (mode auto reads them)")
     p.set_defaults(func=run)
     return p
 
@@ -34,6 +44,9 @@ def run(args):
     from ..trace.paths import ghost_surfaces, resolve_path
     from ..training.evaluate import GOALS, evaluate_map, markdown_table, meets_goals
     from ..fileio import atomic_write_text
+    if args.write and not args.flare:
+        from ..errors import NeuralLensError
+        raise NeuralLensError("evaluate: --write records the verified flare errors; add --flare")
     path = args.model if os.path.exists(args.model) else bundled_model_path(args.model)
     probe = load_model(path)
     lens = Lens.load(args.lens or probe.lens_name)
@@ -58,6 +71,8 @@ def run(args):
               f"dir {r['direction_arcsec_median']:.3g}/{r['direction_arcsec_p99']:.3g}\", "
               f"T {100 * r['throughput_rel_median']:.3g}%, misclass {100 * c['misclassification']:.3g}% "
               f"(false-valid {100 * c['false_valid']:.3g}%, false-blocked {100 * c['false_blocked']:.3g}%)", flush=True)
+    if args.flare:
+        _verify_flare(args, path, lens, model, out, rows)
     how = (f"`mi-neurallens evaluate {args.model} --recorded`: the held-out metrics recorded in the file at training "
            f"(each map's own held-out rays and seed)" if args.recorded else
            f"`mi-neurallens evaluate {args.model} -n {args.n} --seed {args.seed}`")
@@ -69,3 +84,26 @@ def run(args):
     print(md)
     print(f"wrote {jp} and {mp}")
     return 0
+
+
+def _verify_flare(args, path, lens, model, out, rows):
+    """``--flare``: the paired flare error of every forward ghost map, into the report (and with
+    ``--write`` into the model file's ``metrics["flare"]``)."""
+    import mitsuba as mi
+    from ..flare.verify import verify_model
+    from ..render_utils import default_variant
+    if not mi.variant():
+        mi.set_variant(default_variant())
+    res = verify_model(path, lens.name, samples_log2=args.flare_samples)
+    for pid, rec in res.items():
+        tm = model.map(pid, "forward")
+        key = next(k for k, m in model.maps.items() if m is tm)
+        out["maps"][key]["flare"] = rec
+        err = rec["paired_mape"]
+        print(f"{key:>16}: flare, paired MAPE {'no pixel' if err is None else f'{err:.4f}'} "
+              f"(max over {len(rec['lights_m'])} light positions, 2^{rec['log2_samples']} samples)", flush=True)
+        if args.write:
+            tm.metrics["flare"] = rec
+    if args.write:
+        model.save(path)
+        print(f"recorded the verified flare errors of {len(res)} ghost maps in {path}")

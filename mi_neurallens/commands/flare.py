@@ -38,6 +38,9 @@ def add_parser(subparsers):
     p.add_argument("--auto-max-error", type=float, default=0.1, metavar="PX",
                    help="mode auto: use a learned ghost map only where its held-out median exit-position error "
                         "is at most PX film pixels, else trace the ghost (default 0.1, the per-ghost flare goal)")
+    p.add_argument("--auto-max-flare-error", type=float, default=0.01, metavar="MAPE",
+                   help="mode auto: where the model records a verified flare error for a map (mi-neurallens evaluate "
+                        "--flare --write), use the map only if it is at most MAPE (default 0.01)")
     p.add_argument("--mlp", choices=("auto", "fused", "shared", "coopvec"), default="auto",
                    help="how learned ghost maps enter their kernels: fused (weights as literals, a kernel per map), "
                         "shared (weights as kernel parameters, one kernel per architecture), coopvec; auto: shared "
@@ -95,7 +98,7 @@ def run(args) -> int:
                 pass
     kw = dict(samples=int(n), ghosts=parse_id_list(args.ghosts) or None, exclude_ghosts=parse_id_list(args.exclude),
               max_ghosts=args.max_ghosts, coating=args.coating, blades=args.blades, model=model,
-              auto_max_error_px=args.auto_max_error, mlp=args.mlp)
+              auto_max_error_px=args.auto_max_error, auto_max_flare_error=args.auto_max_flare_error, mlp=args.mlp)
     out = args.output or os.path.splitext(os.path.basename(args.scene))[0] + "_flare.png"
     base = os.path.splitext(out)[0]
     report = {"scene": args.scene, "samples_per_light": int(n), "film": [W, H]}

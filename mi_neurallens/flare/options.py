@@ -26,6 +26,9 @@ class FlareOptions:
     #: mode auto: a learned ghost map is used where its held-out median exit-position error is at most this many
     #: film pixels, the tracer elsewhere
     auto_max_error_px: float = 0.1
+    #: mode auto: and, where the model records a verified flare error for the map (``metrics["flare"]``,
+    #: :mod:`mi_neurallens.flare.verify`), only if that paired MAPE is at most this (0.01: issue 17's per-ghost goal)
+    auto_max_flare_error: float = 0.01
     ghosts: list | None = None         #: ghost path ids to render (None: automatic selection)
     exclude_ghosts: list = field(default_factory=list)
     max_ghosts: int = 32               #: cap of the automatic selection
@@ -77,6 +80,8 @@ class FlareOptions:
             raise FlareError(f"lens_flare: 'blades' must be 0 (circular) or >= 3, got {self.blades}")
         if not self.auto_max_error_px >= 0:
             raise FlareError(f"lens_flare: 'auto_max_error' must be >= 0 (pixels), got {self.auto_max_error_px}")
+        if not self.auto_max_flare_error >= 0:
+            raise FlareError(f"lens_flare: 'auto_max_flare_error' must be >= 0, got {self.auto_max_flare_error}")
         if self.mlp not in ("auto",) + MLP_MODES:
             raise FlareError(f"lens_flare: 'mlp' must be one of auto, {', '.join(MLP_MODES)}, got {self.mlp!r}")
         if not self.pilot_grid >= 4 or not self.pilot_spp >= 1:

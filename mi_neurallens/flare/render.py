@@ -325,10 +325,18 @@ class FlareRenderer:
 
     def sharp_enough(self, tm) -> bool:
         """Whether mode ``auto`` may use the learned map ``tm``: its held-out median exit-position error (the
-        model file's ``metrics``; none recorded: no) is at most ``auto_max_error_px`` pixels of this film."""
+        model file's ``metrics``; none recorded: no) is at most ``auto_max_error_px`` pixels of this film,
+        and its verified flare error (``metrics["flare"]["paired_mape"]``, :mod:`~mi_neurallens.flare.verify`),
+        where recorded, at most ``auto_max_flare_error``."""
         err_um = (tm.metrics.get("regressor") or {}).get("position_um_median")
         pixel_um = 1000.0 * self.setup.sensor_width_mm / self.size[0]
-        return err_um is not None and err_um <= self.opts.auto_max_error_px * pixel_um
+        if err_um is None or err_um > self.opts.auto_max_error_px * pixel_um:
+            return False
+        flare = tm.metrics.get("flare")
+        if flare is None:
+            return True
+        err = flare.get("paired_mape")
+        return err is not None and err <= self.opts.auto_max_flare_error
 
     def learned_mlp(self, ids=None) -> str:
         """How this render's learned maps enter their kernels (:class:`~mi_neurallens.neural.model.NeuralMap`'s

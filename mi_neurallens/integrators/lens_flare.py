@@ -49,8 +49,14 @@ sensor must be ``realistic_lens`` or ``neural_lens``.
    - |float|
    - ``auto`` uses a learned ghost map only if its held-out median exit-position error (recorded in the model
      file) is at most this many film pixels; a coarser map is traced instead, so a render never shows a
-     learned ghost less sharp than its pixels.  0.1 px is the per-ghost flare goal (MAPE ≤ 0.01 against
-     the exact ghost).  (Default: 0.1)
+     learned ghost less sharp than its pixels.  (Default: 0.1)
+
+ * - auto_max_flare_error
+   - |float|
+   - ``auto`` also requires, where the model file records one (``mi-neurallens evaluate MODEL --flare
+     --write``), a map's verified flare error — its ghost against the tracer's on the same samples, paired
+     MAPE — to be at most this.  Position alone does not see a classifier's edge.  (Default: 0.01, the
+     per-ghost flare goal)
 
  * - model
    - |string|
@@ -190,6 +196,7 @@ _PROPS = {
     "energy_fraction": ("float", "energy_fraction"), "coating_index": ("float", "coating_index"),
     "coating_wavelength": ("float", "coating_wavelength"), "blade_rotation": ("float", "blade_rotation"),
     "small_emitter_size": ("float", "small_emitter_size"), "auto_max_error": ("float", "auto_max_error_px"),
+    "auto_max_flare_error": ("float", "auto_max_flare_error"),
     "mode": ("string", "mode"), "model": ("string", "model"), "ghosts": ("string", "ghosts"),
     "exclude_ghosts": ("string", "exclude_ghosts"), "coating": ("string", "coating"),
     "coating_surfaces": ("string", "coating_surfaces"), "bounds": ("string", "bounds"),
