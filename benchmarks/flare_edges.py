@@ -53,6 +53,7 @@ def main(argv=None):
     from mi_neurallens.commands.render import load_scene
     from mi_neurallens.fileio import atomic_write_json
     from mi_neurallens.flare.render import FlareOptions, render_flare
+    from mi_neurallens.flare.verify import paired_renders
     from mi_neurallens.metrics import LUMINANCE, flare_error_map, mape_masked
     from mi_neurallens.neural.model import bundled_model_path, load_model
     HybridFlare = _hybrid_renderer()
@@ -64,8 +65,7 @@ def main(argv=None):
     rows = []
     for g in ([] if a.combined_only else ghosts) + (["all"] if a.combined or a.combined_only else []):
         gl = ghosts if g == "all" else [g]
-        ex = render_flare(scene, seed=1, ghosts=gl, samples=n, mode="exact").total
-        ne = render_flare(scene, seed=1, ghosts=gl, samples=n, mode="neural", pilot_with="exact").total
+        ex, ne = paired_renders(scene, gl, n, seed=1)        # the protocol of `evaluate --flare`
         rel, mask = flare_error_map(ne, ex)
         if not mask.any():      # the stop blocks this ghost entirely (or it leaves the film): nothing to compare
             rows.append(dict(ghost=g, log2_samples=a.samples, pixels=0,
