@@ -10,7 +10,8 @@
 # Stages (in the order given; `setup` always runs first):
 #   setup   install .whl/*.whl into /tmp/site (pip --no-index), print the GPU and the Mitsuba variants
 #   bench   fused literals vs cooperative vectors (bench_mlp.py) and render time thinlens / realistic_lens /
-#           neural_lens (bench_render.py) on the three paper lenses and the 27-surface RF 24 mm
+#           neural_lens (bench_render.py) on the three paper lenses and the 27-surface RF 24 mm, and the RF 24 mm
+#           again with its 16-wide camera map ($RF16: a quarter of the multiply-adds, 2.3x the position error)
 #   equal   equal render time, neural vs exact (equal_time.py), on every bundled lens
 #   flare   the Canon EF's whole flare, all 32 ghosts learned vs traced (complete_flare.py), its first render
 #           on a fresh kernel cache (first_render.py: literals vs shared kernels), and the wide-22mm flare
@@ -49,6 +50,7 @@ DEADLINE="${SUITE_DEADLINE:-}"
 PAPER_LENSES="wide-22mm ood-59mm canon-ef-24mm-f1.4l canon-rf-24mm-f1.4l-vcm"
 ALL_LENSES="wide-22mm,ood-59mm,canon-ef-24mm-f1.4l,dgauss-50mm,canon-rf-24mm-f1.4l-vcm"
 FLARE_LENS=canon-ef-24mm-f1.4l
+RF16=benchmarks/models/canon-rf-24mm-f1.4l-vcm.width16.model.safetensors   # 5x16 + 2x16 camera map (not shipped)
 if [ -n "${GPU_SUITE_QUICK:-}" ]; then
     PAPER_LENSES="wide-22mm"; ALL_LENSES="wide-22mm"; RAYS=18; FILM=160x120; SPP=16
     FLARE="--ghosts 1 --samples 65536 --ref-samples 262144"; COMPLETE="--samples 16 --reference 18 --positions 0.6:0.35"
@@ -117,6 +119,12 @@ stage_bench() {
         py 90 benchmarks/bench_render.py --lens "$lens" --res $FILM --spp $SPP --repeats 3 \
             --out "$RES/render_$lens.json" || rc=1
     done
+    if [ -z "${GPU_SUITE_QUICK:-}" ] && [ -f "$RF16" ]; then   # a 4x cheaper camera map: does it beat the tracer?
+        py 60 benchmarks/bench_mlp.py --lens canon-rf-24mm-f1.4l-vcm --model "$RF16" --rays $RAYS \
+            --out "$RES/mlp_canon-rf-24mm-f1.4l-vcm_width16.json" || rc=1
+        py 90 benchmarks/bench_render.py --lens canon-rf-24mm-f1.4l-vcm --model "$RF16" --res $FILM --spp $SPP \
+            --repeats 3 --out "$RES/render_canon-rf-24mm-f1.4l-vcm_width16.json" || rc=1
+    fi
     return $rc
 }
 
