@@ -357,6 +357,12 @@ def test_auto_reads_the_verified_flare_error_where_the_model_records_one():
     assert kind(recorded(0.05), auto_max_flare_error=0.1) == "neural"
     assert kind(recorded(None)) == "exact"
     assert kind(recorded(0.005), auto_max_error_px=0.0) == "exact"     # the position gate still applies
+    scene = make_scene(point((0.3, 0.2, 5.0)), w=240, h=160)
+    why = FlareRenderer(scene, 0, FlareOptions(model=recorded(0.05), ghosts=[pid])).auto_reason(pid)
+    assert why == "verified flare error 0.05 > 0.01"                    # what `mi-neurallens flare` prints
+    why = FlareRenderer(scene, 0, FlareOptions(model=recorded(0.005), ghosts=[pid], auto_max_error_px=0.0)).auto_reason(pid)
+    assert why.startswith("position error") and "> 0 px" in why
+    assert FlareRenderer(scene, 0, FlareOptions(ghosts=[pid])).auto_reason(pid) == "no neural model"
     with pytest.raises(NeuralLensError, match="auto_max_flare_error"):
         FlareOptions(auto_max_flare_error=-0.1).validate()
 

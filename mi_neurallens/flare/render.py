@@ -318,25 +318,47 @@ class FlareRenderer:
 
     def auto_learns(self, pid) -> bool:
         """Whether mode ``auto`` evaluates ghost ``pid`` with its learned map: the model has one, the lens is
-        as trained, and the map is :meth:`sharp_enough` for this film."""
-        m = self.model
-        return (self.opts.mode == "auto" and pid != 0 and m is not None and not self.lens_modified
-                and m.has(pid, "forward") and self.sharp_enough(m.map(pid, "forward")))
+        as trained, and the map is :meth:`sharp_enough` for this film (:meth:`auto_reason` says why not)."""
+        return self.opts.mode == "auto" and self.auto_reason(pid) is None
 
-    def sharp_enough(self, tm) -> bool:
-        """Whether mode ``auto`` may use the learned map ``tm``: its held-out median exit-position error (the
-        model file's ``metrics``; none recorded: no) is at most ``auto_max_error_px`` pixels of this film,
-        and its verified flare error (``metrics["flare"]["paired_mape"]``, :mod:`~mi_neurallens.flare.verify`),
-        where recorded, at most ``auto_max_flare_error``."""
+    def auto_reason(self, pid) -> str | None:
+        """Why mode ``auto`` traces ghost ``pid`` (a short phrase for messages), or None where it learns it."""
+        m = self.model
+        if pid == 0:
+            return "the direct image is traced"
+        if m is None:
+            return "no neural model"
+        if self.lens_modified:
+            return "the coatings differ from the trained lens"
+        if not m.has(pid, "forward"):
+            return "the model has no map for it"
+        return self.map_reason(m.map(pid, "forward"))
+
+    def map_reason(self, tm) -> str | None:
+        """Why mode ``auto`` may not use the learned map ``tm``, or None where it may: its held-out median
+        exit-position error (the model file's ``metrics``; none recorded: no) must be at most
+        ``auto_max_error_px`` pixels of this film, and its verified flare error
+        (``metrics["flare"]["paired_mape"]``, :mod:`~mi_neurallens.flare.verify`), where recorded, at most
+        ``auto_max_flare_error``."""
         err_um = (tm.metrics.get("regressor") or {}).get("position_um_median")
-        pixel_um = 1000.0 * self.setup.sensor_width_mm / self.size[0]
-        if err_um is None or err_um > self.opts.auto_max_error_px * pixel_um:
-            return False
+        lim_um = self.opts.auto_max_error_px * 1000.0 * self.setup.sensor_width_mm / self.size[0]
+        if err_um is None:
+            return "no recorded held-out accuracy"
+        if err_um > lim_um:
+            return f"position error {err_um:.3g} µm > {self.opts.auto_max_error_px:g} px = {lim_um:.3g} µm"
         flare = tm.metrics.get("flare")
         if flare is None:
-            return True
+            return None
         err = flare.get("paired_mape")
-        return err is not None and err <= self.opts.auto_max_flare_error
+        if err is None:
+            return "verified flare error: none (the ghost reached no pixel)"
+        if err > self.opts.auto_max_flare_error:
+            return f"verified flare error {err:.3g} > {self.opts.auto_max_flare_error:g}"
+        return None
+
+    def sharp_enough(self, tm) -> bool:
+        """Whether mode ``auto`` may use the learned map ``tm`` (:meth:`map_reason` is None)."""
+        return self.map_reason(tm) is None
 
     def learned_mlp(self, ids=None) -> str:
         """How this render's learned maps enter their kernels (:class:`~mi_neurallens.neural.model.NeuralMap`'s
