@@ -95,7 +95,8 @@ def main(argv=None):
     rows["neural, cooperative vectors"]["max_abs_diff_vs_fused"] = float(np.abs(f - c).max())
     # per output, on the rays the fused classifier passes (logit: all rays); outputs in the map's units
     # (positions mm, direction cosines, throughput); fp16 on CUDA is where they part
-    names = ["logit"] + [f"y{i}" for i in range(f.shape[1] - 1)]
+    from mi_neurallens.neural.model import OUTPUTS
+    names = ["logit"] + list(OUTPUTS) + [f"stop{i}" for i in range(f.shape[1] - 1 - len(OUTPUTS))]
     ok = f[:, 0] > 0
     per = {}
     for i, nm in enumerate(names):

@@ -36,8 +36,8 @@ set -uo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$(pwd)
 OUT="${OUT:-$ROOT/gpu-results}"
-RES="$OUT/results"
-mkdir -p "$RES"
+RES="$(mktemp -d)/results"          # outside $OUT: the device tool brings back at most 8 files from there
+mkdir -p "$RES" "$OUT"
 exec > >(tee -a "$OUT/suite.log") 2>&1
 export PYTHONUNBUFFERED=1
 export MI_NEURALLENS_VARIANT="${GPU_SUITE_VARIANT:-cuda_ad_rgb}"
@@ -77,7 +77,7 @@ py() {     # py BOX_SECONDS script args…: Python under `timeout`, within the b
     if [ "$box" -lt 20 ]; then echo "skipped (deadline): $*"; return 1; fi
     timeout -k 5 "$box" $PY "$@"
     rc=$?
-    [ $rc -eq 124 ] && echo "stopped after ${box} s (timeout): $*"
+    { [ $rc -eq 124 ] || [ $rc -eq 137 ]; } && echo "stopped after ${box} s (timeout): $*"
     return $rc
 }
 
@@ -178,12 +178,14 @@ stage_ghosts() {
 }
 
 [ $# -gt 0 ] || set -- setup bench flare tests equal
-case " $* " in *" setup "*) ;; *) set -- setup "$@" ;; esac   # every call installs the wheels first
+case " $* " in *" setup "*) ;; *) set -- setup "$@" ;; esac   # every call installs the wheels first (setup named: where named)
 for stage in "$@"; do
     echo "=== $stage ($(date -u +%H:%M:%S), ${SECONDS} s in)"
     t=$SECONDS
     if "stage_$stage"; then echo "=== $stage ok, $((SECONDS - t)) s"; else echo "=== $stage FAILED, $((SECONDS - t)) s"; status=1; fi
-    tar -czf "$OUT/results.tar.gz.part" -C "$OUT" results && mv "$OUT/results.tar.gz.part" "$OUT/results.tar.gz"
+    tar -czf "$OUT/results.tar.gz.part" -C "$(dirname "$RES")" results && mv "$OUT/results.tar.gz.part" "$OUT/results.tar.gz"
 done
 echo "results: $OUT/results.tar.gz"
+exec >&- 2>&-      # let tee finish writing suite.log before the tool collects $OUT
+wait
 exit $status

@@ -45,6 +45,24 @@ def test_evaluate_recorded_shows_the_verified_flare_errors(tmp_path):
     assert main(["evaluate", "canon-ef-24mm-f1.4l", "--recorded", "--write", "--json", str(jp)]) == 1
 
 
+def test_evaluate_flare_write_records_the_verified_error(tmp_path):
+    """``evaluate --flare --write`` on a model with one ghost map: the paired flare error goes into the
+    report and into the model file, where the flare's ``auto`` reads it."""
+    from mi_neurallens.neural.model import bundled_model_path, load_model
+    m = load_model(bundled_model_path("wide-22mm"))
+    m.maps = {k: v for k, v in m.maps.items() if k in ("backward.0", "forward.2560")}
+    m.maps["forward.2560"].metrics.pop("flare", None)
+    f = tmp_path / "one-ghost.model.safetensors"
+    m.save(f)
+    jp, mp = tmp_path / "e.json", tmp_path / "e.md"
+    assert main(["evaluate", str(f), "--recorded", "--flare", "--flare-samples", "14", "--write",
+                 "--json", str(jp), "--markdown", str(mp)]) == 0
+    rec = load_model(f).map(2560, "forward").metrics["flare"]
+    assert rec["log2_samples"] == 14 and len(rec["per_light"]) == 2 and 0 < rec["paired_mape"] < 1
+    assert json.loads(jp.read_text())["maps"]["forward.2560"]["flare"]["paired_mape"] == rec["paired_mape"]
+    assert "flare, paired MAPE" in mp.read_text()
+
+
 def test_accuracy_command_writes_reports(tmp_path):
     pytest.importorskip("mitsuba")
     assert main(["accuracy", "wide-22mm", "--paths", "2560", "--methods", "abcd,neural", "--n", "2000",

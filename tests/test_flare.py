@@ -369,9 +369,9 @@ def test_auto_reads_the_verified_flare_error_where_the_model_records_one():
 
 def test_flare_verification_sees_a_shifted_map(tmp_path):
     """The paired flare error of a learned ghost against the tracer on the same samples: small for the
-    shipped map (0.013 on a 48×32 film at 2^18 samples), four times larger for the same map with its exit
-    position shifted by 0.3 mm (0.055: its classifier unchanged); verify_model returns the per-light values
-    and the protocol."""
+    shipped map (0.013 on a 48×32 film at 2^18 samples on the CPU), more than three times larger for the same
+    map with its exit position shifted by 0.3 mm (0.055: its classifier unchanged); verify_model returns the
+    per-light values and the protocol."""
     m, why = _model_with_ghost()
     if m is None:
         pytest.skip(why)

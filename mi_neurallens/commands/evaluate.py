@@ -72,7 +72,7 @@ def run(args):
               f"T {100 * r['throughput_rel_median']:.3g}%, misclass {100 * c['misclassification']:.3g}% "
               f"(false-valid {100 * c['false_valid']:.3g}%, false-blocked {100 * c['false_blocked']:.3g}%)", flush=True)
     if args.flare:
-        _verify_flare(args, path, lens, model, out, rows)
+        _verify_flare(args, path, model, out)
     how = (f"`mi-neurallens evaluate {args.model} --recorded`: the held-out metrics recorded in the file at training "
            f"(each map's own held-out rays and seed)" if args.recorded else
            f"`mi-neurallens evaluate {args.model} -n {args.n} --seed {args.seed}`")
@@ -83,27 +83,42 @@ def run(args):
     atomic_write_text(mp, md)
     print(md)
     print(f"wrote {jp} and {mp}")
+    if args.flare and args.write:
+        _record_flare(path, model)
     return 0
 
 
-def _verify_flare(args, path, lens, model, out, rows):
-    """``--flare``: the paired flare error of every forward ghost map, into the report (and with
-    ``--write`` into the model file's ``metrics["flare"]``)."""
+def _verify_flare(args, path, model, out):
+    """``--flare``: the paired flare error of every forward ghost map, into the report and into the maps'
+    ``metrics["flare"]`` (saved by :func:`_record_flare` with ``--write``)."""
     import mitsuba as mi
     from ..flare.verify import verify_model
     from ..render_utils import default_variant
     if not mi.variant():
         mi.set_variant(default_variant())
-    res = verify_model(path, lens.name, samples_log2=args.flare_samples)
+    # the lens as given (a file of the user's own lens, or a bundled name), for the neural_lens sensor
+    res = verify_model(path, args.lens or model.lens_name, samples_log2=args.flare_samples)
     for pid, rec in res.items():
         tm = model.map(pid, "forward")
         key = next(k for k, m in model.maps.items() if m is tm)
         out["maps"][key]["flare"] = rec
+        tm.metrics["flare"] = rec
         err = rec["paired_mape"]
         print(f"{key:>16}: flare, paired MAPE {'no pixel' if err is None else f'{err:.4f}'} "
               f"(max over {len(rec['lights_m'])} light positions, 2^{rec['log2_samples']} samples)", flush=True)
-        if args.write:
-            tm.metrics["flare"] = rec
-    if args.write:
+
+
+def _record_flare(path, model):
+    """``--write``: save the model with its maps' verified flare errors (after the reports are written, so a
+    file that cannot be written loses nothing)."""
+    from ..errors import NeuralLensError
+    n = sum(1 for m in model.maps.values() if "flare" in m.metrics)
+    if not n:
+        print(f"{path}: no ghost maps, nothing to record")
+        return
+    try:
         model.save(path)
-        print(f"recorded the verified flare errors of {len(res)} ghost maps in {path}")
+    except OSError as e:
+        raise NeuralLensError(f"evaluate --write: cannot write {path} ({e}); the reports above hold the "
+                              f"verified flare errors") from e
+    print(f"recorded the verified flare errors of {n} ghost maps in {path}")

@@ -37,7 +37,7 @@ def add_parser(subparsers):
                    "the bundled model of the sensor's lens when it has one)")
     p.add_argument("--auto-max-error", type=float, default=0.1, metavar="PX",
                    help="mode auto: use a learned ghost map only where its held-out median exit-position error "
-                        "is at most PX film pixels, else trace the ghost (default 0.1, the per-ghost flare goal)")
+                        "is at most PX film pixels, else trace the ghost (default 0.1)")
     p.add_argument("--auto-max-flare-error", type=float, default=0.01, metavar="MAPE",
                    help="mode auto: where the model records a verified flare error for a map (mi-neurallens evaluate "
                         "--flare --write), use the map only if it is at most MAPE (default 0.01)")

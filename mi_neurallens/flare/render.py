@@ -332,7 +332,12 @@ class FlareRenderer:
             return "the coatings differ from the trained lens"
         if not m.has(pid, "forward"):
             return "the model has no map for it"
-        return self.map_reason(m.map(pid, "forward"))
+        tm = m.map(pid, "forward")
+        why = self.map_reason(tm)
+        if why is None and self.iris is not None and not (tm.stop_head is not None and self._iris_ok):
+            why = ("its map has no stop head for the iris" if tm.stop_head is None else
+                   "the iris reaches beyond the one its map was trained with")
+        return why
 
     def map_reason(self, tm) -> str | None:
         """Why mode ``auto`` may not use the learned map ``tm``, or None where it may: its held-out median

@@ -23,8 +23,9 @@ from __future__ import annotations
 LIGHTS = ((0.9, 0.45), (0.15, 0.1))
 #: the film of the verification renders (pixels; 36 mm wide on a full-frame sensor: 150 µm pixels)
 FILM = (240, 160)
-#: default samples of each render (all on one ghost; 2^24 ≈ 400 per pixel of the mask: the paired error
-#: converges only with many samples per pixel, where a learned ray landing one pixel over no longer shows)
+#: default samples of each render (all on one ghost; 2^24 ≈ 440 per film pixel, more on the ghost's mask: the
+#: paired error converges only with many samples per pixel, where a learned ray landing one pixel over no longer
+#: shows)
 SAMPLES_LOG2 = 24
 
 

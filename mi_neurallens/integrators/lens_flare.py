@@ -41,7 +41,8 @@ sensor must be ``realistic_lens`` or ``neural_lens``.
  * - mode
    - |string|
    - ``auto``: a ghost's learned map where the sensor (or ``model``) has one that is accurate enough for this
-     film (``auto_max_error``), the tracer otherwise; ``exact``: the tracer for every path; ``neural``:
+     film (``auto_max_error``) and, where its verified flare error is recorded, within
+     ``auto_max_flare_error``; the tracer otherwise; ``exact``: the tracer for every path; ``neural``:
      learned maps only (an error names a missing ghost); or a baseline for comparisons: ``abcd``,
      ``taylor3``, ``taylor5``, ``fitted`` (docs/baselines.md).  (Default: ``auto``)
 
@@ -55,8 +56,10 @@ sensor must be ``realistic_lens`` or ``neural_lens``.
    - |float|
    - ``auto`` also requires, where the model file records one (``mi-neurallens evaluate MODEL --flare
      --write``), a map's verified flare error — its ghost against the tracer's on the same samples, paired
-     MAPE — to be at most this.  Position alone does not see a classifier's edge.  (Default: 0.01, the
-     per-ghost flare goal)
+     MAPE — to be at most this.  Position alone does not see a classifier's edge.  The record is measured on a
+     240×160 full-frame film, wide open: a necessary condition, not a proof at finer films or other irises
+     (the position gate scales with the film; the iris needs a stop head).  (Default: 0.01, the per-ghost
+     flare goal)
 
  * - model
    - |string|
