@@ -71,9 +71,9 @@ def paired_flare_error(scene, pid, samples=1 << SAMPLES_LOG2, seed=1) -> dict:
 def verify_model(model_path, lens=None, *, ghosts=None, lights=LIGHTS, samples_log2=SAMPLES_LOG2, film=FILM,
                  log=print) -> dict:
     """Every forward ghost map (or those of ``ghosts``) of the model at ``model_path`` against the tracer:
-    {path_id: record} with
-    ``paired_mape`` the largest over ``lights`` (None if the ghost reached no pixel at any of them), the
-    per-light values, and the protocol (samples, film, lights) — the record ``metrics["flare"]`` keeps."""
+    {path_id: record}, the record ``metrics["flare"]`` keeps — ``paired_mape`` the largest over ``lights``
+    (None if the ghost reached no pixel at any of them), the per-light values and flux ratios, and the
+    protocol (samples, film, lights).  ``lens``: a bundled name or a lens file (default: the model's lens)."""
     from ..neural.model import load_model
     model = load_model(model_path)
     lens = lens or model.lens_name
