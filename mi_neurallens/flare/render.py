@@ -318,7 +318,8 @@ class FlareRenderer:
 
     def auto_learns(self, pid) -> bool:
         """Whether mode ``auto`` evaluates ghost ``pid`` with its learned map: the model has one, the lens is
-        as trained, and the map is :meth:`sharp_enough` for this film (:meth:`auto_reason` says why not)."""
+        as trained, the map passes :meth:`map_reason`'s gates for this film and the iris applies to it
+        (:meth:`auto_reason` says why not)."""
         return self.opts.mode == "auto" and self.auto_reason(pid) is None
 
     def auto_reason(self, pid) -> str | None:
@@ -360,10 +361,6 @@ class FlareRenderer:
         if err > self.opts.auto_max_flare_error:
             return f"verified flare error {err:.3g} > {self.opts.auto_max_flare_error:g}"
         return None
-
-    def sharp_enough(self, tm) -> bool:
-        """Whether mode ``auto`` may use the learned map ``tm`` (:meth:`map_reason` is None)."""
-        return self.map_reason(tm) is None
 
     def learned_mlp(self, ids=None) -> str:
         """How this render's learned maps enter their kernels (:class:`~mi_neurallens.neural.model.NeuralMap`'s

@@ -624,7 +624,7 @@ def train_maps(lens, specs, cfg: TrainConfig, workdir: str | None = None, progre
     keys = [f"{d}.{p}" for p, d, *_ in specs]
     seeds = [map_seed(cfg, p, d) for p, d, *_ in specs]
     rc, cc = cfg.net("regressor", direction), cfg.net("classifier", direction)
-    ck = (lambda net, ks=keys: os.path.join(workdir, stack_name(net, ks) + ".ckpt")) if workdir else (lambda net, ks=keys: None)
+    ck = (lambda net, ks: os.path.join(workdir, stack_name(net, ks) + ".ckpt")) if workdir else (lambda net, ks: None)
     t0 = time.perf_counter()
     samplers, streams = [], []
     for (p, d, zi, zo, dom), seed in zip(specs, seeds):
