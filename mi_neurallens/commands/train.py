@@ -26,9 +26,10 @@ def add_parser(subparsers):
                    help="override a config value, e.g. --set seed=3 --set regressor.max_steps=2000, --set flare_resolution=1024 "
                         "(looser flare-map goals), --set 'forward_regressor.sizes=[\"3x16\",\"5x32\"]' (the smallest "
                         "network that meets them) (JSON values)")
-    p.add_argument("--keep", choices=("regressor", "classifier", "both"),
+    p.add_argument("--keep", choices=("regressor", "classifier", "both", "refine"),
                    help="keep this network of each selected map from --base and train the rest; 'both': train "
-                        "only the stop heads (a render-time aperture for an existing model)")
+                        "only the stop heads (a render-time aperture for an existing model); 'refine': start "
+                        "both networks from --base and run only their Levenberg-Marquardt finish (lm_minutes)")
     p.add_argument("--base", help="model file the --keep networks come from (default: the output model file "
                                   "when it exists, else the bundled model of the lens)")
     p.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
@@ -110,7 +111,9 @@ def _train_one(args, lens, cfg, out):
     base = None
     if args.keep:
         base = args.base or (out if os.path.exists(out) else bundled_model_path(lens.name))
-        what = "classifiers and regressors (training stop heads only)" if args.keep == "both" else f"{args.keep}s"
+        what = {"both": "classifiers and regressors (training stop heads only)",
+                "refine": "classifiers and regressors as the start of their Levenberg-Marquardt finish"}.get(
+            args.keep, f"{args.keep}s")
         print(f"keeping the {what} of {base}", file=sys.stderr)
     elif args.base:
         from ..errors import NeuralLensError

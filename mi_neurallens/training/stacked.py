@@ -52,7 +52,9 @@ class Problem:
       constants gives ``(K,)``;
     * :meth:`fresh_rows` ``(k)`` → dict of ``k`` new pool rows; :meth:`validate` ``(step, loss, seconds)`` →
       (score, postfix), lower is better, with ``self.net`` the map's own network, appending to
-      ``self.state["history"]``; :meth:`goals_met` → whether the last validation met the goals.
+      ``self.state["history"]``; :meth:`goals_met` → whether the last validation met the goals;
+    * :meth:`lm_residual` ``(z, batch)`` → (r, ∂r/∂z), residuals whose mean square is the loss: what the
+      Levenberg–Marquardt finish (:mod:`~mi_neurallens.training.levenberg`) minimises.
     """
 
     POOL: dict = {}
@@ -78,6 +80,9 @@ class Problem:
         raise NotImplementedError
 
     def goals_met(self) -> bool:
+        raise NotImplementedError
+
+    def lm_residual(self, z, batch):
         raise NotImplementedError
 
 

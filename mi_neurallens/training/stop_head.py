@@ -24,7 +24,7 @@ from .config import NetConfig
 from .data import PathSampler, RegressorStream
 from .evaluate import heldout_valid, stop_errors
 from .stacked import Problem
-from .trainer import _torch, fit_output_transform, pick_device
+from .trainer import _torch, fit_output_transform, pick_device, polish_results
 
 
 def odd_columns(x_wy: np.ndarray, s_max: float, k: int) -> np.ndarray:
@@ -82,6 +82,11 @@ class StopFit(Problem):
         """Mean squared error of the standardised crossings, reduced over the samples ((B,) or (K, B)).
         The maps of one stack share the domain (the ωy scale of M)."""
         return ((out * self.M_of(batch["X"]) - batch["Y"]) ** 2).mean(-1).mean(-1)
+
+    def lm_residual(self, z, batch):
+        """Levenberg–Marquardt's residuals (the standardised crossing errors of :meth:`rows_loss`) and ∂r/∂z."""
+        M = self.M_of(batch["X"]).to(z.dtype)
+        return z * M - batch["Y"].to(z.dtype), M
 
     def fresh_rows(self, n):
         _, x, y = self.stream.sample(n)
@@ -164,12 +169,15 @@ def train_stop_heads(lens, tms, nc: NetConfig, *, seeds, fresnel: bool = True, m
     keys = [tm.key for tm in tms]
     res = train_stack(torch, dev, fits, nc, seeds=seeds, n_in=4, n_out=2 * k, keys=keys, progress=progress,
                       desc=f"stop heads ×{len(tms)}" if len(tms) > 1 else f"{keys[0]} stop head", log=log)
+    polish_results(torch, fits, res, nc, keys, log=log, progress=progress)
     out = []
     for r, (skip, shift, oscale), seed in zip(res, transforms, seeds):
         st = r["state"]
         training = {"config": dict(nc.__dict__), "steps": st["step"], "seconds": st["seconds"],
                     "stop_reason": st.get("stop_reason"), "samples": st["samples"], "seed": int(seed),
                     "wall_seconds": time.perf_counter() - t0, "stacked_with": len(tms), "history": st["history"]}
+        if st.get("lm"):
+            training["lm"] = st["lm"]
         out.append(StopHead(crossings=k, layers=r["layers"], skip=skip, out_scale=oscale, out_shift=shift,
                             activation=nc.activation, odd_y=True, training=training))
     return out

@@ -34,6 +34,9 @@ from .data import Domain, PathSampler, RegressorStream, classifier_samples
 from .stacked import Problem
 
 CLASSIFIER_VALIDATION = 400_000   # rays uniform over the domain that pick the classifier's best weights
+#: the first pool of a network that is only refined (Levenberg–Marquardt draws fresh rows per iteration; the
+#: pool gives the loss weights alone)
+REFINE_POOL = 1 << 16
 
 
 # ----------------------------------------------------------------------------- torch helpers
@@ -135,6 +138,69 @@ def edge_weights(ps, u: np.ndarray, nc: NetConfig) -> np.ndarray:
     return 1.0 + nc.edge_weight * np.exp(-np.maximum(m, 0.0) / nc.edge_margin)
 
 
+# ----------------------------------------------------------------------------- second-order finish
+def polish_results(torch, fits, results, nc: NetConfig, keys, ckpt: str | None = None, log=None,
+                   progress: bool = False) -> None:
+    """The Levenberg–Marquardt finish (:mod:`~mi_neurallens.training.levenberg`) of each network in
+    ``results`` (what :func:`~mi_neurallens.training.stacked.train_stack` returned for ``fits``), in place,
+    for ``nc.lm_minutes`` per network (and at most ``nc.lm_iterations``): skipped for networks that met their goals already, for networks of
+    more than :data:`~mi_neurallens.training.levenberg.MAX_PARAMS` weights and when ``lm_minutes`` is 0.
+    A network that meets its goals here gets ``stop_reason = "goals"`` (Adam's is kept as
+    ``adam_stop_reason``).  With ``ckpt``, each finished network is saved to ``<ckpt>.lm.<key>.json`` and
+    a rerun takes it from there.  ``progress``: a bar per network (seconds of its budget, iterations, loss)."""
+    from .levenberg import MAX_PARAMS, n_params, polish
+    if nc.lm_minutes <= 0:
+        return
+    for f, r, key in zip(fits, results, keys):
+        st = r["state"]
+        if st.get("stop_reason") == "goals" or "lm" in st:
+            continue
+        P = n_params(r["layers"])
+        if P > MAX_PARAMS:
+            st["lm"] = {"skipped": f"{P} weights > {MAX_PARAMS}"}
+            continue
+        path = None if not ckpt else f"{ckpt}.lm.{key}.json"
+        if path and os.path.exists(path):
+            saved = json.loads(open(path).read())
+            r["layers"] = [(np.asarray(W, np.float64), np.asarray(b, np.float64)) for W, b in saved["layers"]]
+            r["state"] = saved["state"]
+            continue
+        f.state = st
+        if log:
+            log(getattr(f, "desc", key), {"phase": "lm", "start_step": st.get("step", 0), "weights": P})
+        bar, tick = _lm_bar(progress, f"{key} finish", 60.0 * nc.lm_minutes)
+        try:
+            r["layers"] = polish(torch, f, r["layers"], nc, seconds=60.0 * nc.lm_minutes, step0=int(st.get("step", 0)),
+                                 max_iterations=nc.lm_iterations or None, progress=tick)
+        finally:
+            if bar is not None:
+                bar.close()
+        st["adam_stop_reason"] = st.get("stop_reason")
+        if st["lm"]["stop_reason"] == "goals":
+            st["stop_reason"] = "goals"
+        if path:
+            atomic_write_text(path, json.dumps({"layers": [(W.tolist(), b.tolist()) for W, b in r["layers"]],
+                                                "state": st}))
+
+
+def _lm_bar(enabled: bool, desc: str, seconds: float):
+    """(tqdm bar or None, callback ``(iteration, loss, λ)``) for one network's finish: the bar counts the
+    seconds of its budget (it may end earlier, at the goals)."""
+    if not enabled:
+        return None, None
+    try:
+        from tqdm.auto import tqdm
+    except ImportError:  # pragma: no cover
+        return None, None
+    bar = tqdm(total=int(round(seconds)), desc=desc, unit="s", leave=False, dynamic_ncols=True)
+    t0 = time.perf_counter()
+
+    def tick(it, loss, lam):
+        bar.n = min(int(time.perf_counter() - t0), bar.total)
+        bar.set_postfix_str(f"iteration {it}, loss {loss:.3g}, λ {lam:.0e}")
+    return bar, tick
+
+
 # ----------------------------------------------------------------------------- regressor
 def _new_state() -> dict:
     return {"step": 0, "best_val": math.inf, "best_step": 0, "history": [], "evals_since_best": 0,
@@ -153,12 +219,15 @@ def train_regressor(stream: RegressorStream, val, nc: NetConfig, *, heading: int
 
 
 def train_regressors(problems, nc: NetConfig, *, ckpt: str | None = None, threads: int = 2, device: str = "auto",
-                     progress: bool = True, log=None, desc: str = "regressors") -> list:
-    """Train the regressors of several maps as one stack (:func:`~mi_neurallens.training.stacked.train_stack`).
+                     progress: bool = True, log=None, desc: str = "regressors", start=None) -> list:
+    """Train the regressors of several maps as one stack (:func:`~mi_neurallens.training.stacked.train_stack`),
+    then finish each with Levenberg–Marquardt for ``nc.lm_minutes`` (:func:`polish_results`).
 
     ``problems``: one dict per map with ``stream`` (:class:`RegressorStream`), ``val`` ((x, y) float64
     held-out valid samples), ``heading``, ``center``, ``scale_in``, ``seed``, ``s_max`` (the domain's;
-    needed when ``nc.odd_y``) and ``key``.  Returns one result dict per map (layers, output transform,
+    needed when ``nc.odd_y``) and ``key``.  ``start``: one trained regressor per map (as returned here, or
+    :func:`_kept`): no Adam, only the Levenberg–Marquardt finish from those weights and their output
+    transform (what ``--refine`` runs).  Returns one result dict per map (layers, output transform,
     training state), in order."""
     from .stacked import peek_stack, pool_rows, train_stack
     torch = _torch(threads)
@@ -166,7 +235,7 @@ def train_regressors(problems, nc: NetConfig, *, ckpt: str | None = None, thread
     torch.manual_seed(int(problems[0]["seed"]))
     keys = [p["key"] for p in problems]
     prior = peek_stack(ckpt, keys)
-    n_pool = pool_rows(nc, len(problems), 4 * (4 + 5 + 5 + 1))
+    n_pool = pool_rows(nc, len(problems), 4 * (4 + 5 + 5 + 1)) if start is None else REFINE_POOL
     t_start = time.perf_counter()
     fits = []
     for p in problems:
@@ -178,7 +247,15 @@ def train_regressors(problems, nc: NetConfig, *, ckpt: str | None = None, thread
         stream, center, scale_in = p["stream"], p["center"], p["scale_in"]
         resumed = p["key"] in prior
         state = prior[p["key"]] if resumed else _new_state()
-        if resumed:
+        if start is not None:
+            s0 = start[len(fits)]
+            if bool(s0["odd_y"]) != (odd_s is not None):
+                raise NeuralLensError(f"{p['key']}: the regressor to refine was trained with odd_y={s0['odd_y']}")
+            state = {**_new_state(), "step": int(s0["state"].get("step", 0)), "refined": True}
+            state.update(odd_y=odd_s is not None, skip=np.asarray(s0["skip"]).tolist(),
+                         shift=np.asarray(s0["out_shift"]).tolist(), oscale=np.asarray(s0["out_scale"]).tolist())
+            resumed = True
+        elif resumed:
             if bool(state.get("odd_y", False)) != (odd_s is not None):
                 raise NeuralLensError(f"{ckpt}: checkpoint was trained with odd_y={state.get('odd_y', False)}; "
                                       "use another work directory or the same setting")
@@ -195,8 +272,12 @@ def train_regressors(problems, nc: NetConfig, *, ckpt: str | None = None, thread
                                  state=state, heading=p["heading"],
                                  center=center, scale_in=scale_in, transform=transform, odd_s=odd_s, log=log,
                                  desc=f"{p['key']} regressor" if len(problems) > 1 else desc))
-    res = train_stack(torch, dev, fits, nc, seeds=[p["seed"] for p in problems], n_in=4, n_out=5, keys=keys,
-                      ckpt=ckpt, progress=progress, desc=desc, log=log)
+    if start is None:
+        res = train_stack(torch, dev, fits, nc, seeds=[p["seed"] for p in problems], n_in=4, n_out=5, keys=keys,
+                          ckpt=ckpt, progress=progress, desc=desc, log=log)
+    else:
+        res = [{"layers": s0["layers"], "state": f.state} for s0, f in zip(start, fits)]
+    polish_results(torch, fits, res, nc, keys, ckpt, log, progress)
     out = []
     for r, f in zip(res, fits):
         st = r["state"]
@@ -307,6 +388,17 @@ class RegressorFit(Problem):
             l = l + nc.cosine_weight * cos_term * (2.0 / 5.0)
         return l
 
+    def lm_residual(self, z, batch):
+        """Levenberg–Marquardt's residuals of the network's outputs ``z`` (n, 5) on ``batch`` and their
+        derivative ∂r/∂z (:mod:`~mi_neurallens.training.levenberg`): the weighted standardised errors whose mean
+        square is the MSE part of :meth:`rows_loss` (the cosine term, which only re-weights the directions, is
+        left out)."""
+        w = self.torch.sqrt(self.W).to(z.dtype).expand(z.shape[0], -1)
+        if batch.get("W") is not None:
+            w = w * self.torch.sqrt(batch["W"]).to(z.dtype)[:, None]
+        M = self.M_of(batch["X"]).to(z.dtype)
+        return w * (z * M - batch["Y"].to(z.dtype)), w * M
+
     def fresh_rows(self, k):
         """``k`` fresh pool rows from the stream."""
         ur, xr, yr = self.stream.sample(k)
@@ -361,18 +453,20 @@ def train_classifier(ps: PathSampler, valid_u_source, val, nc: NetConfig, *, cen
 
 
 def train_classifiers(problems, nc: NetConfig, *, ckpt: str | None = None, threads: int = 2, device: str = "auto",
-                      progress: bool = True, log=None, desc: str = "classifiers") -> list:
-    """Train the classifiers of several maps as one stack.  ``problems``: one dict per map with ``ps``
-    (:class:`PathSampler`), ``valid_u_source`` (n → (n, 4) valid unit-cube samples), ``val`` ((x, label)
-    natural-mix held-out), ``center``, ``scale_in``, ``seed`` and ``key``.  Returns ``{"layers", "state"}``
-    per map, in order."""
+                      progress: bool = True, log=None, desc: str = "classifiers", start=None) -> list:
+    """Train the classifiers of several maps as one stack, then (margin target only) finish each with
+    Levenberg–Marquardt for ``nc.lm_minutes`` (:func:`polish_results`).  ``problems``: one dict per map
+    with ``ps`` (:class:`PathSampler`), ``valid_u_source`` (n → (n, 4) valid unit-cube samples), ``val``
+    ((x, label) natural-mix held-out), ``center``, ``scale_in``, ``seed`` and ``key``.  ``start``: one
+    trained classifier per map (``{"layers", …}``): only the finish, from those weights.  Returns
+    ``{"layers", "state"}`` per map, in order."""
     from .stacked import peek_stack, pool_rows, train_stack
     torch = _torch(threads)
     dev = pick_device(torch, device)
     torch.manual_seed(int(problems[0]["seed"]))
     keys = [p["key"] for p in problems]
     prior = peek_stack(ckpt, keys)
-    ncp = dataclasses.replace(nc, pool=pool_rows(nc, len(problems), 4 * 5))
+    ncp = dataclasses.replace(nc, pool=pool_rows(nc, len(problems), 4 * 5) if start is None else REFINE_POOL)
     fits = []
     for p in problems:
         resumed = p["key"] in prior
@@ -381,8 +475,15 @@ def train_classifiers(problems, nc: NetConfig, *, ckpt: str | None = None, threa
         fits.append(ClassifierFit(torch, dev, None, ncp, p["ps"], p["valid_u_source"], p["val"], rng=rng, state=state,
                                   center=p["center"], scale_in=p["scale_in"], log=log,
                                   desc=f"{p['key']} classifier" if len(problems) > 1 else desc))
-    res = train_stack(torch, dev, fits, nc, seeds=[p["seed"] for p in problems], n_in=4, n_out=1, keys=keys,
-                      ckpt=ckpt, progress=progress, desc=desc, log=log)
+    if start is None:
+        res = train_stack(torch, dev, fits, nc, seeds=[p["seed"] for p in problems], n_in=4, n_out=1, keys=keys,
+                          ckpt=ckpt, progress=progress, desc=desc, log=log)
+    else:
+        for f, s0 in zip(fits, start):
+            f.state.update(step=int(s0["state"].get("step", 0)), refined=True)
+        res = [{"layers": s0["layers"], "state": f.state} for s0, f in zip(start, fits)]
+    if nc.target == "margin":
+        polish_results(torch, fits, res, nc, keys, ckpt, log, progress)
     for r in res:
         r["state"]["stacked_with"] = len(problems)
     return res
@@ -482,6 +583,19 @@ class ClassifierFit(Problem):
         X, L = self.samples(k)
         return {"X": X, "L": L}
 
+    def lm_residual(self, z, batch):
+        """Levenberg–Marquardt's residuals of the logits ``z`` (n, 1) on ``batch`` and ∂r/∂z: the distance of
+        each logit from its target interval (:meth:`margin_loss`), 0 inside it.  The margin target only (BCE
+        is not a sum of squares)."""
+        if not self.margin:
+            raise NeuralLensError("Levenberg–Marquardt needs the classifier's margin target (target = 'margin')")
+        torch, c = self.torch, self.nc.margin_clip
+        t = batch["L"].to(z.dtype)[:, None]
+        lo = torch.where(t <= -c, torch.full_like(t, -math.inf), t)
+        hi = torch.where(t >= c, torch.full_like(t, math.inf), t)
+        r = z - torch.maximum(torch.minimum(z, hi), lo)
+        return r, (r != 0).to(z.dtype)
+
     def goals_met(self) -> bool:
         """The last validation's misclassification is at most ``nc.goal_misclassification``."""
         h = self.state["history"]
@@ -530,8 +644,9 @@ def calibrate_classifier(lens, tm, n: int = 200_000, seed: int = 0, fresnel: boo
 
 # ----------------------------------------------------------------------------- one map
 #: what :func:`train_map` can keep from an earlier map instead of training it: one network, or
-#: ``"both"`` (train only the stop head)
-NETWORKS = ("regressor", "classifier", "both")
+#: ``"both"`` (train only the stop head), or ``"refine"`` (start both networks from it and run only the
+#: Levenberg–Marquardt finish, ``lm_minutes`` per network)
+NETWORKS = ("regressor", "classifier", "both", "refine")
 
 
 def _check_keep(keep: str | None, base, path_id: int, direction: str, z_in: float, z_out: float, domain: Domain):
@@ -573,6 +688,26 @@ def _kept(base, network: str) -> dict:
         out.update(skip=np.asarray(base.skip), out_shift=np.asarray(base.out_shift),
                    out_scale=np.asarray(base.out_scale), odd_y=bool(base.odd_y))
     return out
+
+
+def _carry_history(result: dict, kept: dict) -> None:
+    """A refined network's record: its configuration, activation and Adam history from the map it started
+    from (``kept``, :func:`_kept`), then the Levenberg–Marquardt validations; samples and seconds add up."""
+    st, st0 = result["state"], kept["state"]
+    result["config"], result["activation"] = kept["config"], kept["activation"]
+    st["history"] = list(st0.get("history", [])) + st["history"]
+    st["samples"] = int(st0.get("samples", 0)) + int(st.get("samples", 0))
+    st["seconds"] = float(st0.get("seconds", 0.0)) + float(st.get("seconds", 0.0))
+    st["adam_stop_reason"] = st0.get("stop_reason")
+
+
+def _refining(nc: NetConfig, network: str) -> NetConfig:
+    """The settings of a ``keep = "refine"`` run: ``nc`` as configured, which must give the
+    Levenberg–Marquardt finish some time."""
+    if nc.lm_minutes <= 0:
+        raise NeuralLensError(f"refining a model runs only the Levenberg–Marquardt finish, and the {network}'s "
+                              f"lm_minutes is 0: give it time, e.g. --set forward_{network}.lm_minutes=1.5")
+    return nc
 
 
 def map_seed(cfg: TrainConfig, path_id: int, direction: str) -> int:
@@ -642,8 +777,15 @@ def train_maps(lens, specs, cfg: TrainConfig, workdir: str | None = None, progre
                                 cfg.fresnel)
             problems.append(dict(stream=stream, val=val, heading=1 if d == "forward" else -1, center=center,
                                  scale_in=scale_in, seed=seed, s_max=dom.s_max, key=key))
-        regs = train_sized(train_regressors, problems, rc, ck, "regressor", threads=cfg.threads, device=cfg.device,
-                           progress=progress, log=log)
+        if keep == "refine":
+            regs = train_regressors(problems, _refining(rc, "regressor"), ckpt=ck("regressor-refine", keys),
+                                    threads=cfg.threads, device=cfg.device, progress=progress, log=log,
+                                    start=[_kept(b, "regressor") for b in bases])
+            for r, b in zip(regs, bases):
+                _carry_history(r, _kept(b, "regressor"))
+        else:
+            regs = train_sized(train_regressors, problems, rc, ck, "regressor", threads=cfg.threads,
+                               device=cfg.device, progress=progress, log=log)
     t1 = time.perf_counter()
     if keep == "classifier":
         clss = [_kept(b, "classifier") for b in bases]
@@ -659,8 +801,15 @@ def train_maps(lens, specs, cfg: TrainConfig, workdir: str | None = None, progre
             center, scale_in = dom.norm_center_scale()
             problems.append(dict(ps=ps, valid_u_source=(lambda n, s=stream: s.sample(n)[0]), val=(xcv, lcv),
                                  center=center, scale_in=scale_in, seed=seed + 1, key=key))
-        clss = train_sized(train_classifiers, problems, cc, ck, "classifier", threads=cfg.threads, device=cfg.device,
-                           progress=progress, log=log)
+        if keep == "refine":
+            clss = train_classifiers(problems, _refining(cc, "classifier"), ckpt=ck("classifier-refine", keys),
+                                     threads=cfg.threads, device=cfg.device, progress=progress, log=log,
+                                     start=[_kept(b, "classifier") for b in bases])
+            for r, b in zip(clss, bases):
+                _carry_history(r, _kept(b, "classifier"))
+        else:
+            clss = train_sized(train_classifiers, problems, cc, ck, "classifier", threads=cfg.threads,
+                               device=cfg.device, progress=progress, log=log)
     t2 = time.perf_counter()
     tms = []
     for j, ((p, d, zi, zo, dom), reg, cls, stream) in enumerate(zip(specs, regs, clss, streams)):
@@ -680,6 +829,9 @@ def train_maps(lens, specs, cfg: TrainConfig, workdir: str | None = None, progre
                     "wall_seconds_this_run": t2 - t0, "regressor_wall_this_run": t1 - t0,
                     "seed": cfg.seed, "device": str(pick_device(_torch(0), cfg.device)),
                     "regressor_history": reg["state"]["history"], "classifier_history": cls["state"]["history"]}
+        for net_name, r in (("regressor", reg), ("classifier", cls)):
+            if r["state"].get("lm"):
+                training[f"{net_name}_lm"] = r["state"]["lm"]
         if keep is not None:
             training["kept"] = {"network": keep, "from_config_digest": base.training.get("config_digest")}
             if keep == "classifier":       # its calibration offset is already folded into its last bias

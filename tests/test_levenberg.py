@@ -1,0 +1,204 @@
+"""The Levenberg–Marquardt finish of small maps (mi_neurallens/training/levenberg.py): its Jacobian, its
+residuals against the losses Adam minimises, what it buys over Adam, and the trainer's use of it."""
+from __future__ import annotations
+
+import math
+import types
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from mi_neurallens.training.levenberg import MAX_PARAMS, FlatMLP, n_params, polish  # noqa: E402
+
+
+def random_layers(dims, seed=0):
+    g = np.random.default_rng(seed)
+    return [(g.uniform(-1, 1, (b, a)) / math.sqrt(a), g.uniform(-1, 1, b) / math.sqrt(a))
+            for a, b in zip(dims[:-1], dims[1:])]
+
+
+def test_jacobian_is_autograds():
+    """The closed-form Jacobian (one backward pass per output through the stored activations) equals
+    PyTorch's autograd, weight by weight, and the forward pass equals the model file's layout."""
+    layers = random_layers([4, 7, 6, 3], seed=1)
+    net = FlatMLP(torch, layers)
+    theta = net.flatten(layers)
+    assert net.P == n_params(layers) == theta.numel() == 4 * 7 + 7 + 7 * 6 + 6 + 6 * 3 + 3
+    X = torch.as_tensor(np.random.default_rng(2).normal(size=(11, 4)))
+    z, J = net.jacobian(theta, X)
+    ref = torch.func.jacrev(lambda th: net.forward(th, X))(theta)            # (n, out, P)
+    np.testing.assert_allclose(J.numpy(), ref.numpy(), rtol=1e-12, atol=1e-12)
+    h = X.numpy()
+    for k, (W, b) in enumerate(layers):
+        h = h @ W.T + b
+        h = np.tanh(h) if k < len(layers) - 1 else h
+    np.testing.assert_allclose(z.numpy(), h, rtol=1e-12, atol=1e-12)
+    # the flat vector goes back to the same layers
+    for (W, b), (W0, b0) in zip(net.layers(theta), layers):
+        np.testing.assert_array_equal(W, W0)
+        np.testing.assert_array_equal(b, b0)
+
+
+class SmoothMap:
+    """A stand-in map problem: fit f(x) = (sin(x₀ + x₁²), x₂·x₃ + cos(x₀)) over [−1, 1]⁴ from fresh rows,
+    validated on a fixed held-out set (RMS error)."""
+
+    def __init__(self, goal=0.0):
+        self.rng = np.random.default_rng(7)
+        self.state = {"history": [], "step": 0, "seconds": 0.0, "samples": 0}
+        self.goal = goal
+        self.Xv = torch.as_tensor(self.rng.uniform(-1, 1, (4000, 4)), dtype=torch.float32)
+        self.Yv = self.f(self.Xv)
+
+    @staticmethod
+    def f(X):
+        return torch.stack([torch.sin(X[:, 0] + X[:, 1] ** 2), X[:, 2] * X[:, 3] + torch.cos(X[:, 0])], 1)
+
+    def fresh_rows(self, n):
+        X = torch.as_tensor(self.rng.uniform(-1, 1, (n, 4)), dtype=torch.float32)
+        return {"X": X, "Y": self.f(X)}
+
+    def lm_residual(self, z, batch):
+        return z - batch["Y"].to(z.dtype), torch.ones_like(z)
+
+    def validate(self, step, loss, seconds):
+        rms = float(((self.net(self.Xv) - self.Yv) ** 2).mean().sqrt())
+        self.state["history"].append({"step": step, "rms": rms})
+        return rms, {}
+
+    def goals_met(self):
+        return self.state["history"][-1]["rms"] <= self.goal
+
+
+def test_levenberg_marquardt_fits_far_beyond_adam():
+    """From the same random 2×16 network, 60 Levenberg–Marquardt iterations on 1024 fresh rows each
+    reach a held-out error far below 3000 Adam steps on batches of the same size (50× the iterations),
+    and the history, samples and stop reason are recorded."""
+    layers = random_layers([4, 16, 16, 2], seed=3)
+    nc = types.SimpleNamespace(lm_rows=1024, lm_eval_every=10, stop_at_goals=True, patience=100)
+    prob = SmoothMap()
+    got = polish(torch, prob, layers, nc, seconds=1e9, max_iterations=60)
+    lm = prob.state["history"][-1]["rms"]
+    assert prob.state["history"][0]["rms"] > 0.3                   # the random start
+    assert [h["phase"] for h in prob.state["history"]] == ["lm"] * 7
+    assert prob.state["lm"]["iterations"] == 60 and prob.state["samples"] == 60 * 1024
+    assert prob.state["lm"]["stop_reason"] == "max_iterations"
+    # Adam, PyTorch's, same start, lr 3e-3 (the trainer's default), 3000 steps of 1024 fresh rows
+    net = FlatMLP(torch, layers)
+    theta = net.flatten(layers).float().requires_grad_()
+    opt = torch.optim.Adam([theta], lr=3e-3)
+    adam = SmoothMap()
+    for _ in range(3000):
+        b = adam.fresh_rows(1024)
+        loss = ((net.forward(theta, b["X"]) - b["Y"]) ** 2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    adam.net = lambda x: net.forward(theta.detach(), x)
+    rms_adam, _ = adam.validate(0, None, 0.0)
+    assert lm < 0.2 * rms_adam, (lm, rms_adam)
+    assert lm < 2e-3
+    # the returned layers are the best validated ones, and a goal stops it early
+    best = FlatMLP(torch, got)
+    np.testing.assert_allclose(float(((best.forward(best.flatten(got), prob.Xv.double()) - prob.Yv.double()) ** 2)
+                                     .mean().sqrt()), min(h["rms"] for h in prob.state["history"]), rtol=1e-3)
+    early = SmoothMap(goal=0.05)
+    polish(torch, early, layers, nc, seconds=1e9, max_iterations=60)
+    assert early.state["lm"]["stop_reason"] == "goals" and early.state["lm"]["iterations"] < 60
+
+
+def test_residuals_are_the_losses_adam_minimises():
+    """The regressor's residuals square to its weighted MSE (:meth:`RegressorFit.rows_loss` without the
+    cosine term), edge weights included; the classifier's to its margin interval loss."""
+    from mi_neurallens.training.trainer import ClassifierFit, RegressorFit
+    g = np.random.default_rng(4)
+    n = 500
+    X = torch.as_tensor(g.normal(size=(n, 4)), dtype=torch.float64)
+    batch = {"X": X, "Y": torch.as_tensor(g.normal(size=(n, 5))), "Yraw": torch.as_tensor(g.normal(size=(n, 5))),
+             "W": torch.as_tensor(g.uniform(1, 3, n))}
+    z = torch.as_tensor(g.normal(size=(n, 5)))
+    fit = types.SimpleNamespace(torch=torch, W=torch.as_tensor(g.uniform(0.1, 2, 5)), odd_s=0.3, wy_c=0.1,
+                                wy_s=0.2, nc=types.SimpleNamespace(direction_loss="mse"))
+    fit.M_of = lambda xb, const=None: RegressorFit.M_of(fit, xb, const)
+    const = {"W": fit.W[None], "wy_c": torch.tensor([0.1]), "wy_s": torch.tensor([0.2]), "odd_s": torch.tensor([0.3])}
+    r, s = RegressorFit.lm_residual(fit, z, batch)
+    loss = RegressorFit.rows_loss(fit, z, batch, const)
+    np.testing.assert_allclose(float((r ** 2).sum(1).mean() / 5), float(loss), rtol=1e-7)   # float32 constants
+    # ∂r/∂z is the column scale (the residual is linear in z)
+    r2, _ = RegressorFit.lm_residual(fit, z + 1e-3, batch)
+    np.testing.assert_allclose(((r2 - r) / 1e-3).numpy(), s.numpy(), rtol=1e-6)
+    # classifier: the interval loss, 0 inside the band, one-sided at the clips
+    cf = types.SimpleNamespace(torch=torch, margin=True, nc=types.SimpleNamespace(margin_clip=3.0))
+    t = torch.as_tensor(np.concatenate([g.uniform(-2.9, 2.9, n - 100), np.full(50, 3.0), np.full(50, -3.0)]))
+    logit = torch.as_tensor(g.normal(scale=4.0, size=n))
+    r, s = ClassifierFit.lm_residual(cf, logit[:, None], {"L": t})
+    np.testing.assert_allclose(float((r ** 2).mean()), float(ClassifierFit.margin_loss(cf, logit, t)), rtol=1e-12)
+    assert set(np.unique(s.numpy())) <= {0.0, 1.0}
+    cf.margin = False
+    from mi_neurallens import NeuralLensError
+    with pytest.raises(NeuralLensError, match="margin target"):
+        ClassifierFit.lm_residual(cf, logit[:, None], {"L": t})
+
+
+def test_large_networks_are_left_to_adam():
+    """A 5×32 regressor has more weights than the finish handles; the trainer records why it skipped."""
+    from mi_neurallens.training.trainer import polish_results
+    layers = random_layers([4] + [32] * 5 + [5])
+    assert n_params(layers) > MAX_PARAMS
+    res = [{"layers": layers, "state": {"history": [], "stop_reason": "time_budget"}}]
+    nc = types.SimpleNamespace(lm_minutes=1.0)
+    polish_results(torch, [object()], res, nc, ["forward.12"])
+    assert "skipped" in res[0]["state"]["lm"]
+
+
+def test_trainer_finishes_small_networks_and_refines_a_model(tmp_path):
+    """On a thick lens's camera map: the same Adam run, then 60 iterations of the finish, gives a regressor
+    and a margin classifier far better than Adam's alone; ``keep = "refine"`` runs only the finish from a
+    trained map (its stop head kept, its Adam history carried, the finish's validations after it); refining
+    with no finish time is a clear error."""
+    import dataclasses
+    from mi_neurallens import NeuralLensError
+    from mi_neurallens.training import plan
+    from mi_neurallens.training.config import load_config
+    from mi_neurallens.training.trainer import train_map
+    from test_training import thick_lens
+    lens = thick_lens()
+    s0, _ = plan.sensor_distance_range(lens, 500.0)
+    z_front, z_rear = plan.planes(lens, s0)
+    dom = plan.backward_domain(lens, 0, z_rear, z_front, np.random.default_rng(0), n=1 << 18)
+    small = dict(hidden=2, width=16, batch=1024, pool=40000, refresh_every=200, eval_every=100, max_minutes=1.0,
+                 warmup_steps=20, patience=100, lr=1e-2, lm_rows=2048, lm_eval_every=5, lm_minutes=0.0)
+    over = {"regressor": dict(small, max_steps=400), "stop": dict(small, max_steps=200),
+            "classifier": dict(small, max_steps=400, target="margin"), "heldout": 20000, "threads": 1}
+    cfg = load_config(overrides=over)
+    adam = train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, None, progress=False, eval_n=20000)
+    fin = dict(lm_minutes=10.0, lm_iterations=60)       # a count, not the clock: the same on every machine
+    cfg_lm = load_config(overrides={**over, "regressor": dict(over["regressor"], **fin),
+                                    "classifier": dict(over["classifier"], **fin)})
+    lm = train_map(lens, 0, "backward", z_rear, z_front, dom, cfg_lm, None, progress=False, eval_n=20000)
+    ra, rl = adam.metrics["regressor"], lm.metrics["regressor"]
+    assert lm.training["regressor_lm"]["iterations"] <= 60 and "regressor_lm" not in adam.training
+    assert lm.training["regressor_steps"] == adam.training["regressor_steps"] == 400
+    assert rl["position_um_median"] < 0.3 * ra["position_um_median"], (rl, ra)
+    assert rl["direction_arcsec_median"] < 0.5 * ra["direction_arcsec_median"]
+    assert 0 < lm.training["classifier_lm"]["iterations"] <= 60
+    assert lm.metrics["classifier"]["misclassification"] <= adam.metrics["classifier"]["misclassification"]
+    # refine: only the finish, from the Adam map
+    ref = train_map(lens, 0, "backward", z_rear, z_front, dom, cfg_lm, str(tmp_path), progress=False, eval_n=20000,
+                    keep="refine", base=adam)
+    assert ref.training["kept"]["network"] == "refine"
+    assert ref.metrics["regressor"]["position_um_median"] < 0.3 * ra["position_um_median"]
+    hist = ref.training["regressor_history"]
+    n_adam = len(adam.training["regressor_history"])
+    assert hist[:n_adam] == adam.training["regressor_history"] and all(h.get("phase") == "lm" for h in hist[n_adam:])
+    for (W, b), (W0, b0) in zip(ref.stop_head.layers, adam.stop_head.layers):
+        np.testing.assert_array_equal(W, W0)
+        np.testing.assert_array_equal(b, b0)
+    # a rerun takes the finished networks from their checkpoints
+    again = train_map(lens, 0, "backward", z_rear, z_front, dom, cfg_lm, str(tmp_path), progress=False, evaluate=False,
+                      keep="refine", base=adam)
+    np.testing.assert_array_equal(again.regressor[0][0], ref.regressor[0][0])
+    with pytest.raises(NeuralLensError, match="lm_minutes is 0"):
+        train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, None, progress=False, keep="refine", base=adam)
