@@ -26,10 +26,11 @@ def _lens():
 
 def _cfg():
     small = dict(hidden=2, width=16, batch=1024, pool=20000, refresh_every=200, eval_every=100, max_minutes=1.0,
-                 warmup_steps=20, patience=100, max_steps=200, lr=1e-2)
+                 warmup_steps=20, patience=100, max_steps=200, lr=1e-2, lm_minutes=0.0)     # Adam alone
     return load_config(overrides={"regressor": small, "classifier": dict(small, target="label"),
-                                  "stop": dict(small, max_steps=100), "forward_regressor": {"max_steps": 200},
-                                  "forward_classifier": {"max_steps": 200}, "backward": ["transmit"],
+                                  "stop": dict(small, max_steps=100),
+                                  "forward_regressor": {"max_steps": 200, "lm_minutes": 0.0},
+                                  "forward_classifier": {"max_steps": 200, "lm_minutes": 0.0}, "backward": ["transmit"],
                                   "forward": ["transmit"], "heldout": 5000, "threads": 1,
                                   "close_focus_mm": 500.0})
 

@@ -239,7 +239,8 @@ def test_tiny_training_run_learns(tmp_path):
     z_front, z_rear = plan.planes(lens, s0)
     dom = plan.backward_domain(lens, 0, z_rear, z_front, np.random.default_rng(0), n=1 << 18)
     small = dict(hidden=3, width=16, batch=1024, pool=40000, refresh_every=200, eval_every=100,
-                 max_minutes=1.0, warmup_steps=20, residual="none", patience=100, loss_weights="uniform")
+                 max_minutes=1.0, warmup_steps=20, residual="none", patience=100, loss_weights="uniform",
+                 lm_minutes=0.0)                 # Adam alone (tests/test_levenberg.py tests the finish)
     cfg = load_config(overrides={"regressor": dict(small, max_steps=600, lr=1e-2),
                                  "classifier": dict(small, hidden=2, width=32, max_steps=1000, lr=1e-2,
                                                     target="label"),

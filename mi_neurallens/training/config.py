@@ -54,37 +54,47 @@ class NetConfig:
     pool: int = 2_000_000               # samples held in memory per map; refreshed from the tracer
     refresh_every: int = 2000           # steps between pool refreshes (fresh tracer data)
     refresh_fraction: float = 0.25
+    lm_minutes: float = 0.0             # Levenberg–Marquardt after Adam, per network of at most levenberg.MAX_PARAMS
+                                        # weights, until its goals (0: Adam alone; training/levenberg.py)
+    lm_iterations: int = 0              # at most this many Levenberg–Marquardt iterations (0: only lm_minutes
+                                        # limits them; a count is what makes a run the same on every machine)
+    lm_rows: int = 8192                 # fresh samples per Levenberg–Marquardt iteration
+    lm_eval_every: int = 10             # Levenberg–Marquardt iterations between validations
     sizes: tuple = ()                   # regressor / classifier: architectures to try, smallest first, as "HxW"
                                         # (hidden layers × width); each map keeps the first that meets its goals,
                                         # the last when none does (empty: hidden × width alone; trainer.train_sized)
 
 
 def regressor_defaults() -> NetConfig:
-    return NetConfig()
+    """A 3×16 network: 1.5 min of Adam, then up to 4 min of the Levenberg–Marquardt finish, which takes it
+    to the camera goals (the 27-surface RF 24 mm: 0.88 µm / 4.0″ median in 2.8 min; a 5×32 network with
+    Adam alone reached 1.75 µm / 7.2″ in 5.7 min and renders 3× slower — docs/results.md)."""
+    return NetConfig(hidden=3, width=16, max_minutes=1.5, lm_minutes=4.0)
 
 
 def classifier_defaults() -> NetConfig:
-    return NetConfig(hidden=2, lr=3e-3, max_steps=40000, max_minutes=3.0, residual="none",
-                     direction_loss="none", pool=1_500_000)
+    return NetConfig(hidden=2, width=16, lr=3e-3, max_steps=40000, max_minutes=1.0, lm_minutes=1.0,
+                     residual="none", direction_loss="none", pool=1_500_000)
 
 
 def stop_defaults() -> NetConfig:
     """The stop head (where rays cross the stop plane): smooth and nearly linear, so a small network."""
-    return NetConfig(hidden=2, width=32, lr=3e-3, max_steps=60000, max_minutes=4.0, patience=12,
+    return NetConfig(hidden=2, width=32, lr=3e-3, max_steps=60000, max_minutes=0.5, lm_minutes=0.5, patience=12,
                      residual="linear", loss_weights="uniform", direction_loss="none", odd_y=True,
                      pool=1_000_000)
 
 
 #: forward maps (ghosts, forward transmit) serve flares, so their goals are stated in film pixels at
 #: ``TrainConfig.flare_resolution`` (:func:`flare_goals`: 3 / 30 µm at 2 K full frame) and are looser than a
-#: camera ray's; the ghosts' edges are the flare error, so their classifier is deeper and regresses the
-#: aperture margin (docs/training.md)
-FORWARD_REGRESSOR = dict(max_minutes=3.0, max_steps=40000)
+#: camera ray's; the ghosts' edges are the flare error, so their classifier regresses the aperture margin
+#: (docs/training.md).  The networks are the defaults' 3×16 / 2×16 with shorter Adam and finish budgets: the
+#: Canon EF's ghosts reached 2.3–39 µm (median map 5.6) with ≤ 1 min of the finish (docs/results.md)
+FORWARD_REGRESSOR = dict(max_minutes=1.0, max_steps=40000, lm_minutes=1.0)
 #: the forward regressor's goals at 2048 pixels across full frame (a 17.6 µm pixel): position (median, p99)
 #: µm, 0.17 / 1.7 pixels; direction (median, p99) arcsec.  Both scale with the pixel (:func:`flare_goals`)
 FLARE_GOAL_UM_2K = (3.0, 30.0)
 FLARE_GOAL_ARCSEC_2K = (30.0, 200.0)
-FORWARD_CLASSIFIER = dict(hidden=3, target="margin", goal_misclassification=0.0005, max_minutes=3.0,
+FORWARD_CLASSIFIER = dict(target="margin", goal_misclassification=0.0005, max_minutes=1.25, lm_minutes=0.75,
                           max_steps=40000, patience=30)
 
 PAPER = dict(schedule="paper", lr=1e-4, decay=0.95, decay_every=10000, batch=8192, warmup_steps=0,
