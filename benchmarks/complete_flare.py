@@ -17,6 +17,10 @@ renderer (99 % of the ghost energy, at most 32 ghosts) is rendered
 each against an exact reference at 2^reference (seed 101): MAPE (``metrics.mape_masked``) and the luminance
 flux ratio; the neural render also paired against an exact one with the same samples (``pilot_with =
 "exact"``: the maps' own error, noise cancelled) and timed against it (second render, kernels compiled).
+
+``--equal-time``: the exact and neural renders are timed as the best of three warm renders, and the neural
+flare is rendered again with the samples it can draw in the exact flare's time (2^samples × exact time /
+neural time): the MAPE a user gets from each mode for the same wait.
 """
 from __future__ import annotations
 
@@ -38,6 +42,7 @@ def main(argv=None):
     ap.add_argument("--reference", type=int, default=27, help="log2 samples of the exact reference")
     ap.add_argument("--positions", default=",".join(POSITIONS), help="light positions x:y (m, at z = 5 m)")
     ap.add_argument("--json", help="write the rows here")
+    ap.add_argument("--equal-time", action="store_true", help="also the neural flare at the exact one's wall time")
     a = ap.parse_args(argv)
     sys.path.insert(0, ROOT)
     import mitsuba as mi
@@ -73,6 +78,10 @@ def main(argv=None):
         ex, t_ex, _ = render(scene, 1, n, mode="exact")            # warm: kernels compiled
         ne, _, _ = render(scene, 1, n, mode="neural")
         ne, t_ne, _ = render(scene, 1, n, mode="neural")
+        if a.equal_time:                                          # interleaved, best of three
+            for _ in range(2):
+                t_ex = min(t_ex, render(scene, 1, n, mode="exact")[1])
+                t_ne = min(t_ne, render(scene, 1, n, mode="neural")[1])
         au, _, _ = render(scene, 1, n, mode="auto")
         au, t_au, _ = render(scene, 1, n, mode="auto")
         row["auto"] = dict(mape=float(mape_masked(au, ref)), flux_ratio=flux(au) / flux(ref), seconds=t_au)
@@ -81,6 +90,12 @@ def main(argv=None):
         row.update(exact=dict(mape=float(mape_masked(ex, ref)), flux_ratio=flux(ex) / flux(ref), seconds=t_ex),
                    neural=dict(mape=float(mape_masked(ne, ref)), flux_ratio=flux(ne) / flux(ref), seconds=t_ne,
                                paired=float(mape_masked(pn, pe)), paired_flux_ratio=flux(pn) / flux(pe)))
+        if a.equal_time:
+            n_eq = int(round(n * t_ex / t_ne))
+            render(scene, 2, n_eq, mode="neural")
+            eq, t_eq, _ = render(scene, 1, n_eq, mode="neural")
+            row["neural_equal_time"] = dict(samples=n_eq, seconds=t_eq, mape=float(mape_masked(eq, ref)),
+                                            flux_ratio=flux(eq) / flux(ref))
         if a.before:
             sb = load_scene(os.path.join(ROOT, "scenes", "night_point.xml"), lens=a.lens, sensor_type="neural_lens",
                             sets=[f"model={a.before}"], params=[f"light_x={x}", f"light_y={y}"])
@@ -94,6 +109,10 @@ def main(argv=None):
                 f"{nn['mape'] / e['mape']:.2f}x the floor (flux {nn['flux_ratio']:.4f}, {nn['seconds']:.2f} s), "
                 f"paired {nn['paired']:.4f} (flux {nn['paired_flux_ratio']:.4f}); auto {row['auto']['mape']:.4f} "
                 f"(flux {row['auto']['flux_ratio']:.4f}, {row['auto']['seconds']:.2f} s)")
+        if a.equal_time:
+            q = row["neural_equal_time"]
+            line += (f"; equal time: neural {q['mape']:.4f} ({q['mape'] / e['mape']:.2f}x exact's) with "
+                     f"{q['samples'] / n:.2f}x the samples in {q['seconds']:.2f} s")
         if a.before:
             b = row["auto_before"]
             line += f"; auto with --before {b['mape']:.4f} (flux {b['flux_ratio']:.4f}, {b['seconds']:.2f} s)"

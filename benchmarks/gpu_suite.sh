@@ -55,9 +55,9 @@ if [ -n "${GPU_SUITE_QUICK:-}" ]; then
     PAPER_LENSES="wide-22mm"; ALL_LENSES="wide-22mm"; RAYS=18; FILM=160x120; SPP=16
     FLARE="--ghosts 1 --samples 65536 --ref-samples 262144"; COMPLETE="--samples 16 --reference 18 --positions 0.6:0.35"
     EQUAL="--res 64x48 --spp 4,16 --reference-spp 64 --repeats 1"; FIRST=14
-    TRAIN="--paths backward-transmit --set regressor.max_steps=200 --set classifier.max_steps=200 --set stop.max_steps=200"
+    TRAIN="--paths backward-transmit --set regressor.max_steps=200 --set classifier.max_steps=200 --set stop.max_steps=200 --set regressor.lm_iterations=5 --set classifier.lm_iterations=5 --set stop.lm_iterations=5"
     GHOST_LENSES="${GHOST_LENSES:-wide-22mm}"
-    GHOST_ARGS="--set max_ghosts=1 --set forward_regressor.max_steps=200 --set forward_classifier.max_steps=200 --set forward_stop.max_steps=200"
+    GHOST_ARGS="--set max_ghosts=1 --set forward_regressor.max_steps=200 --set forward_classifier.max_steps=200 --set forward_stop.max_steps=200 --set forward_regressor.lm_iterations=5 --set forward_classifier.lm_iterations=5 --set forward_stop.lm_iterations=5"
     EVAL_N=2000; THROUGHPUT="--steps 20 --maps 1,4"
 else
     RAYS=24; FILM=1280x960; SPP=64; FLARE="--ghosts 8 --samples $((1 << 24)) --ref-samples $((1 << 27))"
