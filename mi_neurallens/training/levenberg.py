@@ -109,8 +109,8 @@ def polish(torch, fit, layers, nc, *, seconds: float, max_iterations: int | None
            eval_every: int | None = None, step0: int = 0, lam: float = 1e-3, progress=None) -> list:
     """Levenberg–Marquardt on ``layers`` (the network of the :class:`~.stacked.Problem` ``fit``) for
     ``seconds`` of wall time (and at most ``max_iterations``), or until a validation meets the goals
-    (``nc.stop_at_goals``) or ``nc.patience`` validations bring no better score.  Returns the best layers by validation score (the
-    starting ones count: they are validated first).  ``rows``: fresh samples per iteration
+    (``nc.stop_at_goals``) or ``nc.patience`` validations bring no better score.  Returns the best layers
+    by validation score (the starting ones count: they are validated first).  ``rows``: fresh samples per iteration
     (``nc.lm_rows``); ``eval_every``: iterations between validations (``nc.lm_eval_every``).  The
     iterations are appended to ``fit.state`` (``lm``: iterations, seconds, final λ, stop reason) and its
     validations to ``fit.state["history"]`` with ``phase = "lm"`` and step = ``step0`` + iteration."""

@@ -143,8 +143,9 @@ def polish_results(torch, fits, results, nc: NetConfig, keys, ckpt: str | None =
                    progress: bool = False) -> None:
     """The Levenberg–Marquardt finish (:mod:`~mi_neurallens.training.levenberg`) of each network in
     ``results`` (what :func:`~mi_neurallens.training.stacked.train_stack` returned for ``fits``), in place,
-    for ``nc.lm_minutes`` per network (and at most ``nc.lm_iterations``): skipped for networks that met their goals already, for networks of
-    more than :data:`~mi_neurallens.training.levenberg.MAX_PARAMS` weights and when ``lm_minutes`` is 0.
+    for ``nc.lm_minutes`` per network (and at most ``nc.lm_iterations``): skipped for networks that met their
+    goals already, for networks of more than :data:`~mi_neurallens.training.levenberg.MAX_PARAMS` weights and
+    when ``lm_minutes`` is 0.
     A network that meets its goals here gets ``stop_reason = "goals"`` (Adam's is kept as
     ``adam_stop_reason``).  With ``ckpt``, each finished network is saved to ``<ckpt>.lm.<key>.json`` and
     a rerun takes it from there.  ``progress``: a bar per network (seconds of its budget, iterations, loss)."""
@@ -701,12 +702,21 @@ def _carry_history(result: dict, kept: dict) -> None:
     st["adam_stop_reason"] = st0.get("stop_reason")
 
 
-def _refining(nc: NetConfig, network: str) -> NetConfig:
+def _refining(nc: NetConfig, network: str, direction: str, bases) -> NetConfig:
     """The settings of a ``keep = "refine"`` run: ``nc`` as configured, which must give the
-    Levenberg–Marquardt finish some time."""
+    Levenberg–Marquardt finish some time; a classifier keeps the target (and its scale) it was trained
+    with, so the finish minimises the loss its weights were made for."""
     if nc.lm_minutes <= 0:
+        table = f"forward_{network}" if direction == "forward" else network
         raise NeuralLensError(f"refining a model runs only the Levenberg–Marquardt finish, and the {network}'s "
-                              f"lm_minutes is 0: give it time, e.g. --set forward_{network}.lm_minutes=1.5")
+                              f"lm_minutes is 0: give it time, e.g. --set {table}.lm_minutes=1.5")
+    if network == "classifier":
+        got = {tuple(b.training.get("classifier", {}).get(k, getattr(nc, k))
+                     for k in ("target", "margin_scale", "margin_clip")) for b in bases}
+        if len(got) != 1:
+            raise NeuralLensError(f"refine: the classifiers of one run must share their target, got {sorted(got)}")
+        target, scale, clip = got.pop()
+        nc = dataclasses.replace(nc, target=target, margin_scale=float(scale), margin_clip=float(clip))
     return nc
 
 
@@ -778,7 +788,8 @@ def train_maps(lens, specs, cfg: TrainConfig, workdir: str | None = None, progre
             problems.append(dict(stream=stream, val=val, heading=1 if d == "forward" else -1, center=center,
                                  scale_in=scale_in, seed=seed, s_max=dom.s_max, key=key))
         if keep == "refine":
-            regs = train_regressors(problems, _refining(rc, "regressor"), ckpt=ck("regressor-refine", keys),
+            regs = train_regressors(problems, _refining(rc, "regressor", direction, bases),
+                                    ckpt=ck("regressor-refine", keys),
                                     threads=cfg.threads, device=cfg.device, progress=progress, log=log,
                                     start=[_kept(b, "regressor") for b in bases])
             for r, b in zip(regs, bases):
@@ -802,7 +813,8 @@ def train_maps(lens, specs, cfg: TrainConfig, workdir: str | None = None, progre
             problems.append(dict(ps=ps, valid_u_source=(lambda n, s=stream: s.sample(n)[0]), val=(xcv, lcv),
                                  center=center, scale_in=scale_in, seed=seed + 1, key=key))
         if keep == "refine":
-            clss = train_classifiers(problems, _refining(cc, "classifier"), ckpt=ck("classifier-refine", keys),
+            clss = train_classifiers(problems, _refining(cc, "classifier", direction, bases),
+                                     ckpt=ck("classifier-refine", keys),
                                      threads=cfg.threads, device=cfg.device, progress=progress, log=log,
                                      start=[_kept(b, "classifier") for b in bases])
             for r, b in zip(clss, bases):
