@@ -720,6 +720,23 @@ def _refining(nc: NetConfig, network: str, direction: str, bases) -> NetConfig:
     return nc
 
 
+def _train_networks(train, problems, nc: NetConfig, net: str, ck, keys, cfg: TrainConfig, direction: str,
+                    refine_from, progress: bool, log) -> list:
+    """One network (``net``: "regressor" or "classifier") of every map of ``problems`` with ``train``
+    (:func:`train_regressors` or :func:`train_classifiers`): through :func:`train_sized`, or, with
+    ``refine_from`` (one base map per problem), only the Levenberg–Marquardt finish from the base maps'
+    networks, their records carried (:func:`_carry_history`)."""
+    kw = dict(threads=cfg.threads, device=cfg.device, progress=progress, log=log)
+    if refine_from is None:
+        return train_sized(train, problems, nc, ck, net, **kw)
+    kept = [_kept(b, net) for b in refine_from]
+    out = train(problems, _refining(nc, net, direction, refine_from), ckpt=ck(f"{net}-refine", keys),
+                start=kept, **kw)
+    for r, k in zip(out, kept):
+        _carry_history(r, k)
+    return out
+
+
 def map_seed(cfg: TrainConfig, path_id: int, direction: str) -> int:
     """The seed of one map (its data streams, held-out sets and initial weights)."""
     return int(cfg.seed) * 1_000_003 + int(path_id) * 2 + (direction == "forward")
@@ -787,16 +804,8 @@ def train_maps(lens, specs, cfg: TrainConfig, workdir: str | None = None, progre
                                 cfg.fresnel)
             problems.append(dict(stream=stream, val=val, heading=1 if d == "forward" else -1, center=center,
                                  scale_in=scale_in, seed=seed, s_max=dom.s_max, key=key))
-        if keep == "refine":
-            regs = train_regressors(problems, _refining(rc, "regressor", direction, bases),
-                                    ckpt=ck("regressor-refine", keys),
-                                    threads=cfg.threads, device=cfg.device, progress=progress, log=log,
-                                    start=[_kept(b, "regressor") for b in bases])
-            for r, b in zip(regs, bases):
-                _carry_history(r, _kept(b, "regressor"))
-        else:
-            regs = train_sized(train_regressors, problems, rc, ck, "regressor", threads=cfg.threads,
-                               device=cfg.device, progress=progress, log=log)
+        regs = _train_networks(train_regressors, problems, rc, "regressor", ck, keys, cfg, direction,
+                               bases if keep == "refine" else None, progress, log)
     t1 = time.perf_counter()
     if keep == "classifier":
         clss = [_kept(b, "classifier") for b in bases]
@@ -812,16 +821,8 @@ def train_maps(lens, specs, cfg: TrainConfig, workdir: str | None = None, progre
             center, scale_in = dom.norm_center_scale()
             problems.append(dict(ps=ps, valid_u_source=(lambda n, s=stream: s.sample(n)[0]), val=(xcv, lcv),
                                  center=center, scale_in=scale_in, seed=seed + 1, key=key))
-        if keep == "refine":
-            clss = train_classifiers(problems, _refining(cc, "classifier", direction, bases),
-                                     ckpt=ck("classifier-refine", keys),
-                                     threads=cfg.threads, device=cfg.device, progress=progress, log=log,
-                                     start=[_kept(b, "classifier") for b in bases])
-            for r, b in zip(clss, bases):
-                _carry_history(r, _kept(b, "classifier"))
-        else:
-            clss = train_sized(train_classifiers, problems, cc, ck, "classifier", threads=cfg.threads,
-                               device=cfg.device, progress=progress, log=log)
+        clss = _train_networks(train_classifiers, problems, cc, "classifier", ck, keys, cfg, direction,
+                               bases if keep == "refine" else None, progress, log)
     t2 = time.perf_counter()
     tms = []
     for j, ((p, d, zi, zo, dom), reg, cls, stream) in enumerate(zip(specs, regs, clss, streams)):
