@@ -309,8 +309,9 @@ def test_merge_keeps_the_stop_head_of_the_map_a_retrained_one_replaces(tmp_path)
 
 
 def test_shared_kernel_parameters_one_kernel_per_architecture():
-    """mlp = "shared": every number of a map is a kernel parameter, so two maps of one architecture (other
-    weights, planes, normalisation and domain) run the same kernel, and their results are the fused ones."""
+    """mlp = "shared": every number of a map is a kernel input (weights in packed buffers on LLVM), so two
+    maps of one architecture (other weights, planes, normalisation and domain) run the same kernel, and
+    their results are the fused ones to float32 rounding."""
     import dataclasses
     import drjit as dr
     from mi_neurallens.jit import from_numpy
@@ -338,11 +339,13 @@ def test_shared_kernel_parameters_one_kernel_per_architecture():
                                          + [res.throughput.numpy()], 1)
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, False)
-    assert kernels["shared", 0] == kernels["shared", 1] and len(kernels["shared", 0]) == 1
+    # the same kernels for both maps: the map's, and on LLVM the one that packs a network's weights into its
+    # cooperative-vector buffer (run once per network, the same source for every network)
+    assert kernels["shared", 0] == kernels["shared", 1] and len(set(kernels["shared", 0])) <= 2
     assert kernels["fused", 0] != kernels["fused", 1]
     assert len(maps[0].params_pool) > 0 and maps[0].params_pool is not maps[1].params_pool
     for k in range(2):
         v = outs["fused", k][:, 0].astype(bool)
         assert 0.05 < v.mean() < 0.95
         np.testing.assert_array_equal(outs["shared", k][:, 0], outs["fused", k][:, 0])
-        np.testing.assert_allclose(outs["shared", k][v], outs["fused", k][v], rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(outs["shared", k][v], outs["fused", k][v], rtol=1e-5, atol=1e-5)

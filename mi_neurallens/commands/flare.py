@@ -43,7 +43,8 @@ def add_parser(subparsers):
                         "--flare --write), use the map only if it is at most MAPE (default 0.01)")
     p.add_argument("--mlp", choices=("auto", "fused", "shared", "coopvec"), default="auto",
                    help="how learned ghost maps enter their kernels: fused (weights as literals, a kernel per map), "
-                        "shared (weights as kernel parameters, one kernel per architecture), coopvec; auto: shared "
+                        "shared (every number a kernel input, weights in packed buffers on a CPU: one kernel per "
+                        "architecture), coopvec; auto: shared "
                         "when several ghosts are learned (default)")
     p.add_argument("--ghost", dest="ghosts", action="append", default=[], metavar="ID",
                    help="render only this ghost (path id or a:b surface pair; repeatable)")

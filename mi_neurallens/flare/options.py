@@ -56,8 +56,9 @@ class FlareOptions:
     transmit_only: bool = False        #: splat only the transmit path
     model: object = None               #: NeuralLensModel or a file (default: the sensor's model)
     #: how learned ghost maps enter their kernels: "fused" (weights as literals: a kernel per map), "shared"
-    #: (weights as kernel parameters: one kernel per architecture), "coopvec", or "auto" (shared from
-    #: SHARED_FROM learned maps of one render on; docs/results.md, "One compilation")
+    #: (every number a kernel input, the weights in packed buffers on LLVM: one kernel per architecture),
+    #: "coopvec", or "auto" (shared from SHARED_FROM learned maps of one render on; docs/results.md, "One
+    #: compilation")
     mlp: str = "auto"
 
     def validate(self):

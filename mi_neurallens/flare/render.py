@@ -52,10 +52,12 @@ from .energy import front_radius, ghost_energy_ranking, input_plane, select_ghos
 from .lights import scene_lights
 from .options import BASELINE_MODES, FlareError, FlareOptions
 
-#: ``mlp = "auto"``: from this many learned ghost maps in one render on, their networks are evaluated with
-#: kernel parameters (``"shared"``: one compilation per architecture) instead of literals (one per map);
-#: the break-even of the two first renders on an empty kernel cache (docs/results.md, "One compilation")
-SHARED_FROM = 6
+#: ``mlp = "auto"``: from this many learned ghost maps in one render on, their networks are evaluated as
+#: kernel inputs (``"shared"``: one compilation per architecture, ≈ 1 s on a CPU with packed weights) instead
+#: of literals (one compilation per map, 1–8 s each): the first render on an empty kernel cache is then the
+#: shorter one from two maps on; warm, the literals are ≈ 10 ms per map faster, which repays their compilation
+#: after about a hundred renders (docs/results.md, "One compilation")
+SHARED_FROM = 2
 
 # golden-ratio style additive recurrence (R_d sequence, d = 6) in 32-bit fixed point
 _PHI6 = 1.0
@@ -365,8 +367,8 @@ class FlareRenderer:
     def learned_mlp(self, ids=None) -> str:
         """How this render's learned maps enter their kernels (:class:`~mi_neurallens.neural.model.NeuralMap`'s
         ``mlp``): ``opts.mlp``, or for ``auto`` ``shared`` (one kernel per architecture) when the render uses at
-        least :data:`SHARED_FROM` learned ghost maps, ``fused`` (a kernel per map, each quicker to compile)
-        below that.  ``ids``: the render's paths (default: :meth:`ghost_ids`)."""
+        least :data:`SHARED_FROM` learned ghost maps, ``fused`` (one kernel, the fastest once compiled) below
+        that.  ``ids``: the render's paths (default: :meth:`ghost_ids`)."""
         if self.opts.mlp != "auto":
             return self.opts.mlp
         m = self.model

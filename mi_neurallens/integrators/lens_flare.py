@@ -69,9 +69,10 @@ sensor must be ``realistic_lens`` or ``neural_lens``.
  * - mlp
    - |string|
    - How learned ghost maps are evaluated in their kernels: ``fused`` (every weight a literal: the fastest
-     code, one kernel compiled per ghost map, 2–7 s each the first time on a CPU), ``shared`` (every number
-     of a map a kernel parameter: the ghost maps of one architecture share one kernel, compiled once),
-     ``coopvec`` (Dr.Jit cooperative vectors), or ``auto``: ``shared`` when the render uses several learned
+     code, one kernel compiled per ghost map, 1–7 s each the first time on a CPU), ``shared`` (every number
+     of a map a kernel input, on a CPU the weights in packed cooperative-vector buffers: the ghost maps of
+     one architecture share one kernel, compiled once in about a second), ``coopvec`` (Dr.Jit cooperative
+     vectors on every backend, fp16 on CUDA), or ``auto``: ``shared`` when the render uses several learned
      maps (docs/results.md, "One compilation").  (Default: ``auto``)
 
  * - ghosts

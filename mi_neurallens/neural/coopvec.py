@@ -20,17 +20,22 @@ import numpy as np
 
 
 class CoopVecMLP:
-    """A packed ``drjit.nn`` network equal to ``layers`` (list of (W (out, in), b)), for the float
-    type of the current Mitsuba variant.  Call it with a list of Dr.Jit floats; returns a list."""
+    """A packed ``drjit.nn`` network equal to ``layers`` (list of (W (out, in), b)) for inputs of the Dr.Jit
+    float type ``float_t`` (the current Mitsuba variant's ``Float`` when None).  Call it with a list of
+    Dr.Jit floats; returns a list of the same type."""
 
-    def __init__(self, layers, activation: str = "tanh"):
+    def __init__(self, layers, activation: str = "tanh", float_t=None):
         import drjit as dr
         import drjit.nn as nn
-        import mitsuba as mi
         if activation not in ("tanh", "relu"):
             raise ValueError(f"unknown activation {activation!r}")
-        cuda = dr.backend_v(mi.Float) == dr.JitBackend.CUDA
-        tensor = mi.TensorXf16 if cuda else mi.TensorXf
+        if float_t is None:
+            import mitsuba as mi
+            float_t = mi.Float
+        cuda = dr.backend_v(float_t) == dr.JitBackend.CUDA
+        self.float_t = float_t
+        self.half_t = dr.float16_array_t(float_t) if cuda else None
+        tensor = dr.tensor_t(self.half_t if cuda else float_t)
         mods = []
         for i, (W, b) in enumerate(layers):
             W = np.asarray(W)
@@ -48,8 +53,17 @@ class CoopVecMLP:
 
     def __call__(self, xs):
         import drjit.nn as nn
-        import mitsuba as mi
         if self.cuda:
-            xs = [mi.Float16(x) for x in xs]
+            xs = [self.half_t(x) for x in xs]
         out = list(self.net(nn.CoopVec(*xs)))
-        return [mi.Float(o) for o in out] if self.cuda else out
+        return [self.float_t(o) for o in out] if self.cuda else out
+
+
+def packed(owner, name: str, layers, activation: str, like) -> CoopVecMLP:
+    """``owner``'s :class:`CoopVecMLP` of ``layers`` for inputs like the Dr.Jit array ``like``, built once
+    per float type and kept in ``owner.__dict__`` (a map or stop head whose layers do not change)."""
+    cache = owner.__dict__.setdefault("_coopvec_cache", {})
+    key = (name, type(like))
+    if key not in cache:
+        cache[key] = CoopVecMLP(layers, activation, type(like))
+    return cache[key]

@@ -85,7 +85,10 @@ class KernelParams:
     A literal is part of the kernel's source, so every weight set compiles its own kernel (2–7 s each on a
     CPU; a flare with 32 learned ghosts compiled 32 of them).  Opaque scalars are inputs of the kernel: maps
     of one architecture then produce the same source and share one compiled kernel (Dr.Jit's in-memory and
-    disk caches), at the price of a longer compilation of that one kernel.  ``params(key, value, like)``
+    disk caches), at the price of a longer compilation of that one kernel when every weight is one (LLVM
+    loads them all at the top of the kernel): on LLVM, ``mlp = "shared"`` therefore passes the networks'
+    weights as packed cooperative-vector buffers and keeps these scalars for the map's other numbers
+    (:func:`~mi_neurallens.neural.model.packed_networks`).  ``params(key, value, like)``
     returns the scalar named ``key`` (any hashable, stable across evaluations) holding ``value`` in the
     float type of the Dr.Jit array ``like``; it is created once and reused while its value is unchanged."""
 

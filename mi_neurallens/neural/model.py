@@ -57,6 +57,7 @@ from ..errors import ModelError
 from ..fileio import jsonable
 from ..transport.base import TransportMap
 from ..transport.planning import Domain
+from .coopvec import packed
 from .mlp import ACTIVATIONS, KernelParams, mlp_cost, mlp_dr, number
 
 #: the training record's loss curves (lists under a ``*history`` key; read by people, never by the renderer) keep
@@ -84,6 +85,24 @@ FORMAT_VERSION = 1
 OUTPUTS = ("x", "y", "dx", "dy", "throughput")
 #: how a learned map's networks are evaluated in a kernel (:class:`NeuralMap`'s ``mlp``)
 MLP_MODES = ("fused", "shared", "coopvec")
+#: the modes whose kernels take the map's numbers (normalisation, skip, domain, planes) as kernel parameters,
+#: so that all maps of one architecture share one compiled kernel
+PARAM_MODES = ("shared", "coopvec")
+
+
+def packed_networks(mlp: str, like) -> bool:
+    """Whether ``mlp`` evaluates the networks through Dr.Jit cooperative vectors (weights in one packed
+    buffer per network) rather than unrolled multiply-adds: always for ``"coopvec"``; for ``"shared"`` on
+    the LLVM backend, where it is the same fp32 arithmetic (to ~1e-6) and compiles 3–25× sooner than one
+    opaque scalar per weight, with one upload per network instead of one per weight (docs/results.md, "One
+    compilation"); on CUDA ``"shared"`` keeps fp32 opaque scalars (its cooperative vectors are fp16), and in
+    float64 (``like``: the Dr.Jit input array) it keeps them too."""
+    if mlp == "coopvec":
+        return True
+    if mlp != "shared":
+        return False
+    import drjit as dr
+    return dr.backend_v(like) == dr.JitBackend.LLVM and dr.type_v(like) == dr.VarType.Float32
 
 
 def _fold(layers, out_scale, out_shift):
@@ -129,10 +148,15 @@ class StopHead:
             self._fold = _fold(self.layers, self.out_scale, self.out_shift)
         return self._fold
 
-    def eval_dr(self, x, xn, s_max: float, params: KernelParams | None = None):
+    def eval_dr(self, x, xn, s_max: float, params: KernelParams | None = None, coopvec: bool = False):
         """Reduced inputs ``x`` and their normalised ``xn`` (Dr.Jit) → the 2k outputs (Dr.Jit list);
-        ``params``: the map's kernel parameters (None: literals)."""
-        y = _add_skip(mlp_dr(xn, self._folded(), self.activation, params, "stop"), xn, self.skip, params, "stop.skip")
+        ``params``: the map's kernel parameters (None: literals); ``coopvec``: the network through Dr.Jit's
+        cooperative vectors (weights in a packed buffer), the rest with ``params``."""
+        if coopvec:
+            net = packed(self, "stop", self._folded(), self.activation, xn[0])(xn)
+        else:
+            net = mlp_dr(xn, self._folded(), self.activation, params, "stop")
+        y = _add_skip(net, xn, self.skip, params, "stop.skip")
         if self.odd_y:
             m = x[2] * number(params, "stop.1/s_max", 1.0 / float(s_max), x[2])
             for j in range(1, len(y), 2):
@@ -170,10 +194,12 @@ class NeuralMap(TransportMap):
     inside the trained opening, tested on the stop head's crossings; None: the trained aperture),
     ``use_classifier`` (``False``: the paper's ablation,
     every in-domain ray is valid and the classifier is not evaluated at all) and ``mlp`` (``"fused"``:
-    weights as kernel literals, rational tanh in float32, exact tanh in float64; ``"shared"``: the same
-    arithmetic with every number of the map — weights, normalisation, domain, planes — a kernel parameter
-    (:class:`~mi_neurallens.neural.mlp.KernelParams`), so that all maps of one architecture share one
-    compiled kernel; ``"coopvec"``: Dr.Jit cooperative vectors, :mod:`mi_neurallens.neural.coopvec`)."""
+    weights as kernel literals, rational tanh in float32, exact tanh in float64; ``"shared"``: every number
+    of the map a kernel input, so that all maps of one architecture share one compiled kernel — the
+    normalisation, skip, domain and planes as opaque scalars (:class:`~mi_neurallens.neural.mlp.KernelParams`),
+    the networks' weights in packed cooperative-vector buffers on LLVM, as opaque scalars on CUDA
+    (:func:`packed_networks`); ``"coopvec"``: the networks through Dr.Jit cooperative vectors on every
+    backend (fp16 on CUDA), the other numbers as for ``"shared"``, :mod:`mi_neurallens.neural.coopvec`)."""
 
     path_id: int
     direction: str
@@ -211,8 +237,9 @@ class NeuralMap(TransportMap):
 
     @property
     def params(self) -> KernelParams | None:
-        """The kernel parameters of this map's numbers (``mlp = "shared"``), or None (literals)."""
-        return self.params_pool if self.mlp == "shared" else None
+        """The kernel parameters of this map's numbers (``mlp = "shared"`` or ``"coopvec"``), or None
+        (literals)."""
+        return self.params_pool if self.mlp in PARAM_MODES else None
 
     def number(self, key, value, like):
         return number(self.params, key, value, like)
@@ -247,24 +274,24 @@ class NeuralMap(TransportMap):
         stop head is fused, with kernel parameters under ``"shared"``)."""
         import drjit as dr
         mlp = self.mlp if mlp is None else mlp
-        P = self.params_pool if mlp == "shared" else None
+        P = self.params_pool if mlp in PARAM_MODES else None
         xn = [dr.fma(v, number(P, ("norm.a", i), 1.0 / float(s), v), number(P, ("norm.b", i), -float(c) / float(s), v))
               for i, (v, c, s) in enumerate(zip(x, self.input_center, self.input_scale))]
-        if mlp in ("fused", "shared"):
+        if mlp not in MLP_MODES:
+            raise ModelError(f"unknown MLP evaluation {mlp!r}: use one of {MLP_MODES}")
+        use_packed = packed_networks(mlp, x[0])
+        if use_packed:
+            logit = packed(self, "classifier", self.classifier, self.classifier_activation, xn[0])(xn)[0]
+            y = packed(self, "regressor", self._folded(), self.regressor_activation, xn[0])(xn)
+        else:
             logit = mlp_dr(xn, self.classifier, self.classifier_activation, P, "classifier")[0]
             y = mlp_dr(xn, self._folded(), self.regressor_activation, P, "regressor")
-        elif mlp == "coopvec":
-            cls, reg = self._coopvec()
-            logit = cls(xn)[0]
-            y = reg(xn)
-        else:
-            raise ModelError(f"unknown MLP evaluation {mlp!r}: use one of {MLP_MODES}")
         y = _add_skip(y, xn, self.skip, P, "regressor.skip")
         if self.odd_y:
             m = x[2] * number(P, "1/s_max", 1.0 / float(self.domain.s_max), x[2])
             y[1], y[3] = y[1] * m, y[3] * m
         if self.stop_head is not None:
-            y = list(y) + self.stop_head.eval_dr(x, xn, self.domain.s_max, P)
+            y = list(y) + self.stop_head.eval_dr(x, xn, self.domain.s_max, P, coopvec=use_packed)
         return logit, y
 
     def core_reduced_dr(self, x, active):
@@ -276,17 +303,6 @@ class NeuralMap(TransportMap):
         """Reduced inputs (N, 4) → (logit (N,), outputs (N, 5 + 2k)), float64, through the Dr.Jit core."""
         _, y, logit = self.core_reduced_np(x)
         return logit, y
-
-    def _coopvec(self):
-        """Packed cooperative-vector networks for the current Mitsuba variant (built once)."""
-        import mitsuba as mi
-        key = mi.variant()
-        cache = self.__dict__.setdefault("_coopvec_cache", {})
-        if key not in cache:
-            from .coopvec import CoopVecMLP
-            cache[key] = (CoopVecMLP(self.classifier, self.classifier_activation),
-                          CoopVecMLP(self._folded(), self.regressor_activation))
-        return cache[key]
 
     # ------------------------------------------------------------------ (de)serialisation
     def _meta(self) -> dict:
