@@ -34,29 +34,19 @@ sys.path.insert(0, ROOT)
 
 def problems(lens, model, ghosts, kind, cfg):
     """The trainer's problem dicts of the ghosts ``ghosts`` on the bundled maps' planes and domains."""
-    import numpy as np
     from mi_neurallens.training.data import Domain, PathSampler, RegressorStream
-    from mi_neurallens.training.evaluate import heldout_valid
-    from mi_neurallens.training.trainer import CLASSIFIER_VALIDATION, map_seed
+    from mi_neurallens.training.trainer import classifier_problem, map_seed, regressor_problem
     out = []
     for pid in ghosts:
         tm = model.maps[f"forward.{pid}"]
-        dom = Domain.from_dict(tm.domain)
+        spec = (pid, "forward", tm.z_in, tm.z_out, Domain.from_dict(tm.domain))
         seed = map_seed(cfg, pid, "forward")
-        ps = PathSampler(lens, pid, "forward", tm.z_in, tm.z_out, dom, fresnel=cfg.fresnel)
+        ps = PathSampler(lens, *spec, fresnel=cfg.fresnel)
         stream = RegressorStream(ps, seed, cfg.mcmc_threshold)
-        center, scale = dom.norm_center_scale()
         if kind == "regressor":
-            val = heldout_valid(lens, (pid, "forward", tm.z_in, tm.z_out), dom, 20_000, seed + 7,
-                                cfg.mcmc_threshold, cfg.fresnel)
-            out.append(dict(stream=stream, val=val, heading=1, center=center, scale_in=scale, seed=seed,
-                            s_max=dom.s_max, key=f"forward.{pid}"))
+            out.append(regressor_problem(lens, spec, stream, seed, f"forward.{pid}", cfg))
         else:
-            psv = PathSampler(lens, pid, "forward", tm.z_in, tm.z_out, dom, fresnel=cfg.fresnel, precision="float64")
-            xcv = dom.u_to_x(np.random.default_rng(seed + 11).random((CLASSIFIER_VALIDATION, 4)))
-            lcv, _ = psv.trace_x(xcv)
-            out.append(dict(ps=ps, valid_u_source=(lambda n, s=stream: s.sample(n)[0]), val=(xcv, lcv),
-                            center=center, scale_in=scale, seed=seed + 1, key=f"forward.{pid}"))
+            out.append(classifier_problem(lens, spec, ps, stream, seed, f"forward.{pid}", cfg))
     return out
 
 

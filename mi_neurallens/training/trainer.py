@@ -742,6 +742,34 @@ def map_seed(cfg: TrainConfig, path_id: int, direction: str) -> int:
     return int(cfg.seed) * 1_000_003 + int(path_id) * 2 + (direction == "forward")
 
 
+def regressor_problem(lens, spec, stream, seed: int, key: str, cfg: TrainConfig) -> dict:
+    """One map's problem for :func:`train_regressors`: ``spec`` = (path_id, direction, z_in, z_out, domain),
+    ``stream`` its :class:`~mi_neurallens.training.data.RegressorStream`, validated on ≤ 20 000 held-out
+    valid rays traced with ``seed + 7``."""
+    from .evaluate import heldout_valid
+    p, d, zi, zo, dom = spec
+    center, scale_in = dom.norm_center_scale()
+    val = heldout_valid(lens, (p, d, zi, zo), dom, min(cfg.heldout, 20_000), seed + 7, cfg.mcmc_threshold,
+                        cfg.fresnel)
+    return dict(stream=stream, val=val, heading=1 if d == "forward" else -1, center=center, scale_in=scale_in,
+                seed=seed, s_max=dom.s_max, key=key)
+
+
+def classifier_problem(lens, spec, ps, stream, seed: int, key: str, cfg: TrainConfig) -> dict:
+    """One map's problem for :func:`train_classifiers`: ``ps`` its float32
+    :class:`~mi_neurallens.training.data.PathSampler`, valid inputs drawn from ``stream``; validated on the
+    natural mix (:data:`CLASSIFIER_VALIDATION` rays uniform over the domain, float64 labels, ``seed + 11``) —
+    large, because only the few rays near the boundary tell two good classifiers apart (0.02 % of 400 k = 80
+    errors)."""
+    p, d, zi, zo, dom = spec
+    psv = PathSampler(lens, p, d, zi, zo, dom, fresnel=cfg.fresnel, precision="float64")
+    xcv = dom.u_to_x(np.random.default_rng(seed + 11).random((CLASSIFIER_VALIDATION, 4)))
+    lcv, _ = psv.trace_x(xcv)
+    center, scale_in = dom.norm_center_scale()
+    return dict(ps=ps, valid_u_source=(lambda n, s=stream: s.sample(n)[0]), val=(xcv, lcv), center=center,
+                scale_in=scale_in, seed=seed + 1, key=key)
+
+
 def train_map(lens, path_id: int, direction: str, z_in: float, z_out: float, domain: Domain, cfg: TrainConfig,
               workdir: str | None = None, progress: bool = True, log=None, evaluate: bool = True,
               eval_n: int | None = None, keep: str | None = None, base=None):
@@ -772,7 +800,7 @@ def train_maps(lens, specs, cfg: TrainConfig, workdir: str | None = None, progre
     z_in, z_out, domain) per map, all of one direction.  ``keep``/``bases``: as :func:`train_map`, one
     base map per spec.  Returns the :class:`~mi_neurallens.neural.model.NeuralMap` s, in order."""
     from ..neural.model import NeuralMap
-    from .evaluate import evaluate_map, heldout_valid
+    from .evaluate import evaluate_map
     from .stacked import stack_name
     specs = [(int(p), d, float(zi), float(zo), dom) for p, d, zi, zo, dom in specs]
     dirs = {d for _, d, *_ in specs}
@@ -797,30 +825,16 @@ def train_maps(lens, specs, cfg: TrainConfig, workdir: str | None = None, progre
     if keep == "regressor":
         regs = [_kept(b, "regressor") for b in bases]
     else:
-        problems = []
-        for (p, d, zi, zo, dom), seed, stream, key in zip(specs, seeds, streams, keys):
-            center, scale_in = dom.norm_center_scale()
-            val = heldout_valid(lens, (p, d, zi, zo), dom, min(cfg.heldout, 20_000), seed + 7, cfg.mcmc_threshold,
-                                cfg.fresnel)
-            problems.append(dict(stream=stream, val=val, heading=1 if d == "forward" else -1, center=center,
-                                 scale_in=scale_in, seed=seed, s_max=dom.s_max, key=key))
+        problems = [regressor_problem(lens, spec, stream, seed, key, cfg)
+                    for spec, seed, stream, key in zip(specs, seeds, streams, keys)]
         regs = _train_networks(train_regressors, problems, rc, "regressor", ck, keys, cfg, direction,
                                bases if keep == "refine" else None, progress, log)
     t1 = time.perf_counter()
     if keep == "classifier":
         clss = [_kept(b, "classifier") for b in bases]
     else:
-        problems = []
-        for (p, d, zi, zo, dom), seed, stream, ps, key in zip(specs, seeds, streams, samplers, keys):
-            # classifier validation: the natural mix (uniform over the domain), float64 labels; large, because
-            # only the few rays near the boundary tell two good classifiers apart (0.02 % of 400 k = 80 errors)
-            vrng = np.random.default_rng(seed + 11)
-            psv = PathSampler(lens, p, d, zi, zo, dom, fresnel=cfg.fresnel, precision="float64")
-            xcv = dom.u_to_x(vrng.random((CLASSIFIER_VALIDATION, 4)))
-            lcv, _ = psv.trace_x(xcv)
-            center, scale_in = dom.norm_center_scale()
-            problems.append(dict(ps=ps, valid_u_source=(lambda n, s=stream: s.sample(n)[0]), val=(xcv, lcv),
-                                 center=center, scale_in=scale_in, seed=seed + 1, key=key))
+        problems = [classifier_problem(lens, spec, ps, stream, seed, key, cfg)
+                    for spec, seed, stream, ps, key in zip(specs, seeds, streams, samplers, keys)]
         clss = _train_networks(train_classifiers, problems, cc, "classifier", ck, keys, cfg, direction,
                                bases if keep == "refine" else None, progress, log)
     t2 = time.perf_counter()
