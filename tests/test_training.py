@@ -211,6 +211,12 @@ def test_config_rejects_unknown_keys(tmp_path):
     assert c.forward_classifier["hidden"] == 3 and c.forward_classifier["max_minutes"] == 6.0
     # the forward defaults (flare goals) stay under a recipe's [forward_*] keys
     assert c.forward_classifier["target"] == "margin" and c.net("classifier", "forward").goal_misclassification < 0.005
+    # the camera map's stop head gets a longer finish than a ghost's (used only through an iris), and a
+    # recipe's [forward_stop] keys keep that default unless they name it
+    c = load_config(None)
+    assert c.net("stop", "backward").lm_minutes == 1.5 and c.net("stop", "forward").lm_minutes == 0.5
+    p.write_text("[forward_stop]\nmax_minutes = 1.0\n")
+    assert load_config(str(p)).net("stop", "forward").lm_minutes == 0.5
 
 
 def test_bundled_recipes_load():

@@ -271,7 +271,7 @@ class NeuralMap(TransportMap):
     def eval_reduced_dr(self, x, mlp: str | None = None):
         """Reduced inputs (4 Dr.Jit floats) → (logit, [5 outputs, then 2k stop outputs when the map has
         a stop head]) fused into one kernel.  ``mlp``: one of :data:`MLP_MODES` (default: :attr:`mlp`; the
-        stop head is fused, with kernel parameters under ``"shared"``)."""
+        stop head is evaluated the same way as the two networks)."""
         import drjit as dr
         mlp = self.mlp if mlp is None else mlp
         P = self.params_pool if mlp in PARAM_MODES else None
