@@ -211,12 +211,16 @@ def test_config_rejects_unknown_keys(tmp_path):
     assert c.forward_classifier["hidden"] == 3 and c.forward_classifier["max_minutes"] == 6.0
     # the forward defaults (flare goals) stay under a recipe's [forward_*] keys
     assert c.forward_classifier["target"] == "margin" and c.net("classifier", "forward").goal_misclassification < 0.005
-    # the camera map's stop head gets a longer finish than a ghost's (used only through an iris), and a
-    # recipe's [forward_stop] keys keep that default unless they name it
+    # the camera map's stop head gets a longer finish than a ghost's (used only through an iris): a forward
+    # head takes at most 0.5 min of it unless [forward_stop] names its own, and none when [stop] has none
     c = load_config(None)
     assert c.net("stop", "backward").lm_minutes == 1.5 and c.net("stop", "forward").lm_minutes == 0.5
     p.write_text("[forward_stop]\nmax_minutes = 1.0\n")
     assert load_config(str(p)).net("stop", "forward").lm_minutes == 0.5
+    p.write_text("[stop]\nlm_minutes = 0.0\n")
+    assert load_config(str(p)).net("stop", "forward").lm_minutes == 0.0
+    p.write_text("[forward_stop]\nlm_minutes = 2.0\n")
+    assert load_config(str(p)).net("stop", "forward").lm_minutes == 2.0
 
 
 def test_bundled_recipes_load():

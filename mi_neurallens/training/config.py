@@ -98,9 +98,9 @@ FLARE_GOAL_UM_2K = (3.0, 30.0)
 FLARE_GOAL_ARCSEC_2K = (30.0, 200.0)
 FORWARD_CLASSIFIER = dict(target="margin", goal_misclassification=0.0005, max_minutes=1.25, lm_minutes=0.75,
                           max_steps=40000, patience=30)
-#: a forward map's stop head (used only through an iris) keeps the former 0.5-min finish: 32 ghosts × 1.5 min
-#: would add up to half an hour to a lens
-FORWARD_STOP = dict(lm_minutes=0.5)
+#: a forward map's stop head (used only through an iris) gets at most this much of the finish unless
+#: ``[forward_stop]`` says otherwise: 32 ghosts × the camera head's 1.5 min would add up to half an hour to a lens
+FORWARD_STOP_LM_MINUTES = 0.5
 
 PAPER = dict(schedule="paper", lr=1e-4, decay=0.95, decay_every=10000, batch=8192, warmup_steps=0,
              residual="none", direction_loss="cosine", loss_weights="uniform", odd_y=False, target="label")
@@ -137,7 +137,7 @@ class TrainConfig:
     # overrides for forward maps (flares); a recipe's [forward_*] table is merged into these
     forward_regressor: dict = field(default_factory=lambda: dict(FORWARD_REGRESSOR))
     forward_classifier: dict = field(default_factory=lambda: dict(FORWARD_CLASSIFIER))
-    forward_stop: dict = field(default_factory=lambda: dict(FORWARD_STOP))
+    forward_stop: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -153,6 +153,8 @@ class TrainConfig:
             return base
         if kind == "regressor":
             over = {**flare_goals(self.flare_resolution, self.film_half_diagonal_mm), **over}
+        if kind == "stop" and "lm_minutes" not in over:
+            over = {**over, "lm_minutes": min(base.lm_minutes, FORWARD_STOP_LM_MINUTES)}
         return _apply(base, over, f"forward_{kind}") if over else base
 
 
