@@ -55,8 +55,8 @@ from .options import BASELINE_MODES, FlareError, FlareOptions
 #: ``mlp = "auto"``: from this many learned ghost maps in one render on, their networks are evaluated as
 #: kernel inputs (``"shared"``: one compilation per architecture, ≈ 1 s on a CPU with packed weights) instead
 #: of literals (one compilation per map, 1–8 s each): the first render on an empty kernel cache is then the
-#: shorter one from two maps on; warm, the literals are ≈ 10 ms per map faster, which repays their compilation
-#: after about a hundred renders (docs/results.md, "One compilation")
+#: shorter one from two maps on; warm, the literals are 2 ms (3×16 maps) to 60 ms (5×32) per map and render
+#: faster, which repays their compilation after 100–500 renders (docs/results.md, "One compilation")
 SHARED_FROM = 2
 
 # golden-ratio style additive recurrence (R_d sequence, d = 6) in 32-bit fixed point
