@@ -344,6 +344,11 @@ def test_shared_kernel_parameters_one_kernel_per_architecture():
     assert kernels["shared", 0] == kernels["shared", 1] and len(set(kernels["shared", 0])) <= 2
     assert kernels["fused", 0] != kernels["fused", 1]
     assert len(maps[0].params_pool) > 0 and maps[0].params_pool is not maps[1].params_pool
+    # packed weights where they are the same fp32 arithmetic: LLVM float32; float64 keeps the scalars
+    from mi_neurallens.neural.model import packed_networks
+    F64 = float_type("float64")
+    assert packed_networks("shared", F(0.0)) and not packed_networks("shared", F64(0.0))
+    assert packed_networks("coopvec", F(0.0)) and not packed_networks("fused", F(0.0))
     for k in range(2):
         v = outs["fused", k][:, 0].astype(bool)
         assert 0.05 < v.mean() < 0.95
