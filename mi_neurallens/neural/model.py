@@ -105,6 +105,15 @@ def packed_networks(mlp: str, like) -> bool:
     return dr.backend_v(like) == dr.JitBackend.LLVM and dr.type_v(like) == dr.VarType.Float32
 
 
+def _network(owner, name: str, layers, activation: str, xn, params, use_packed: bool) -> list:
+    """One network of ``owner`` (a map or stop head) on the normalised inputs ``xn``: through its packed
+    cooperative-vector buffer (:func:`~mi_neurallens.neural.coopvec.packed`) or unrolled (literals, or
+    ``params``' scalars tagged ``name``)."""
+    if use_packed:
+        return packed(owner, name, layers, activation, xn[0])(xn)
+    return mlp_dr(xn, layers, activation, params, name)
+
+
 def _fold(layers, out_scale, out_shift):
     """``layers`` (float64) with the output transform ``shift + scale·y`` folded into the last layer."""
     layers = [(np.asarray(W, np.float64), np.asarray(b, np.float64)) for W, b in layers]
@@ -152,10 +161,7 @@ class StopHead:
         """Reduced inputs ``x`` and their normalised ``xn`` (Dr.Jit) → the 2k outputs (Dr.Jit list);
         ``params``: the map's kernel parameters (None: literals); ``coopvec``: the network through Dr.Jit's
         cooperative vectors (weights in a packed buffer), the rest with ``params``."""
-        if coopvec:
-            net = packed(self, "stop", self._folded(), self.activation, xn[0])(xn)
-        else:
-            net = mlp_dr(xn, self._folded(), self.activation, params, "stop")
+        net = _network(self, "stop", self._folded(), self.activation, xn, params, coopvec)
         y = _add_skip(net, xn, self.skip, params, "stop.skip")
         if self.odd_y:
             m = x[2] * number(params, "stop.1/s_max", 1.0 / float(s_max), x[2])
@@ -280,12 +286,8 @@ class NeuralMap(TransportMap):
         if mlp not in MLP_MODES:
             raise ModelError(f"unknown MLP evaluation {mlp!r}: use one of {MLP_MODES}")
         use_packed = packed_networks(mlp, x[0])
-        if use_packed:
-            logit = packed(self, "classifier", self.classifier, self.classifier_activation, xn[0])(xn)[0]
-            y = packed(self, "regressor", self._folded(), self.regressor_activation, xn[0])(xn)
-        else:
-            logit = mlp_dr(xn, self.classifier, self.classifier_activation, P, "classifier")[0]
-            y = mlp_dr(xn, self._folded(), self.regressor_activation, P, "regressor")
+        logit = _network(self, "classifier", self.classifier, self.classifier_activation, xn, P, use_packed)[0]
+        y = _network(self, "regressor", self._folded(), self.regressor_activation, xn, P, use_packed)
         y = _add_skip(y, xn, self.skip, P, "regressor.skip")
         if self.odd_y:
             m = x[2] * number(P, "1/s_max", 1.0 / float(self.domain.s_max), x[2])
