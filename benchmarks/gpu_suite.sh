@@ -135,7 +135,7 @@ stage_equal() {
 stage_flare() {
     local rc=0
     py 120 benchmarks/complete_flare.py --lens $FLARE_LENS $COMPLETE --json "$RES/complete_flare_$FLARE_LENS.json" || rc=1
-    py 90 benchmarks/first_render.py --lens $FLARE_LENS --samples $FIRST --modes exact,neural:fused,neural:shared \
+    py 120 benchmarks/first_render.py --lens $FLARE_LENS --samples $FIRST --modes exact,neural:shared,neural:fused \
         --out "$RES/first_render_$FLARE_LENS.json" || rc=1
     py 90 benchmarks/bench_flare.py --lens wide-22mm $FLARE --out "$RES/flare_wide-22mm.json" || rc=1
     return $rc
