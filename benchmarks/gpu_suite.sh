@@ -150,7 +150,7 @@ stage_tests() {
 }
 
 stage_throughput() {
-    py 150 benchmarks/training_throughput.py $THROUGHPUT --out "$RES/training_throughput.json" 2>&1 | tee "$RES/throughput.log"
+    py 240 benchmarks/training_throughput.py $THROUGHPUT --out "$RES/training_throughput.json" 2>&1 | tee "$RES/throughput.log"
     return "${PIPESTATUS[0]}"
 }
 
