@@ -2,7 +2,7 @@
 positions: the numbers a user decides ``lens_flare``'s mode by.
 
     python benchmarks/complete_flare.py [--lens wide-22mm] [--model FILE] [--before FILE] [--samples 24]
-                                        [--reference 27] [--json OUT]
+                                        [--reference 27] [--mlp auto|fused|shared|coopvec] [--json OUT]
 
 ``scenes/night_point.xml`` (one point light 5 m away, 240×160 full-frame film) with the light at four places
 across the field (``--positions``, x:y in m).  Per position, the default ghost selection of the flare
@@ -17,6 +17,9 @@ renderer (99 % of the ghost energy, at most 32 ghosts) is rendered
 each against an exact reference at 2^reference (seed 101): MAPE (``metrics.mape_masked``) and the luminance
 flux ratio; the neural render also paired against an exact one with the same samples (``pilot_with =
 "exact"``: the maps' own error, noise cancelled) and timed against it (second render, kernels compiled).
+
+``--mlp``: how the learned renders evaluate their networks (the flare's ``mlp`` option; ``coopvec`` is fp16
+on CUDA: what tensor cores cost the flare in accuracy).
 
 ``--equal-time``: the exact and neural renders are timed as the best of three warm renders, and the neural
 flare is rendered again with the samples it can draw in the exact flare's time (2^samples × exact time /
@@ -43,6 +46,7 @@ def main(argv=None):
     ap.add_argument("--positions", default=",".join(POSITIONS), help="light positions x:y (m, at z = 5 m)")
     ap.add_argument("--json", help="write the rows here")
     ap.add_argument("--equal-time", action="store_true", help="also the neural flare at the exact one's wall time")
+    ap.add_argument("--mlp", default="auto", help="network evaluation of the learned renders (the flare's mlp option)")
     a = ap.parse_args(argv)
     sys.path.insert(0, ROOT)
     import mitsuba as mi
@@ -60,6 +64,8 @@ def main(argv=None):
         return float((img[..., :3] @ LUMINANCE).sum())
 
     def render(scene, seed, samples, **opts):
+        if opts.get("mode") != "exact":
+            opts["mlp"] = a.mlp
         r = FlareRenderer(scene, 0, FlareOptions(samples=samples, **opts))
         t0 = time.perf_counter()
         img = r.render(seed=seed).total
@@ -77,7 +83,7 @@ def main(argv=None):
         ex, _, _ = render(scene, 1, n, mode="exact")
         ex, t_ex, _ = render(scene, 1, n, mode="exact")            # warm: kernels compiled
         ne, _, _ = render(scene, 1, n, mode="neural")
-        ne, t_ne, _ = render(scene, 1, n, mode="neural")
+        ne, t_ne, rn = render(scene, 1, n, mode="neural")
         if a.equal_time:                                          # interleaved, best of three
             for _ in range(2):
                 t_ex = min(t_ex, render(scene, 1, n, mode="exact")[1])
@@ -102,6 +108,7 @@ def main(argv=None):
             ab, _, _ = render(sb, 1, n, mode="auto")
             ab, t_ab, _ = render(sb, 1, n, mode="auto")
             row["auto_before"] = dict(mape=float(mape_masked(ab, ref)), flux_ratio=flux(ab) / flux(ref), seconds=t_ab)
+        row["mlp"] = rn.learned_mlp()
         rows.append(row)
         e, nn = row["exact"], row["neural"]
         line = (f"light ({x}, {y}, 5) m, {len(ids)} ghosts, 2^{a.samples} vs 2^{a.reference}: exact {e['mape']:.4f} "

@@ -13,7 +13,8 @@
 #           neural_lens (bench_render.py) on the three paper lenses and the 27-surface RF 24 mm, and the RF 24 mm
 #           again with its 16-wide camera map ($RF16: a quarter of the multiply-adds, 2.3x the position error)
 #   equal   equal render time, neural vs exact (equal_time.py), on every bundled lens
-#   flare   the Canon EF's whole flare, all 32 ghosts learned vs traced (complete_flare.py), its first render
+#   flare   the Canon EF's whole flare, all 32 ghosts learned vs traced (complete_flare.py; again with the fp16
+#           cooperative vectors at one light position), its first render
 #           on a fresh kernel cache (first_render.py: literals vs shared kernels), and the wide-22mm flare
 #           benchmark (bench_flare.py: samples/s and equal-time MAPE, exact vs neural)
 #   tests   the sensor, flare and aperture tests under cuda_ad_rgb ($MI_NEURALLENS_VARIANT)
@@ -135,7 +136,9 @@ stage_equal() {
 stage_flare() {
     local rc=0
     py 120 benchmarks/complete_flare.py --lens $FLARE_LENS $COMPLETE --json "$RES/complete_flare_$FLARE_LENS.json" || rc=1
-    py 120 benchmarks/first_render.py --lens $FLARE_LENS --samples $FIRST --modes exact,neural:shared,neural:fused \
+    py 120 benchmarks/complete_flare.py --lens $FLARE_LENS $COMPLETE --positions 0.9:0.45 --mlp coopvec \
+        --json "$RES/complete_flare_${FLARE_LENS}_coopvec.json" || rc=1      # fp16 tensor cores: the flare's accuracy
+    py 120 benchmarks/first_render.py --lens $FLARE_LENS --samples $FIRST --modes exact,neural:shared,neural:fused,neural:coopvec \
         --out "$RES/first_render_$FLARE_LENS.json" || rc=1
     py 90 benchmarks/bench_flare.py --lens wide-22mm $FLARE --out "$RES/flare_wide-22mm.json" || rc=1
     return $rc
