@@ -82,6 +82,11 @@ py() {     # py BOX_SECONDS script args…: Python under `timeout`, within the b
     return $rc
 }
 
+stamp() {  # prefix each line with the seconds since the suite started (where a long training spends its time)
+    local l
+    while IFS= read -r l; do printf '%5d  %s\n' "$SECONDS" "$l"; done
+}
+
 stage_setup() {
     if ls .whl/*.whl >/dev/null 2>&1; then
         $PY -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
@@ -159,8 +164,9 @@ stage_throughput() {
 
 stage_train() {
     local t0=$SECONDS rc=0
-    py 100000 -m mi_neurallens train dgauss-50mm $TRAIN --out "$RES/train" --no-progress \
-        2>&1 | tee "$RES/train.log" || rc=1
+    py 100000 -m mi_neurallens train dgauss-50mm $TRAIN --out "$RES/train" --no-progress 2>&1 \
+        | stamp | tee "$RES/train.log"
+    [ "${PIPESTATUS[0]}" -eq 0 ] || rc=1
     echo "wall: $((SECONDS - t0)) s for dgauss-50mm ($TRAIN) with data on $MI_NEURALLENS_VARIANT" | tee -a "$RES/train.log"
     py 300 -m mi_neurallens evaluate "$RES/train/dgauss-50mm.model.safetensors" -n $EVAL_N --seed 4242 \
         2>&1 | tee -a "$RES/train.log" || rc=1

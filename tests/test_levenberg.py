@@ -10,7 +10,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from mi_neurallens.training.levenberg import MAX_PARAMS, FlatMLP, n_params, polish  # noqa: E402
+from mi_neurallens.training.levenberg import MAX_PARAMS, FlatMLP, n_params, polish, polish_stack  # noqa: E402
 
 
 def random_layers(dims, seed=0):
@@ -45,8 +45,8 @@ class SmoothMap:
     """A stand-in map problem: fit f(x) = (sin(x₀ + x₁²), x₂·x₃ + cos(x₀)) over [−1, 1]⁴ from fresh rows,
     validated on a fixed held-out set (RMS error)."""
 
-    def __init__(self, goal=0.0):
-        self.rng = np.random.default_rng(7)
+    def __init__(self, goal=0.0, seed=7):
+        self.rng = np.random.default_rng(seed)
         self.state = {"history": [], "step": 0, "seconds": 0.0, "samples": 0}
         self.goal = goal
         self.Xv = torch.as_tensor(self.rng.uniform(-1, 1, (4000, 4)), dtype=torch.float32)
@@ -107,6 +107,42 @@ def test_levenberg_marquardt_fits_far_beyond_adam():
     early = SmoothMap(goal=0.05)
     polish(torch, early, layers, nc, seconds=1e9, max_iterations=60)
     assert early.state["lm"]["stop_reason"] == "goals" and early.state["lm"]["iterations"] < 60
+
+
+def test_a_stack_finishes_each_network_as_alone():
+    """Three networks polished as one stack (batched Jacobians and solves, what a GPU runs) end where each
+    ends polished alone: the same weights, validations, iterations and stop reasons — also when one meets
+    its goal early and leaves the stack, and with a Jacobian of stacked networks equal to each one's."""
+    nc = types.SimpleNamespace(lm_rows=512, lm_eval_every=5, stop_at_goals=True, patience=100)
+    starts = [random_layers([4, 16, 16, 2], seed=s) for s in (3, 4, 5)]
+    goals = [0.0, 0.08, 0.0]
+    alone = [SmoothMap(goal=g, seed=10 + j) for j, g in enumerate(goals)]
+    want = [polish(torch, m, lay, nc, seconds=1e9, max_iterations=25) for m, lay in zip(alone, starts)]
+    stacked = [SmoothMap(goal=g, seed=10 + j) for j, g in enumerate(goals)]
+    got = polish_stack(torch, stacked, starts, nc, seconds=1e9, max_iterations=25)
+    assert alone[1].state["lm"]["stop_reason"] == "goals" and alone[1].state["lm"]["iterations"] < 25
+    for a, b, w, g in zip(alone, stacked, want, got):
+        assert a.state["lm"]["stop_reason"] == b.state["lm"]["stop_reason"]
+        assert a.state["lm"]["iterations"] == b.state["lm"]["iterations"]
+        assert b.state["lm"]["stacked_with"] == 3
+        np.testing.assert_allclose([h["rms"] for h in b.state["history"]], [h["rms"] for h in a.state["history"]],
+                                   rtol=1e-4)
+        # the same function (float32 Jacobians summed in another order move the weights along flat
+        # directions of the loss by ~1e-3, not the outputs)
+        fw, fg = FlatMLP(torch, w), FlatMLP(torch, g)
+        Xv = a.Xv.double()
+        np.testing.assert_allclose(fg.forward(fg.flatten(g), Xv).numpy(), fw.forward(fw.flatten(w), Xv).numpy(),
+                                   atol=2e-4)
+    net = FlatMLP(torch, starts[0])
+    theta = torch.stack([net.flatten(lay) for lay in starts])
+    X = torch.as_tensor(np.random.default_rng(1).normal(size=(3, 9, 4)))
+    z, J = net.jacobian(theta, X)
+    for k in range(3):
+        z1, J1 = net.jacobian(theta[k], X[k])
+        np.testing.assert_allclose(J[k].numpy(), J1.numpy(), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(z[k].numpy(), z1.numpy(), rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="one shape"):
+        polish_stack(torch, stacked[:2], [starts[0], random_layers([4, 8, 2])], nc, seconds=1.0)
 
 
 def test_residuals_are_the_losses_adam_minimises():

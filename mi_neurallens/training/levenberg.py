@@ -65,44 +65,48 @@ class FlatMLP:
         return out
 
     def _unpack(self, theta):
+        """θ (…, P) → [(W (…, out, in), b (…, out))]: views, with θ's leading (stack) dimensions."""
         out, i = [], 0
+        lead = tuple(theta.shape[:-1])
         for ws, bs in self.shapes:
             nw, nb = ws[0] * ws[1], bs[0]
-            out.append((theta[i:i + nw].view(ws), theta[i + nw:i + nw + nb]))
+            out.append((theta[..., i:i + nw].reshape(lead + ws), theta[..., i + nw:i + nw + nb]))
             i += nw + nb
         return out
 
     def forward(self, theta, X):
-        """(n, in) → (n, out), in the dtype of ``X`` (θ is cast to it)."""
+        """(n, in) → (n, out), in the dtype of ``X`` (θ is cast to it).  Stacked: θ (K, P) and X (K, n, in)
+        → (K, n, out), network k on rows k."""
         h = X
         L = self._unpack(theta.to(X.dtype))
         for k, (W, b) in enumerate(L):
-            h = self.torch.addmm(b, h, W.T)
+            h = h @ W.transpose(-1, -2) + b[..., None, :]
             if k < len(L) - 1:
                 h = self.torch.tanh(h)
         return h
 
     def jacobian(self, theta, X):
         """(outputs (n, out), J (n, out, P)): ∂ output / ∂ θ, in the dtype of ``X``, by one backward pass
-        per output column through the stored activations."""
+        per output column through the stored activations.  Stacked: θ (K, P) and X (K, n, in) → (K, n, out)
+        and (K, n, out, P)."""
         torch = self.torch
         L = self._unpack(theta.to(X.dtype))
         hs, h = [X], X
         for k, (W, b) in enumerate(L):
-            h = torch.addmm(b, h, W.T)
+            h = h @ W.transpose(-1, -2) + b[..., None, :]
             if k < len(L) - 1:
                 h = torch.tanh(h)
             hs.append(h)
-        n, no = X.shape[0], h.shape[1]
-        G = torch.eye(no, dtype=X.dtype, device=X.device).expand(n, no, no)   # ∂ out / ∂ (pre-activation of layer k)
+        lead, n, no = tuple(X.shape[:-2]), X.shape[-2], h.shape[-1]
+        G = torch.eye(no, dtype=X.dtype, device=X.device).expand(lead + (n, no, no))   # ∂ out / ∂ (pre-activation of layer k)
         blocks = [None] * len(L)
         for k in range(len(L) - 1, -1, -1):
             W, _ = L[k]
-            Jw = (G[:, :, :, None] * hs[k][:, None, None, :]).reshape(n, no, -1)
-            blocks[k] = torch.cat([Jw, G], 2)
+            Jw = (G[..., :, :, None] * hs[k][..., None, None, :]).reshape(lead + (n, no, -1))
+            blocks[k] = torch.cat([Jw, G], -1)
             if k > 0:
-                G = (G @ W) * (1.0 - hs[k] * hs[k])[:, None, :]
-        return h, torch.cat(blocks, 2)
+                G = (G @ W[..., None, :, :]) * (1.0 - hs[k] * hs[k])[..., None, :]
+        return h, torch.cat(blocks, -1)
 
 
 def polish(torch, fit, layers, nc, *, seconds: float, max_iterations: int | None = None, rows: int | None = None,
@@ -113,85 +117,156 @@ def polish(torch, fit, layers, nc, *, seconds: float, max_iterations: int | None
     by validation score (the starting ones count: they are validated first).  ``rows``: fresh samples per iteration
     (``nc.lm_rows``); ``eval_every``: iterations between validations (``nc.lm_eval_every``).  The
     iterations are appended to ``fit.state`` (``lm``: iterations, seconds, final λ, stop reason) and its
-    validations to ``fit.state["history"]`` with ``phase = "lm"`` and step = ``step0`` + iteration."""
+    validations to ``fit.state["history"]`` with ``phase = "lm"`` and step = ``step0`` + iteration.
+    One network: :func:`polish_stack` with a stack of one."""
+    return polish_stack(torch, [fit], [layers], nc, seconds=seconds, max_iterations=max_iterations, rows=rows,
+                        eval_every=eval_every, step0=[step0], lam=lam,
+                        progress=None if progress is None else (lambda it, loss, lam_: progress(it, loss[0], lam_[0])))[0]
+
+
+def polish_stack(torch, fits, layers, nc, *, seconds: float, max_iterations: int | None = None,
+                 rows: int | None = None, eval_every: int | None = None, step0=None, lam: float = 1e-3,
+                 progress=None) -> list:
+    """:func:`polish` for K networks of one shape at once (``fits``: their problems, ``layers``: their
+    starting weights): each iteration forms the K Jacobians as one batched product and solves the K damped
+    systems as one batched solve, so on a GPU a stack of ghost maps costs about what one does.  Every
+    network keeps its own rows (``fit.fresh_rows``, in the order :func:`polish` would draw them), its own λ,
+    validations, best weights and stop reason — the result is :func:`polish`'s, network by network
+    (``tests/test_levenberg.py``).  A network leaves the stack when it stops; the stack's wall budget is
+    K × ``seconds`` (the time the networks would get one at a time).  ``step0``: one Adam step count per
+    network.  ``progress(iteration, losses, λs)``: the networks still running.  Returns their best layers,
+    in order."""
+    K = len(fits)
+    if K == 0:
+        return []
     rows = int(rows or nc.lm_rows)
     eval_every = int(eval_every or nc.lm_eval_every)
-    dev = getattr(fit, "dev", None)
-    net = FlatMLP(torch, layers, dev)
-    theta = net.flatten(layers)
-    f32 = torch.float32
+    step0 = [0] * K if step0 is None else [int(s) for s in step0]
+    dev = getattr(fits[0], "dev", None)
+    net = FlatMLP(torch, layers[0], dev)
+    for lay in layers[1:]:
+        if FlatMLP(torch, lay).shapes != net.shapes:
+            raise ValueError("polish_stack: the networks of one stack must have one shape")
+    theta = torch.stack([net.flatten(lay) for lay in layers])          # (K, P) float64
+    f32, f64 = torch.float32, torch.float64
     t0 = time.perf_counter()
-    st = fit.state
-    base_seconds = float(st.get("seconds", 0.0))
+    states = [f.state for f in fits]
+    base_seconds = [float(st.get("seconds", 0.0)) for st in states]
+    lams = [float(lam)] * K
+    its, reasons, since_best = [0] * K, [None] * K, [0] * K
+    ended = [0.0] * K
 
-    def validate(it, loss):
-        fit.net = lambda x, th=theta: net.forward(th, x)
-        n_hist = len(st["history"])
+    def validate(k, th, loss):
+        fits[k].net = lambda x, th=th: net.forward(th, x)
+        hist = states[k]["history"]
+        n_hist = len(hist)
         with torch.no_grad():
-            score, _ = fit.validate(step0 + it, None if loss is None else torch.as_tensor(loss),
-                                    base_seconds + time.perf_counter() - t0)
-        for rec in st["history"][n_hist:]:
+            score, _ = fits[k].validate(step0[k] + its[k], None if loss is None else torch.as_tensor(loss),
+                                        base_seconds[k] + time.perf_counter() - t0)
+        for rec in hist[n_hist:]:
             rec["phase"] = "lm"
         return score
 
-    best_theta, best = theta.clone(), validate(0, None)
-    since_best, it, reason = 0, 0, "time_budget"
-    if nc.stop_at_goals and fit.goals_met():
-        reason = "goals"
-    while reason != "goals" and time.perf_counter() - t0 < seconds:
-        if max_iterations is not None and it >= max_iterations:
-            reason = "max_iterations"
+    best_theta = [theta[k].clone() for k in range(K)]
+    best = [validate(k, theta[k], None) for k in range(K)]
+    for k in range(K):
+        if nc.stop_at_goals and fits[k].goals_met():
+            reasons[k] = "goals"
+    active = [k for k in range(K) if reasons[k] is None]
+    budget = float(seconds) * K
+    while active:
+        if time.perf_counter() - t0 >= budget:
             break
-        batch = fit.fresh_rows(rows)
-        X = batch["X"].to(f32)
+        if max_iterations is not None and its[active[0]] >= max_iterations:
+            for k in active:
+                reasons[k] = "max_iterations"
+            break
+        batches = [fits[k].fresh_rows(rows) for k in active]
+        X = torch.stack([b["X"].to(f32) for b in batches])                 # (A, n, in)
+        idx = torch.as_tensor(active, device=theta.device)
+        th = theta[idx]
+        A_n = len(active)
         with torch.no_grad():
-            z, J = net.jacobian(theta, X)
-            r, s = fit.lm_residual(z, batch)
-            Js = (J * s[..., None]).reshape(-1, net.P)
-            A = (Js.T @ Js).double()
-            g = (Js.T @ r.reshape(-1)).double()
-            loss0 = float((r.double() ** 2).mean())
-            d = torch.diagonal(A).clone()
-            d = d + 1e-9 * float(d.max()) + 1e-30
-            accepted = False
-            for _ in range(8):
-                try:
-                    delta = -torch.linalg.solve(A + lam * torch.diag(d), g)
-                except RuntimeError:            # singular: damp harder
-                    lam *= 4.0
-                    continue
-                cand = theta + delta
-                r1, _ = fit.lm_residual(net.forward(cand, X), batch)
-                if float((r1.double() ** 2).mean()) < loss0:
-                    theta, lam, accepted = cand, max(lam / 3.0, 1e-12), True
-                    break
-                lam *= 4.0
-            if not accepted and lam > 1e8:      # no step lowers the loss: at a minimum of what rows can tell
-                reason = "converged"
-        it += 1
-        st["samples"] = int(st.get("samples", 0)) + rows
+            z, J = net.jacobian(th, X)                                        # (A, n, out), (A, n, out, P)
+            rs = [fits[k].lm_residual(z[a], batches[a]) for a, k in enumerate(active)]
+            r = torch.stack([q[0] for q in rs])
+            s = torch.stack([q[1].expand_as(q[0]) for q in rs])
+            Js = (J * s[..., None]).reshape(A_n, -1, net.P)
+            del J
+            Amat = (Js.transpose(1, 2) @ Js).to(f64)                          # (A, P, P)
+            g = (Js.transpose(1, 2) @ r.reshape(A_n, -1, 1)).to(f64)[..., 0]  # (A, P)
+            del Js
+            loss0 = (r.to(f64) ** 2).mean((1, 2)).tolist()
+            d = torch.diagonal(Amat, dim1=1, dim2=2).clone()
+            d = d + 1e-9 * d.max(1, keepdim=True).values + 1e-30
+            accepted = [False] * A_n
+            tries = [0] * A_n
+            pending = list(range(A_n))
+            while pending:
+                lam_t = torch.as_tensor([lams[active[a]] for a in pending], dtype=f64, device=Amat.device)
+                pi = torch.as_tensor(pending, device=Amat.device)
+                M = Amat[pi] + lam_t[:, None, None] * torch.diag_embed(d[pi])
+                delta, info = torch.linalg.solve_ex(M, -g[pi])
+                info = info.tolist()
+                ok = [j for j, a in enumerate(pending) if info[j] == 0 and bool(torch.isfinite(delta[j]).all())]
+                better = set()
+                if ok:
+                    oi = torch.as_tensor(ok, device=Amat.device)
+                    cand = th[pi[oi]] + delta[oi]
+                    zc = net.forward(cand, X[pi[oi]])
+                    for j, c in zip(ok, range(len(ok))):
+                        a = pending[j]
+                        r1, _ = fits[active[a]].lm_residual(zc[c], batches[a])
+                        if float((r1.to(f64) ** 2).mean()) < loss0[a]:
+                            better.add(a)
+                            theta[active[a]] = cand[c]
+                            lams[active[a]] = max(lams[active[a]] / 3.0, 1e-12)
+                            accepted[a] = True
+                nxt = []
+                for a in pending:
+                    tries[a] += 1
+                    if a in better:
+                        continue
+                    lams[active[a]] *= 4.0                    # singular or no lower loss: damp harder
+                    if tries[a] < 8:
+                        nxt.append(a)
+                pending = nxt
+        done = []
+        for a, k in enumerate(active):
+            if not accepted[a] and lams[k] > 1e8:         # no step lowers the loss: at a minimum of what rows can tell
+                reasons[k] = "converged"
+            its[k] += 1
+            states[k]["samples"] = int(states[k].get("samples", 0)) + rows
         if progress is not None:
-            progress(it, loss0, lam)
-        if it % eval_every == 0 or reason == "converged":
-            score = validate(it, loss0)
-            if not math.isfinite(score):
-                reason = "diverged"
-                break
-            if score < best:
-                best, best_theta, since_best = score, theta.clone(), 0
-            else:
-                since_best += 1
-            if nc.stop_at_goals and fit.goals_met():
-                best_theta, reason = theta.clone(), "goals"
-            elif since_best >= nc.patience:
-                reason = "early_stop"
-            if reason != "time_budget":
-                break
-    if it % eval_every != 0 and reason in ("time_budget", "max_iterations"):
-        score = validate(it, None)
-        if math.isfinite(score) and score < best:
-            best, best_theta = score, theta.clone()
-    st["lm"] = {"iterations": it, "seconds": time.perf_counter() - t0, "rows": rows, "lambda": lam,
-                "stop_reason": reason, "best_val": best}
-    st["seconds"] = base_seconds + time.perf_counter() - t0
-    return net.layers(best_theta)
+            progress(its[active[0]], loss0, [lams[k] for k in active])
+        for a, k in enumerate(active):
+            if its[k] % eval_every == 0 or reasons[k] == "converged":
+                score = validate(k, theta[k], loss0[a])
+                if not math.isfinite(score):
+                    reasons[k] = "diverged"
+                else:
+                    if score < best[k]:
+                        best[k], best_theta[k], since_best[k] = score, theta[k].clone(), 0
+                    else:
+                        since_best[k] += 1
+                    if nc.stop_at_goals and fits[k].goals_met():
+                        best_theta[k], reasons[k] = theta[k].clone(), "goals"
+                    elif since_best[k] >= nc.patience:
+                        reasons[k] = "early_stop"
+            if reasons[k] is not None:
+                ended[k] = time.perf_counter() - t0
+                done.append(k)
+        active = [k for k in active if k not in done]
+    for k in range(K):
+        if reasons[k] is None:
+            reasons[k] = "time_budget"
+        if reasons[k] in ("time_budget", "max_iterations"):
+            ended[k] = time.perf_counter() - t0
+            if its[k] % eval_every != 0:
+                score = validate(k, theta[k], None)
+                if math.isfinite(score) and score < best[k]:
+                    best[k], best_theta[k] = score, theta[k].clone()
+        states[k]["lm"] = {"iterations": its[k], "seconds": ended[k], "rows": rows, "lambda": lams[k],
+                           "stop_reason": reasons[k], "best_val": best[k], "stacked_with": K}
+        states[k]["seconds"] = base_seconds[k] + ended[k]
+    return [net.layers(best_theta[k]) for k in range(K)]

@@ -145,14 +145,16 @@ def polish_results(torch, fits, results, nc: NetConfig, keys, ckpt: str | None =
     ``results`` (what :func:`~mi_neurallens.training.stacked.train_stack` returned for ``fits``), in place,
     for ``nc.lm_minutes`` per network (and at most ``nc.lm_iterations``): skipped for networks that met their
     goals already, for networks of more than :data:`~mi_neurallens.training.levenberg.MAX_PARAMS` weights and
-    when ``lm_minutes`` is 0.
+    when ``lm_minutes`` is 0.  The networks finish in stacks of :func:`lm_stack_size` (on a GPU all of a
+    shape at once, :func:`~mi_neurallens.training.levenberg.polish_stack`; on a CPU one by one).
     A network that meets its goals here gets ``stop_reason = "goals"`` (Adam's is kept as
     ``adam_stop_reason``).  With ``ckpt``, each finished network is saved to ``<ckpt>.lm.<key>.json`` and
-    a rerun takes it from there.  ``progress``: a bar per network (seconds of its budget, iterations, loss)."""
-    from .levenberg import MAX_PARAMS, n_params, polish
+    a rerun takes it from there.  ``progress``: a bar per stack (seconds of its budget, iterations, loss)."""
+    from .levenberg import MAX_PARAMS, n_params, polish_stack
     if nc.lm_minutes <= 0:
         return
-    for f, r, key in zip(fits, results, keys):
+    todo = []
+    for j, (f, r, key) in enumerate(zip(fits, results, keys)):
         st = r["state"]
         if st.get("stop_reason") == "goals" or "lm" in st:
             continue
@@ -166,26 +168,55 @@ def polish_results(torch, fits, results, nc: NetConfig, keys, ckpt: str | None =
             r["layers"] = [(np.asarray(W, np.float64), np.asarray(b, np.float64)) for W, b in saved["layers"]]
             r["state"] = saved["state"]
             continue
-        f.state = st
-        if log:
-            log(getattr(f, "desc", key), {"phase": "lm", "start_step": st.get("step", 0), "weights": P})
-        bar, tick = _lm_bar(progress, f"{key} finish", 60.0 * nc.lm_minutes)
+        todo.append(j)
+    if not todo:
+        return
+    dev = getattr(fits[todo[0]], "dev", None)
+    P = n_params(results[todo[0]]["layers"])
+    n_out = int(np.shape(results[todo[0]]["layers"][-1][1])[0])
+    size = lm_stack_size(dev, nc.lm_rows, n_out, P)
+    for c in range(0, len(todo), size):
+        idx = todo[c:c + size]
+        for j in idx:
+            fits[j].state = results[j]["state"]
+            if log:
+                log(getattr(fits[j], "desc", keys[j]), {"phase": "lm", "start_step": fits[j].state.get("step", 0),
+                                                        "weights": P, "stacked_with": len(idx)})
+        name = keys[idx[0]] if len(idx) == 1 else f"{keys[idx[0]]} + {len(idx) - 1}"
+        bar, tick = _lm_bar(progress, f"{name} finish", 60.0 * nc.lm_minutes * len(idx))
         try:
-            r["layers"] = polish(torch, f, r["layers"], nc, seconds=60.0 * nc.lm_minutes, step0=int(st.get("step", 0)),
-                                 max_iterations=nc.lm_iterations or None, progress=tick)
+            got = polish_stack(torch, [fits[j] for j in idx], [results[j]["layers"] for j in idx], nc,
+                               seconds=60.0 * nc.lm_minutes, step0=[int(fits[j].state.get("step", 0)) for j in idx],
+                               max_iterations=nc.lm_iterations or None, progress=tick)
         finally:
             if bar is not None:
                 bar.close()
-        st["adam_stop_reason"] = st.get("stop_reason")
-        if st["lm"]["stop_reason"] == "goals":
-            st["stop_reason"] = "goals"
-        if path:
-            atomic_write_text(path, json.dumps({"layers": [(W.tolist(), b.tolist()) for W, b in r["layers"]],
-                                                "state": st}))
+        for j, layers in zip(idx, got):
+            r, st = results[j], fits[j].state
+            r["layers"], r["state"] = layers, st
+            st["adam_stop_reason"] = st.get("stop_reason")
+            if st["lm"]["stop_reason"] == "goals":
+                st["stop_reason"] = "goals"
+            if ckpt:
+                atomic_write_text(f"{ckpt}.lm.{keys[j]}.json",
+                                  json.dumps({"layers": [(W.tolist(), b.tolist()) for W, b in layers], "state": st}))
+
+
+#: a stack's Jacobians on a GPU stay below this (bytes; float32, with the scaled copy)
+LM_STACK_BYTES = 8 << 30
+
+
+def lm_stack_size(dev, rows: int, n_out: int, n_params_: int) -> int:
+    """How many networks the finish polishes at once: one on a CPU (its cost is the Jacobian's
+    multiply-adds, which a stack does not reduce, and one network's is already a 100 MB array); on a GPU as
+    many as keep the stack's Jacobians within :data:`LM_STACK_BYTES` (32 ghost regressors: 7 GB)."""
+    if not str(dev).startswith("cuda"):
+        return 1
+    return max(1, LM_STACK_BYTES // max(2 * 4 * int(rows) * int(n_out) * int(n_params_), 1))
 
 
 def _lm_bar(enabled: bool, desc: str, seconds: float):
-    """(tqdm bar or None, callback ``(iteration, loss, λ)``) for one network's finish: the bar counts the
+    """(tqdm bar or None, callback ``(iteration, losses, λs)``) for one stack's finish: the bar counts the
     seconds of its budget (it may end earlier, at the goals)."""
     if not enabled:
         return None, None
@@ -196,9 +227,10 @@ def _lm_bar(enabled: bool, desc: str, seconds: float):
     bar = tqdm(total=int(round(seconds)), desc=desc, unit="s", leave=False, dynamic_ncols=True)
     t0 = time.perf_counter()
 
-    def tick(it, loss, lam):
+    def tick(it, loss, lam):        # the stack's networks still running: their losses and λs
         bar.n = min(int(time.perf_counter() - t0), bar.total)
-        bar.set_postfix_str(f"iteration {it}, loss {loss:.3g}, λ {lam:.0e}")
+        run = f"{len(loss)} running, " if len(loss) > 1 else ""
+        bar.set_postfix_str(f"{run}iteration {it}, loss {max(loss):.3g}, λ {max(lam):.0e}")
     return bar, tick
 
 
