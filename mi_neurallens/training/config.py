@@ -65,11 +65,18 @@ class NetConfig:
                                         # the last when none does (empty: hidden × width alone; trainer.train_sized)
 
 
+#: Adam steps before a regressor's finish: what the wall budgets gave on this project's 2-core CPU (the shipped
+#: maps' logs: 9 500–12 700), so that a GPU, whose budgets would allow 3–4× the steps at launch-bound speed,
+#: hands over to Levenberg–Marquardt as early (docs/results.md, "The third GPU session")
+REGRESSOR_ADAM_STEPS = 12000
+
+
 def regressor_defaults() -> NetConfig:
-    """A 3×16 network: 1.5 min of Adam, then up to 4 min of the Levenberg–Marquardt finish, which takes it
-    to the camera goals (the 27-surface RF 24 mm: 0.88 µm / 4.0″ median in 2.8 min; a 5×32 network with
-    Adam alone reached 1.75 µm / 7.2″ in 5.7 min and renders 3× slower — docs/results.md)."""
-    return NetConfig(hidden=3, width=16, max_minutes=1.5, lm_minutes=4.0)
+    """A 3×16 network: 1.5 min (at most :data:`REGRESSOR_ADAM_STEPS` steps) of Adam, then up to 4 min of the
+    Levenberg–Marquardt finish, which takes it to the camera goals (the 27-surface RF 24 mm: 0.88 µm / 4.0″
+    median in 2.8 min; a 5×32 network with Adam alone reached 1.75 µm / 7.2″ in 5.7 min and renders 3×
+    slower — docs/results.md)."""
+    return NetConfig(hidden=3, width=16, max_steps=REGRESSOR_ADAM_STEPS, max_minutes=1.5, lm_minutes=4.0)
 
 
 def classifier_defaults() -> NetConfig:
@@ -91,7 +98,7 @@ def stop_defaults() -> NetConfig:
 #: camera ray's; the ghosts' edges are the flare error, so their classifier regresses the aperture margin
 #: (docs/training.md).  The networks are the defaults' 3×16 / 2×16 with shorter Adam and finish budgets: the
 #: Canon EF's ghosts reached 2.3–39 µm (median map 5.6) with ≤ 1 min of the finish (docs/results.md)
-FORWARD_REGRESSOR = dict(max_minutes=1.0, max_steps=40000, lm_minutes=1.0)
+FORWARD_REGRESSOR = dict(max_minutes=1.0, max_steps=REGRESSOR_ADAM_STEPS, lm_minutes=1.0)
 #: the forward regressor's goals at 2048 pixels across full frame (a 17.6 µm pixel): position (median, p99)
 #: µm, 0.17 / 1.7 pixels; direction (median, p99) arcsec.  Both scale with the pixel (:func:`flare_goals`)
 FLARE_GOAL_UM_2K = (3.0, 30.0)
