@@ -145,6 +145,36 @@ def test_a_stack_finishes_each_network_as_alone():
         polish_stack(torch, stacked[:2], [starts[0], random_layers([4, 8, 2])], nc, seconds=1.0)
 
 
+def test_trainer_finishes_in_stacks_of_one_shape(monkeypatch):
+    """:func:`polish_results` stacks the networks to finish by architecture (a refined model may mix 2×16 and
+    2×8 maps), in stacks of :func:`lm_stack_size` (one on a CPU; several on a GPU, forced here), and each
+    network ends as it would alone; a network that met its goals under Adam is left as it is."""
+    from mi_neurallens.training import trainer
+    assert trainer.lm_stack_size("cpu", 8192, 5, 709) == 1
+    assert trainer.lm_stack_size("cuda:0", 8192, 5, 709) >= 32        # a lens's ghost regressors in one stack
+    nc = types.SimpleNamespace(lm_minutes=1e6, lm_iterations=12, lm_rows=512, lm_eval_every=4, stop_at_goals=True,
+                               patience=100)
+    dims = [[4, 16, 16, 2], [4, 8, 8, 2], [4, 16, 16, 2], [4, 16, 16, 2]]
+    starts = [random_layers(d, seed=20 + j) for j, d in enumerate(dims)]
+
+    def run(stack):
+        monkeypatch.setattr(trainer, "lm_stack_size", lambda *a: stack)
+        fits = [SmoothMap(seed=30 + j) for j in range(4)]
+        res = [{"layers": lay, "state": fits[j].state} for j, lay in enumerate(starts)]
+        res[3]["state"]["stop_reason"] = "goals"
+        trainer.polish_results(torch, fits, res, nc, [f"forward.{j}" for j in range(4)])
+        return fits, res
+
+    alone, res1 = run(1)
+    stacked, res2 = run(8)
+    assert [f.state["lm"]["stacked_with"] for f in stacked[:3]] == [2, 1, 2]
+    assert "lm" not in stacked[3].state and res2[3]["layers"] is starts[3]
+    for a, b in zip(alone[:3], stacked[:3]):
+        assert a.state["lm"]["iterations"] == b.state["lm"]["iterations"] == 12
+        np.testing.assert_allclose([h["rms"] for h in b.state["history"]], [h["rms"] for h in a.state["history"]],
+                                   rtol=1e-4)
+
+
 def test_residuals_are_the_losses_adam_minimises():
     """The regressor's residuals square to its weighted MSE (:meth:`RegressorFit.rows_loss` without the
     cosine term), edge weights included; the classifier's to its margin interval loss."""

@@ -171,12 +171,16 @@ def polish_results(torch, fits, results, nc: NetConfig, keys, ckpt: str | None =
         todo.append(j)
     if not todo:
         return
-    dev = getattr(fits[todo[0]], "dev", None)
-    P = n_params(results[todo[0]]["layers"])
-    n_out = int(np.shape(results[todo[0]]["layers"][-1][1])[0])
-    size = lm_stack_size(dev, nc.lm_rows, n_out, P)
-    for c in range(0, len(todo), size):
-        idx = todo[c:c + size]
+    shapes: dict = {}              # one stack per architecture (refined base maps may mix them)
+    for j in todo:
+        shapes.setdefault(tuple(np.shape(W) for W, _ in results[j]["layers"]), []).append(j)
+    stacks = []
+    for group in shapes.values():
+        P = n_params(results[group[0]]["layers"])
+        n_out = int(np.shape(results[group[0]]["layers"][-1][1])[0])
+        size = lm_stack_size(getattr(fits[group[0]], "dev", None), nc.lm_rows, n_out, P)
+        stacks += [(group[c:c + size], P) for c in range(0, len(group), size)]
+    for idx, P in stacks:
         for j in idx:
             fits[j].state = results[j]["state"]
             if log:
