@@ -65,10 +65,12 @@ class NetConfig:
                                         # the last when none does (empty: hidden × width alone; trainer.train_sized)
 
 
-#: Adam steps before a regressor's finish: what the wall budgets gave on this project's 2-core CPU (the shipped
-#: maps' logs: 9 500–12 700), so that a GPU, whose budgets would allow 3–4× the steps at launch-bound speed,
-#: hands over to Levenberg–Marquardt as early (docs/results.md, "The third GPU session")
-REGRESSOR_ADAM_STEPS = 12000
+#: Adam steps before a regressor's finish.  Adam only has to bring a network near the optimum the finish then
+#: reaches in tens of iterations: on dgauss-50mm, this CPU, 4 000 steps reach the goals in 62 s (camera regressor)
+#: and ≈ 135 s (a stack of four ghost regressors) where 12 000 took 109 and ≈ 270 s, at the same accuracy
+#: (benchmarks/results/adam_steps/).  On a GPU, where the wall budgets would allow 3–4× the steps at launch-bound
+#: speed, the cap is what keeps Adam from outlasting the finish (docs/results.md, "The third GPU session")
+REGRESSOR_ADAM_STEPS = 4000
 
 
 def regressor_defaults() -> NetConfig:
