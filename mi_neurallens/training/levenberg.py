@@ -206,7 +206,10 @@ def polish_stack(torch, fits, layers, nc, *, seconds: float, max_iterations: int
                 lam_t = torch.as_tensor([lams[active[a]] for a in pending], dtype=f64, device=Amat.device)
                 pi = torch.as_tensor(pending, device=Amat.device)
                 M = Amat[pi] + lam_t[:, None, None] * torch.diag_embed(d[pi])
-                delta, info = torch.linalg.solve_ex(M, -g[pi])
+                # JᵀJ + λ·diag is symmetric positive definite: Cholesky (and torch 2.13's batched LU solve fails
+                # on a CPU with more than one thread: MKL's DLASWP rejects its pivots)
+                L, info = torch.linalg.cholesky_ex(M)
+                delta = torch.cholesky_solve(-g[pi][..., None], L)[..., 0]
                 info = info.tolist()
                 ok = [j for j, a in enumerate(pending) if info[j] == 0 and bool(torch.isfinite(delta[j]).all())]
                 better = set()
