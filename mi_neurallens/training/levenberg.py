@@ -153,123 +153,121 @@ def polish_stack(torch, fits, layers, nc, *, seconds: float, max_iterations: int
     states = [f.state for f in fits]
     base_seconds = [float(st.get("seconds", 0.0)) for st in states]
     lams = [float(lam)] * K
-    its, reasons, since_best = [0] * K, [None] * K, [0] * K
-    ended = [0.0] * K
+    reasons, since_best = [None] * K, [0] * K
+    iters, ended = [0] * K, [0.0] * K          # each network's iterations and seconds when it stopped
+    it = 0                                      # the iterations of the networks still running
 
-    def validate(k, th, loss):
-        fits[k].net = lambda x, th=th: net.forward(th, x)
+    def validate(k, loss):
+        th = theta[k].clone()
+        fits[k].net = lambda x: net.forward(th, x)
         hist = states[k]["history"]
         n_hist = len(hist)
         with torch.no_grad():
-            score, _ = fits[k].validate(step0[k] + its[k], None if loss is None else torch.as_tensor(loss),
+            score, _ = fits[k].validate(step0[k] + it, None if loss is None else torch.as_tensor(loss),
                                         base_seconds[k] + time.perf_counter() - t0)
         for rec in hist[n_hist:]:
             rec["phase"] = "lm"
         return score
 
+    def stop(k, reason):
+        reasons[k], iters[k], ended[k] = reason, it, time.perf_counter() - t0
+
     best_theta = [theta[k].clone() for k in range(K)]
-    best = [validate(k, theta[k], None) for k in range(K)]
+    best = [validate(k, None) for k in range(K)]
     for k in range(K):
         if nc.stop_at_goals and fits[k].goals_met():
-            reasons[k] = "goals"
+            stop(k, "goals")
     active = [k for k in range(K) if reasons[k] is None]
-    budget = float(seconds) * K
-    while active:
-        if time.perf_counter() - t0 >= budget:
-            break
-        if max_iterations is not None and its[active[0]] >= max_iterations:
+    while active and time.perf_counter() - t0 < float(seconds) * K:
+        if max_iterations is not None and it >= max_iterations:
             for k in active:
-                reasons[k] = "max_iterations"
+                stop(k, "max_iterations")
             break
         batches = [fits[k].fresh_rows(rows) for k in active]
         X = torch.stack([b["X"].to(f32) for b in batches])                 # (A, n, in)
         idx = torch.as_tensor(active, device=theta.device)
-        th = theta[idx]
-        A_n = len(active)
         with torch.no_grad():
-            z, J = net.jacobian(th, X)                                        # (A, n, out), (A, n, out, P)
+            z, J = net.jacobian(theta[idx], X)                                # (A, n, out), (A, n, out, P)
             rs = [fits[k].lm_residual(z[a], batches[a]) for a, k in enumerate(active)]
             r = torch.stack([q[0] for q in rs])
-            s = torch.stack([q[1].expand_as(q[0]) for q in rs])
-            Js = (J * s[..., None]).reshape(A_n, -1, net.P)
+            Js = (J * torch.stack([q[1].expand_as(q[0]) for q in rs])[..., None]).reshape(len(active), -1, net.P)
             del J
-            Amat = (Js.transpose(1, 2) @ Js).to(f64)                          # (A, P, P)
-            g = (Js.transpose(1, 2) @ r.reshape(A_n, -1, 1)).to(f64)[..., 0]  # (A, P)
+            A = (Js.transpose(1, 2) @ Js).to(f64)                             # (A, P, P)
+            g = (Js.transpose(1, 2) @ r.reshape(len(active), -1, 1)).to(f64)[..., 0]   # (A, P)
             del Js
             loss0 = (r.to(f64) ** 2).mean((1, 2)).tolist()
-            d = torch.diagonal(Amat, dim1=1, dim2=2).clone()
-            d = d + 1e-9 * d.max(1, keepdim=True).values + 1e-30
-            accepted = [False] * A_n
-            tries = [0] * A_n
-            pending = list(range(A_n))
-            while pending:
-                lam_t = torch.as_tensor([lams[active[a]] for a in pending], dtype=f64, device=Amat.device)
-                pi = torch.as_tensor(pending, device=Amat.device)
-                M = Amat[pi] + lam_t[:, None, None] * torch.diag_embed(d[pi])
-                # JᵀJ + λ·diag is symmetric positive definite: Cholesky (and torch 2.13's batched LU solve fails
-                # on a CPU with more than one thread: MKL's DLASWP rejects its pivots)
-                L, info = torch.linalg.cholesky_ex(M)
-                delta = torch.cholesky_solve(-g[pi][..., None], L)[..., 0]
-                info = info.tolist()
-                ok = [j for j, a in enumerate(pending) if info[j] == 0 and bool(torch.isfinite(delta[j]).all())]
-                better = set()
-                if ok:
-                    oi = torch.as_tensor(ok, device=Amat.device)
-                    cand = th[pi[oi]] + delta[oi]
-                    zc = net.forward(cand, X[pi[oi]])
-                    for j, c in zip(ok, range(len(ok))):
-                        a = pending[j]
-                        r1, _ = fits[active[a]].lm_residual(zc[c], batches[a])
-                        if float((r1.to(f64) ** 2).mean()) < loss0[a]:
-                            better.add(a)
-                            theta[active[a]] = cand[c]
-                            lams[active[a]] = max(lams[active[a]] / 3.0, 1e-12)
-                            accepted[a] = True
-                nxt = []
-                for a in pending:
-                    tries[a] += 1
-                    if a in better:
-                        continue
-                    lams[active[a]] *= 4.0                    # singular or no lower loss: damp harder
-                    if tries[a] < 8:
-                        nxt.append(a)
-                pending = nxt
-        done = []
+            lam_a = [lams[k] for k in active]
+            th, moved = _damped_step(torch, net, theta[idx], X, A, g, lam_a, loss0,
+                                     lambda a, z1: float((fits[active[a]].lm_residual(z1, batches[a])[0].to(f64) ** 2)
+                                                         .mean()))
+            theta[idx] = th
+        it += 1
         for a, k in enumerate(active):
-            if not accepted[a] and lams[k] > 1e8:         # no step lowers the loss: at a minimum of what rows can tell
-                reasons[k] = "converged"
-            its[k] += 1
+            lams[k] = lam_a[a]
             states[k]["samples"] = int(states[k].get("samples", 0)) + rows
         if progress is not None:
-            progress(its[active[0]], loss0, [lams[k] for k in active])
+            progress(it, loss0, lam_a)
         for a, k in enumerate(active):
-            if its[k] % eval_every == 0 or reasons[k] == "converged":
-                score = validate(k, theta[k], loss0[a])
-                if not math.isfinite(score):
-                    reasons[k] = "diverged"
-                else:
-                    if score < best[k]:
-                        best[k], best_theta[k], since_best[k] = score, theta[k].clone(), 0
-                    else:
-                        since_best[k] += 1
-                    if nc.stop_at_goals and fits[k].goals_met():
-                        best_theta[k], reasons[k] = theta[k].clone(), "goals"
-                    elif since_best[k] >= nc.patience:
-                        reasons[k] = "early_stop"
-            if reasons[k] is not None:
-                ended[k] = time.perf_counter() - t0
-                done.append(k)
-        active = [k for k in active if k not in done]
+            converged = not moved[a] and lams[k] > 1e8     # no step lowers the loss: at a minimum of what rows can tell
+            if it % eval_every and not converged:
+                continue
+            score = validate(k, loss0[a])
+            if not math.isfinite(score):
+                stop(k, "diverged")
+                continue
+            if score < best[k]:
+                best[k], best_theta[k], since_best[k] = score, theta[k].clone(), 0
+            else:
+                since_best[k] += 1
+            if nc.stop_at_goals and fits[k].goals_met():
+                best_theta[k] = theta[k].clone()
+                stop(k, "goals")
+            elif since_best[k] >= nc.patience:
+                stop(k, "early_stop")
+            elif converged:
+                stop(k, "converged")
+        active = [k for k in active if reasons[k] is None]
+    for k in active:
+        if reasons[k] is None:                      # the wall budget ran out
+            stop(k, "time_budget")
     for k in range(K):
-        if reasons[k] is None:
-            reasons[k] = "time_budget"
-        if reasons[k] in ("time_budget", "max_iterations"):
-            ended[k] = time.perf_counter() - t0
-            if its[k] % eval_every != 0:
-                score = validate(k, theta[k], None)
-                if math.isfinite(score) and score < best[k]:
-                    best[k], best_theta[k] = score, theta[k].clone()
-        states[k]["lm"] = {"iterations": its[k], "seconds": ended[k], "rows": rows, "lambda": lams[k],
+        if reasons[k] in ("time_budget", "max_iterations") and iters[k] % eval_every:
+            score = validate(k, None)
+            if math.isfinite(score) and score < best[k]:
+                best[k], best_theta[k] = score, theta[k].clone()
+        states[k]["lm"] = {"iterations": iters[k], "seconds": ended[k], "rows": rows, "lambda": lams[k],
                            "stop_reason": reasons[k], "best_val": best[k], "stacked_with": K}
         states[k]["seconds"] = base_seconds[k] + ended[k]
     return [net.layers(best_theta[k]) for k in range(K)]
+
+
+def _damped_step(torch, net, th, X, A, g, lams: list, loss0: list, loss_of):
+    """One Levenberg–Marquardt step for each network of a stack: solve (A + λ·diag(A)) δ = −g and keep θ + δ
+    where the rows' loss falls below ``loss0`` (then λ ÷ 3), otherwise λ × 4 and solve again, up to 8 times.
+    ``th`` (S, P), ``X`` (S, n, in), ``A`` (S, P, P) = JᵀJ and ``g`` (S, P) = Jᵀr in float64; ``lams``: each
+    network's λ, updated in place; ``loss_of(s, z)``: network s's loss for outputs z on its rows.  Returns
+    (θ (S, P), which networks moved)."""
+    d = torch.diagonal(A, dim1=1, dim2=2)
+    d = d + 1e-9 * d.max(1, keepdim=True).values + 1e-30
+    th = th.clone()
+    moved = [False] * len(lams)
+    pending = list(range(len(lams)))
+    for _ in range(8):
+        if not pending:
+            break
+        pi = torch.as_tensor(pending, device=A.device)
+        lam_t = torch.as_tensor([lams[a] for a in pending], dtype=A.dtype, device=A.device)
+        # JᵀJ + λ·diag is symmetric positive definite: Cholesky (torch 2.13's batched LU solve also fails on a
+        # CPU with more than one thread: MKL's DLASWP rejects its pivots)
+        L, info = torch.linalg.cholesky_ex(A[pi] + lam_t[:, None, None] * torch.diag_embed(d[pi]))
+        delta = torch.cholesky_solve(-g[pi][..., None], L)[..., 0]
+        ok = ((info == 0) & torch.isfinite(delta).all(1)).tolist()
+        cand = th[pi] + delta
+        zc = net.forward(cand, X[pi])
+        for c, a in enumerate(pending):
+            if ok[c] and loss_of(a, zc[c]) < loss0[a]:
+                th[a], lams[a], moved[a] = cand[c], max(lams[a] / 3.0, 1e-12), True
+            else:
+                lams[a] *= 4.0                      # not positive definite, or no lower loss: damp harder
+        pending = [a for a in pending if not moved[a]]
+    return th, moved
