@@ -16,7 +16,8 @@
 #   flare   the Canon EF's whole flare, all 32 ghosts learned vs traced (complete_flare.py; again with the fp16
 #           cooperative vectors at one light position), its first render
 #           on a fresh kernel cache (first_render.py: literals vs shared kernels), and the wide-22mm flare
-#           benchmark (bench_flare.py: samples/s and equal-time MAPE, exact vs neural)
+#           benchmark (bench_flare.py: samples/s and equal-time MAPE, exact vs neural), and the fixed cost of a
+#           flare render with frozen kernels and without (frozen_flare.py)
 #   tests   the sensor, flare and aperture tests under cuda_ad_rgb ($MI_NEURALLENS_VARIANT)
 #   throughput  the stacked trainer's samples/s on the GPU (training_throughput.py)
 #   train   a whole new lens with the defaults on the GPU: dgauss-50mm, transmit maps and the ghosts of the
@@ -55,7 +56,7 @@ RF16=benchmarks/models/canon-rf-24mm-f1.4l-vcm.width16.model.safetensors   # 5x1
 if [ -n "${GPU_SUITE_QUICK:-}" ]; then
     PAPER_LENSES="wide-22mm"; ALL_LENSES="wide-22mm"; RAYS=18; FILM=160x120; SPP=16
     FLARE="--ghosts 1 --samples 65536 --ref-samples 262144"; COMPLETE="--samples 16 --reference 18 --positions 0.6:0.35"
-    EQUAL="--res 64x48 --spp 4,16 --reference-spp 64 --repeats 1"; FIRST=14
+    EQUAL="--res 64x48 --spp 4,16 --reference-spp 64 --repeats 1"; FIRST=14; FROZEN=12,14
     TRAIN="--paths backward-transmit --set regressor.max_steps=200 --set classifier.max_steps=200 --set stop.max_steps=200 --set regressor.lm_iterations=5 --set classifier.lm_iterations=5 --set stop.lm_iterations=5"
     GHOST_LENSES="${GHOST_LENSES:-wide-22mm}"
     GHOST_ARGS="--set max_ghosts=1 --set forward_regressor.max_steps=200 --set forward_classifier.max_steps=200 --set forward_stop.max_steps=200 --set forward_regressor.lm_iterations=5 --set forward_classifier.lm_iterations=5 --set forward_stop.lm_iterations=5"
@@ -63,7 +64,7 @@ if [ -n "${GPU_SUITE_QUICK:-}" ]; then
 else
     RAYS=24; FILM=1280x960; SPP=64; FLARE="--ghosts 8 --samples $((1 << 24)) --ref-samples $((1 << 27))"
     COMPLETE="--samples 24 --reference 28"; EQUAL="--res 640x480 --spp 4,16,64 --reference-spp 1024 --repeats 2"
-    FIRST=22; TRAIN="--paths transmit,ghosts"; EVAL_N=100000; THROUGHPUT="--steps 300 --maps 1,16"
+    FIRST=22; FROZEN=16,20,24; TRAIN="--paths transmit,ghosts"; EVAL_N=100000; THROUGHPUT="--steps 300 --maps 1,16"
 fi
 status=0
 
@@ -146,6 +147,8 @@ stage_flare() {
     py 120 benchmarks/first_render.py --lens $FLARE_LENS --samples $FIRST --modes exact,neural:shared,neural:fused,neural:coopvec \
         --out "$RES/first_render_$FLARE_LENS.json" || rc=1
     py 90 benchmarks/bench_flare.py --lens wide-22mm $FLARE --out "$RES/flare_wide-22mm.json" || rc=1
+    py 120 benchmarks/frozen_flare.py --lens $FLARE_LENS --samples $FROZEN \
+        --out "$RES/frozen_flare_$FLARE_LENS.json" || rc=1            # the fixed cost per render, frozen or traced
     return $rc
 }
 
@@ -153,7 +156,8 @@ stage_tests() {
     local box=240 l; l=$(left); [ "$l" -lt "$box" ] && box=$l
     [ "$box" -lt 30 ] && { echo "skipped (deadline): tests"; return 1; }
     timeout -k 5 "$box" $PY -m pytest -q -ra -p no:cacheprovider tests/test_sensor_realistic.py \
-        tests/test_sensor_neural.py tests/test_flare.py tests/test_aperture.py 2>&1 | tee "$RES/tests.log"
+        tests/test_sensor_neural.py tests/test_flare.py tests/test_flare_freeze.py tests/test_aperture.py 2>&1 \
+        | tee "$RES/tests.log"
     return "${PIPESTATUS[0]}"
 }
 

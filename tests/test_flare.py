@@ -220,14 +220,14 @@ def test_later_renders_run_the_same_kernels():
     """Numpy inputs used to be wrapped in place, so their alignment (numpy's is 16 bytes, by chance 32 or
     64) became part of the kernel source, and each of a flare's first renders compiled some kernels again
     (seconds each for a neural ghost).  With jit.from_numpy, every render, other seeds included, runs the
-    same kernels."""
+    same kernels (traced here: frozen kernels, the default, replay recordings and assemble no source)."""
     from mi_neurallens.jit import aligned_copy
     a = np.arange(1001, dtype=np.float64)[1:]
     for dt in (np.float32, np.float64, np.uint32):
         b = aligned_copy(a, dt)
         assert b.ctypes.data % 64 == 0 and b.dtype == dt and np.array_equal(b, a.astype(dt))
     fr = FlareRenderer(make_scene(point([0.3, 0.2, 4.0], 100.0)), 0,
-                       FlareOptions(mode="exact", ghosts=[2560, 4608], samples=1 << 16))
+                       FlareOptions(mode="exact", ghosts=[2560, 4608], samples=1 << 16, freeze=False))
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     try:
         kernels = []            # per render: the hashes of its kernels' source (a disk cache may hide a compile)

@@ -46,6 +46,8 @@ def add_parser(subparsers):
                         "shared (every number a kernel input, weights in packed buffers on a CPU: one kernel per "
                         "architecture), coopvec; auto: shared "
                         "when several ghosts are learned (default)")
+    p.add_argument("--no-freeze", dest="freeze", action="store_false",
+                   help="trace every kernel in Python at every render instead of replaying frozen ones (dr.freeze)")
     p.add_argument("--ghost", dest="ghosts", action="append", default=[], metavar="ID",
                    help="render only this ghost (path id or a:b surface pair; repeatable)")
     p.add_argument("--exclude", dest="exclude", action="append", default=[], metavar="ID")
@@ -99,7 +101,8 @@ def run(args) -> int:
                 pass
     kw = dict(samples=int(n), ghosts=parse_id_list(args.ghosts) or None, exclude_ghosts=parse_id_list(args.exclude),
               max_ghosts=args.max_ghosts, coating=args.coating, blades=args.blades, model=model,
-              auto_max_error_px=args.auto_max_error, auto_max_flare_error=args.auto_max_flare_error, mlp=args.mlp)
+              auto_max_error_px=args.auto_max_error, auto_max_flare_error=args.auto_max_flare_error, mlp=args.mlp,
+              freeze=args.freeze)
     out = args.output or os.path.splitext(os.path.basename(args.scene))[0] + "_flare.png"
     base = os.path.splitext(out)[0]
     report = {"scene": args.scene, "samples_per_light": int(n), "film": [W, H]}

@@ -60,6 +60,9 @@ class FlareOptions:
     #: "coopvec", or "auto" (shared from SHARED_FROM learned maps of one render on; docs/results.md, "One
     #: compilation")
     mlp: str = "auto"
+    #: replay each ghost's kernels instead of tracing them again (``dr.freeze``): learned maps of one architecture
+    #: share one recording, and a renderer's later renders replay all of them (FlareRenderer._kernel)
+    freeze: bool = True
 
     def validate(self):
         if self.mode not in MODES + BASELINE_MODES:

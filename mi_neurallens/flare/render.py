@@ -66,6 +66,10 @@ for _ in range(64):
 _ALPHA = [int((1.0 / _PHI6 ** (k + 1)) % 1.0 * 2 ** 32) & 0xFFFFFFFF for k in range(6)]
 
 
+#: PCG32's default initial state (its constructor's ``initstate``)
+_PCG32_STATE = 0x853C49E6748FEA9B
+
+
 @dataclass
 class GhostStats:
     path_id: int
@@ -133,6 +137,17 @@ class GhostEvaluator:
     @property
     def pid(self) -> int:
         return self.map.path_id
+
+    def freeze_key(self, float_t):
+        """``(signature, inputs)`` for the renderer's frozen kernels: a learned map whose numbers are kernel
+        inputs (``mlp`` shared or coopvec) shares its signature with every map of its architecture and hands
+        its numbers and packed networks (``inputs``, Dr.Jit variables); any other map (the tracer, literals, a
+        baseline) has a signature of its own and no inputs."""
+        tm = self.map
+        sig = tm.kernel_signature() if hasattr(tm, "kernel_signature") else None
+        if sig is None:
+            return ("map", tm.method, tm.key, self.z, self.fresnel), []
+        return (sig, self.z, self.fresnel), tm.kernel_inputs(float_t)
 
     def __call__(self, o, d, lam, active):
         import drjit as dr
@@ -240,11 +255,26 @@ class FlareRenderer:
         w, h = setup.sensor_width_mm, setup.sensor_height_mm
         self.pix_area_mm2 = (w / self.size[0]) * (h / self.size[1])
         self.K = float(setup.normalisation)
-        self.lights = scene_lights(scene, self.opts)
-        self._to_world = sensor.m_to_world
-        self._to_cam = sensor.m_to_world.inverse()
+        self._refresh()
         self._box = mi.load_dict({"type": "box"})
+        import drjit as dr
+        #: the splat weight's film factor K / A_pix, a kernel input (one kernel for every film)
+        self._k_pix = dr.opaque(mi.Float, self.K / self.pix_area_mm2)
+        self._frozen = {}           # kind -> the frozen kernel (dr.freeze), see _kernel
+        self._unfrozen = {}         # (kind, signature) -> why it could not be frozen
+        self._uses = {}             # (kind, signature) -> calls so far
+        self._frozen_ev = None      # the evaluator of the call being recorded
+        self._learned_maps = {}     # (map key, mlp) -> the learned map as this renderer evaluates it
         self._mlp = None            # learned_mlp(), resolved at the first learned map
+
+    def _refresh(self):
+        """Read what may change between renders of one renderer: the scene's lights and the camera's pose."""
+        import drjit as dr
+        self.lights = scene_lights(self.scene, self.opts)
+        # opaque: a pose baked into a frozen kernel as literals would record it again when the camera moves
+        self._to_world = self.sensor.m_to_world
+        self._to_cam = self._to_world.inverse()
+        dr.make_opaque(self._to_world, self._to_cam)
 
     # -------------------------------------------------------------- ghost selection
     def ranking(self):
@@ -383,12 +413,17 @@ class FlareRenderer:
         error when ``strict``, if it cannot apply it: no stop head, or an iris outside the trained one)."""
         if self._mlp is None:
             self._mlp = self.learned_mlp()
+        key = (tm.key, self._mlp)
+        if key in self._learned_maps:      # the same object at every render: its packed networks and kernel
+            return self._learned_maps[key]  # inputs are built once
         if tm.mlp != self._mlp:
             tm = dataclasses.replace(tm, mlp=self._mlp)
         if self.iris is None:
+            self._learned_maps[key] = tm
             return tm
         if tm.stop_head is not None and self._iris_ok:
-            return dataclasses.replace(tm, iris=self.iris)
+            self._learned_maps[key] = dataclasses.replace(tm, iris=self.iris)
+            return self._learned_maps[key]
         if strict:
             why = ("has no stop head" if tm.stop_head is None else
                    "was trained with a bladed iris" if Iris.of_lens(self.setup.base_lens).blades else
@@ -403,7 +438,7 @@ class FlareRenderer:
         """Radius of the conservative input disk for ``light`` (lens space, mm)."""
         import mitsuba as mi
         # direction from the light toward the lens centre, via a sample from the axis point
-        it = self._interaction(mi.Float(0.0), mi.Float(0.0), None)
+        it = self._interaction(mi.Float(0.0), mi.Float(0.0), None, self._to_world)
         ds, _ = light.emitter.sample_direction(it, mi.Point2f(0.5, 0.5), True)
         dl = self._to_cam @ (-ds.d)
         dz = abs(float(dl.z[0]))
@@ -411,36 +446,40 @@ class FlareRenderer:
         # a finite light near the lens sees the rim at steeper angles: add the rim's angular size
         return front_radius(self.lens, min(tmax * 1.2 + 0.05, 20.0), self.z_in)
 
-    def _interaction(self, qx, qy, wav):
+    def _interaction(self, qx, qy, wav, to_world):
         import mitsuba as mi
         import drjit as dr
         from ..sensors.common import lens_to_camera
         zq = dr.zeros(mi.Float, dr.width(qx)) + self.z_in
         (cx, cy, cz), _ = lens_to_camera(self.setup, (qx, qy, zq), (qx, qy, zq))
         it = dr.zeros(mi.Interaction3f, dr.width(qx))
-        it.p = self._to_world @ mi.Point3f(cx, cy, cz)
+        it.p = to_world @ mi.Point3f(cx, cy, cz)
         it.t = mi.Float(0.0)
         if wav is not None:
             it.wavelengths = wav
         return it
 
-    def _contrib(self, ev, light, qx, qy, u_lam, u_em, active=True):
-        """One forward sample per lane: returns (hit, px, py, rgb list, luminance) — rgb without the
-        A_q/N area factor (the caller scales)."""
+    def _contrib(self, ev, emitter, scene, xf, qx, qy, u_lam, u_em, active=True):
+        """One forward sample per lane: ``(hit, px, py, value, lam)``, ``value`` its film value without the
+        A_q/N area factor (the caller scales) and, where ``lam`` is not None (RGB variants, a sampled
+        wavelength), without the wavelength's colour either (:meth:`_rgb` applies it: it reads Mitsuba's CIE
+        tables, which a frozen kernel cannot).  ``scene``: for the light's visibility test (None: none);
+        ``xf``: the sensor's (to_world, to_camera) transforms and the film factor K / A_pix (opaque)."""
         import mitsuba as mi
         import drjit as dr
         from ..sensors.wavelengths import sample_wavelength
+        to_world, to_cam, k_pix = xf
         lam, wav, wspec, _ = sample_wavelength(mi, dr, self.sensor, self.lambda_mode, mi.Float(0.0), u_lam,
-                                               None, None, active)
-        it = self._interaction(qx, qy, wav)
-        ds, E = light.emitter.sample_direction(it, u_em, active)
-        dcam = self._to_cam @ (-ds.d)
+                                               None, None, active, deferred=True)
+        it = self._interaction(qx, qy, wav, to_world)
+        ds, E = emitter.sample_direction(it, u_em, active)
+        dcam = to_cam @ (-ds.d)
         dx, dy, dz = dcam.x, dcam.y, -dcam.z          # camera → lens direction
         ok = active & (dz > 1e-6) & (ds.pdf > 0.0)
-        if self.opts.visibility:
+        if scene is not None:
             ray = mi.Ray3f(it.p, ds.d, dr.select(dr.isfinite(ds.dist), ds.dist * (1.0 - 1e-4), dr.inf),
                            mi.Float(0.0), wav if wav is not None else [])
-            ok &= ~self.scene.ray_test(ray, ok)
+            ok &= ~scene.ray_test(ray, ok)
         zq = dr.zeros(mi.Float, dr.width(qx)) + self.z_in
         valid, x, y, T = ev((qx, qy, zq), (dx, dy, dz), lam, ok)
         W, H = self.size
@@ -449,16 +488,109 @@ class FlareRenderer:
         ox, oy = self.crop_offset
         cw, ch = self.crop_size
         hit = valid & (px >= ox) & (px < ox + cw) & (py >= oy) & (py < oy + ch)
-        val = E * (T * dz * dr.opaque(mi.Float, self.K / self.pix_area_mm2))
+        val = E * (T * dz * k_pix)
         if not isinstance(wspec, float):
             val = val * wspec
         if mi.is_spectral:
-            rgb = mi.spectrum_to_srgb(val, wav, hit)
-        else:
-            rgb = val
-        rgb = [dr.select(hit, rgb[i], 0.0) for i in range(3)]
+            return hit, px, py, mi.spectrum_to_srgb(val, wav, hit), None
+        return hit, px, py, val, (None if isinstance(lam, float) else lam)
+
+    @staticmethod
+    def _rgb(hit, val, lam):
+        """The film value of :meth:`_contrib`'s samples: ``([r, g, b], luminance)``, 0 where not ``hit``."""
+        import mitsuba as mi
+        import drjit as dr
+        if lam is not None:
+            from ..sensors.wavelengths import rgb_weight
+            val = val * rgb_weight(mi, lam)
+        rgb = [dr.select(hit, val[i], 0.0) for i in range(3)]
         lum = LUMINANCE_WEIGHTS[0] * rgb[0] + LUMINANCE_WEIGHTS[1] * rgb[1] + LUMINANCE_WEIGHTS[2] * rgb[2]
-        return hit, px, py, rgb, lum
+        return rgb, lum
+
+    # -------------------------------------------------------------- the two kernels, frozen
+    def _pilot_kernel(self, ev, emitter, scene, xf, d):
+        """The pilot's samples in the cells ``d["cx"], d["cy"]`` (lower-left corners, one per sample) of size
+        ``d["c"]`` inside the disk of radius ``d["R"]``: (hit, value, λ, in-disk) per sample (:meth:`_contrib`)."""
+        import mitsuba as mi
+        import drjit as dr
+        idx = mi.UInt64(d["idx"])
+        # as mi.PCG32(size=n, initseq=s), which seeds lane i with initstate + i and initseq s + i
+        rng = mi.PCG32(1, mi.UInt64(_PCG32_STATE) + idx, idx + idx + d["seed"])
+        qx = dr.fma(rng.next_float32(), d["c"], d["cx"])
+        qy = dr.fma(rng.next_float32(), d["c"], d["cy"])
+        indisk = dr.fma(qx, qx, qy * qy) <= d["R"] * d["R"]
+        u_lam = rng.next_float32()
+        u_em = mi.Point2f(rng.next_float32(), rng.next_float32())
+        hit, _, _, val, lam = self._contrib(ev, emitter, scene, xf, qx, qy, u_lam, u_em, indisk)
+        return hit, val, lam, indisk
+
+    def _splat_kernel(self, ev, emitter, scene, xf, d):
+        """The main pass's samples ``d["idx"]`` (0..n−1, a rank-1 lattice shifted by ``d["shift"]``) inside the
+        kept cells ``d["cells_x"], d["cells_y"]`` of size ``d["c"]`` (or, without cells, the disk of radius
+        ``d["R"]``), each weighted by ``d["scale"]`` = sampled area / n: (px, py, value, λ, hit)."""
+        import mitsuba as mi
+        import drjit as dr
+        idx = d["idx"]
+        u = [_u32_to_unit(mi, dr, idx * a + s) for a, s in zip(_ALPHA, d["shift"])]
+        if "cells_x" not in d:
+            r = d["R"] * dr.sqrt(u[1])
+            s_, c_ = dr.sincos(2.0 * math.pi * u[2])
+            qx, qy = r * c_, r * s_
+        else:
+            nc = d["ncells"]
+            k = dr.minimum(mi.UInt32(u[0] * mi.Float(nc)), nc - 1)
+            qx = dr.gather(mi.Float, d["cells_x"], k) + u[1] * d["c"]
+            qy = dr.gather(mi.Float, d["cells_y"], k) + u[2] * d["c"]
+        hit, px, py, val, lam = self._contrib(ev, emitter, scene, xf, qx, qy, u[3], mi.Point2f(u[4], u[5]), True)
+        return px, py, val * d["scale"], lam, hit
+
+    def _kernel(self, kind, ev, light, d):
+        """Run the ``kind`` (``"pilot"`` or ``"splat"``) kernel of evaluator ``ev`` for ``light`` on the inputs
+        ``d`` (a dict of Dr.Jit arrays and opaque scalars; widths change from call to call).
+
+        With ``opts.freeze`` the kernel is a frozen function (``dr.freeze``): the first call of a signature is
+        traced as usual, the second records it (Python tracing and kernel assembly, with the recording's own
+        overhead), later calls replay the recorded kernels with new inputs.  The signature
+        (:meth:`GhostEvaluator.freeze_key`) is the evaluator's own for the tracer and literal maps, and the
+        architecture's for learned maps with kernel parameters, whose numbers and packed networks are then
+        inputs: one recording serves every ghost map of one architecture, in this render and the next (a
+        learned ghost traced again cost ≈ 20 ms per render, docs/results.md).  Everything else a kernel reads
+        is an input too (the light, the scene, the transforms); the renderer's own constants (lens, film,
+        sensor) are fixed for its life.  A signature that cannot be frozen (Dr.Jit refuses a recording that
+        reads a variable it was not given) is traced."""
+        import mitsuba as mi
+        import drjit as dr
+        body = self._pilot_kernel if kind == "pilot" else self._splat_kernel
+        scene = self.scene if self.opts.visibility else None
+        xf = (self._to_world, self._to_cam, self._k_pix)
+        if not self.opts.freeze or mi.is_spectral:
+            return body(ev, light.emitter, scene, xf, d)
+        sig, state = ev.freeze_key(mi.Float)
+        uses = self._uses[(kind, sig)] = self._uses.get((kind, sig), 0) + 1
+        if uses == 1 or (kind, sig) in self._unfrozen:      # record only what runs again: a recording costs
+            return body(ev, light.emitter, scene, xf, d)    # more than tracing (docs/flares.md, "Frozen kernels")
+        f = self._frozen.get(kind)
+        if f is None:
+            def frozen(kind, sig, state, emitter, scene, xf, d):
+                return (self._pilot_kernel if kind == "pilot" else self._splat_kernel)(
+                    self._frozen_ev, emitter, scene, xf, d)
+            f = self._frozen[kind] = dr.freeze(frozen, warn_after=1 << 30)
+        n0 = f.n_recordings
+        pool = getattr(ev.map, "params_pool", None)
+        n_pool = len(pool) if pool is not None else 0
+        self._frozen_ev = ev
+        try:
+            out = f(kind, sig, state, light.emitter, scene, xf, d)
+        except Exception as e:     # e.g. a kernel reading a variable it was not given: run it unfrozen
+            self._unfrozen[(kind, sig)] = f"{type(e).__name__}: {e.__cause__ or e}"
+            return body(ev, light.emitter, scene, xf, d)
+        finally:
+            self._frozen_ev = None
+        if f.n_recordings != n0 and pool is not None and len(pool) != n_pool:
+            # the recording created kernel parameters it was not handed: baked into it, wrong for other maps
+            raise RuntimeError(f"lens_flare: the frozen {kind} kernel of path {ev.pid} read numbers it was not "
+                               "given as inputs; render with freeze = False and report this")
+        return out
 
     def pilot(self, light, ev, seed=0):
         """Occupied cells (dilated) of the input region for ``light`` and evaluator ``ev``: a :class:`Pilot`."""
@@ -476,18 +608,12 @@ class FlareRenderer:
         indisk = nx * nx + ny * ny <= R * R
         cells = np.nonzero(indisk)[0]
         n = len(cells) * S
-        rng = mi.PCG32(size=n, initseq=mi.UInt64(dr.arange(mi.UInt32, n))
-                         + dr.opaque(mi.UInt64, (0x51ed * (seed + 1) + 7 * ev_hash(ev)) & 0xFFFFFFFF))
         cid = np.repeat(cells, S).astype(np.uint32)
-        cx = from_numpy(mi.Float, x0[cid])
-        cy = from_numpy(mi.Float, y0[cid])
-        c_o, R_o = dr.opaque(mi.Float, c), dr.opaque(mi.Float, R)
-        qx = cx + rng.next_float32() * c_o
-        qy = cy + rng.next_float32() * c_o
-        indisk_s = dr.fma(qx, qx, qy * qy) <= R_o * R_o
-        u_lam = rng.next_float32()
-        u_em = mi.Point2f(rng.next_float32(), rng.next_float32())
-        hit, px, py, rgb, lum = self._contrib(ev, light, qx, qy, u_lam, u_em, indisk_s)
+        d = {"idx": dr.arange(mi.UInt32, n), "cx": from_numpy(mi.Float, x0[cid]),
+             "cy": from_numpy(mi.Float, y0[cid]), "c": dr.opaque(mi.Float, c), "R": dr.opaque(mi.Float, R),
+             "seed": dr.opaque(mi.UInt64, (0x51ed * (seed + 1) + 7 * ev_hash(ev)) & 0xFFFFFFFF)}
+        hit, val, lam, indisk_s = self._kernel("pilot", ev, light, d)
+        _, lum = self._rgb(hit, val, lam)
         dr.eval(hit, lum, indisk_s)
         h = hit.numpy().astype(bool)
         ins = indisk_s.numpy().astype(bool)
@@ -512,33 +638,21 @@ class FlareRenderer:
         """Splat ``n`` samples of one (light, path) into ``block``; cells None = whole disk."""
         import mitsuba as mi
         import drjit as dr
-        idx = dr.arange(mi.UInt32, n)
         rng = np.random.default_rng([seed, ev_hash(ev), zlib.crc32(light.name.encode()) & 0xFFFF])
-        shift = [dr.opaque(mi.UInt32, int(v)) for v in rng.integers(0, 2 ** 32, 6, dtype=np.uint64)]
-        u = [_u32_to_unit(mi, dr, idx * a + s) for a, s in zip(_ALPHA, shift)]
-        c_, R_ = c, R
-        c = dr.opaque(mi.Float, c_)
-        R = dr.opaque(mi.Float, R_)
+        d = {"idx": dr.arange(mi.UInt32, n),
+             "shift": [dr.opaque(mi.UInt32, int(v)) for v in rng.integers(0, 2 ** 32, 6, dtype=np.uint64)]}
         if cells is None:
-            r = R * dr.sqrt(u[1])
-            ph = 2.0 * math.pi * u[2]
-            s_, c_ = dr.sincos(ph)
-            qx, qy = r * c_, r * s_
-            area = math.pi * R_ * R_
+            d["R"] = dr.opaque(mi.Float, R)
+            area = math.pi * R * R
         else:
-            ncell = len(cells)
-            nc = dr.opaque(mi.UInt32, ncell)
-            k = dr.minimum(mi.UInt32(u[0] * mi.Float(nc)), nc - 1)
-            cxs = from_numpy(mi.Float, cells[:, 0])
-            cys = from_numpy(mi.Float, cells[:, 1])
-            qx = dr.gather(mi.Float, cxs, k) + u[1] * c
-            qy = dr.gather(mi.Float, cys, k) + u[2] * c
-            area = ncell * c_ * c_
-        scale = dr.opaque(mi.Float, area / n)
-        hit, px, py, rgb, lum = self._contrib(ev, light, qx, qy, u[3], mi.Point2f(u[4], u[5]), True)
-        block.put(mi.Point2f(px, py), [v * scale for v in rgb], hit)
-        nh = dr.count(hit)
-        return nh
+            d.update(cells_x=from_numpy(mi.Float, cells[:, 0]), cells_y=from_numpy(mi.Float, cells[:, 1]),
+                     ncells=dr.opaque(mi.UInt32, len(cells)), c=dr.opaque(mi.Float, c))
+            area = len(cells) * c * c
+        d["scale"] = dr.opaque(mi.Float, area / n)
+        px, py, val, lam, hit = self._kernel("splat", ev, light, d)
+        rgb, _ = self._rgb(hit, val, lam)
+        block.put(mi.Point2f(px, py), rgb, hit)
+        return dr.count(hit)
 
     def new_block(self):
         import mitsuba as mi
@@ -550,6 +664,7 @@ class FlareRenderer:
         import drjit as dr
         opts = self.opts
         N = int(samples or opts.samples)
+        self._refresh()
         ids = self.ghost_ids()
         self._mlp = self.learned_mlp(ids)
         from ..trace.paths import ghost_surfaces

@@ -75,6 +75,13 @@ sensor must be ``realistic_lens`` or ``neural_lens``.
      vectors on every backend, fp16 on CUDA), or ``auto``: ``shared`` when the render uses several learned
      maps (docs/results.md, "One compilation").  (Default: ``auto``)
 
+ * - freeze
+   - |bool|
+   - Replay each ghost's kernels instead of tracing them again in Python (Dr.Jit's frozen functions): the
+     learned ghost maps of one architecture share one recording, and the integrator's later renders of the
+     same sensor replay them all, the light and camera moved or not.  Off traces every kernel at every render
+     (docs/flares.md, "Frozen kernels").  Spectral variants always trace.  (Default: ``true``)
+
  * - ghosts
    - |string|
    - Ghost path ids (or ``a:b`` optical-surface pairs: reflect at ``a``, then at ``b < a``) to render,
@@ -205,7 +212,8 @@ _PROPS = {
     "exclude_ghosts": ("string", "exclude_ghosts"), "coating": ("string", "coating"),
     "coating_surfaces": ("string", "coating_surfaces"), "bounds": ("string", "bounds"),
     "pilot_with": ("string", "pilot_with"), "mlp": ("string", "mlp"),
-    "visibility": ("bool", "visibility"), "include_transmit": ("bool", "include_transmit"),
+    "visibility": ("bool", "visibility"), "freeze": ("bool", "freeze"),
+    "include_transmit": ("bool", "include_transmit"),
     "transmit_only": ("bool", "transmit_only"),
 }
 #: properties read by Mitsuba's SamplingIntegrator base
@@ -250,14 +258,27 @@ class LensFlare(mi.SamplingIntegrator):
                 nested_names.append(k)
         self.opts = options_from_props(props, nested_names)
         self.last_result = None
+        self._cached = None         # (key, FlareRenderer) of the last render (see _renderer)
 
     def flare(self, scene, sensor, seed=0, per_ghost=False):
         """The flare alone as a :class:`~mi_neurallens.flare.render.FlareResult` (numpy)."""
         if isinstance(sensor, int):
             sensor = scene.sensors()[sensor]
-        res = FlareRenderer(scene, sensor, self.opts).render(seed=int(seed), per_ghost=per_ghost)
+        res = self._renderer(scene, sensor).render(seed=int(seed), per_ghost=per_ghost)
         self.last_result = res
         return res
+
+    def _renderer(self, scene, sensor):
+        """The :class:`~mi_neurallens.flare.render.FlareRenderer` of ``(scene, sensor)``, kept from one render to
+        the next while the sensor's lens set-up, model and film are the same objects and sizes, so that later
+        renders replay its frozen kernels instead of recording them again (the lights and the camera's pose are
+        read at every render; the renderer holds the objects whose ids make the key)."""
+        film = sensor.film()
+        key = (id(scene), id(sensor), id(sensor.setup), id(getattr(sensor, "model", None)), tuple(film.size()),
+               tuple(film.crop_size()), tuple(film.crop_offset()))
+        if self._cached is None or self._cached[0] != key:
+            self._cached = (key, FlareRenderer(scene, sensor, self.opts))
+        return self._cached[1]
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         if isinstance(sensor, int):

@@ -296,6 +296,40 @@ class NeuralMap(TransportMap):
             y = list(y) + self.stop_head.eval_dr(x, xn, self.domain.s_max, P, coopvec=use_packed)
         return logit, y
 
+    # ------------------------------------------------------------------ frozen kernels
+    def kernel_signature(self):
+        """What the kernel source of this map depends on besides its numbers, with ``mlp`` in
+        :data:`PARAM_MODES` (there every number is a kernel input, so maps of one signature record the same
+        kernel and one recording of a frozen function, ``dr.freeze``, serves them all:
+        :mod:`mi_neurallens.flare.render`); None for literals (the kernel is this map's alone)."""
+        if self.mlp not in PARAM_MODES:
+            return None
+        sh = self.stop_head
+        stop = None if sh is None else (tuple(_widths(sh.layers)), sh.activation, int(sh.crossings), bool(sh.odd_y))
+        return ("neural", self.mlp, self.direction, bool(self.odd_y), bool(self.use_classifier),
+                tuple(_widths(self.classifier)), self.classifier_activation,
+                tuple(_widths(self.regressor)), self.regressor_activation, stop, self.iris)
+
+    def kernel_inputs(self, float_t) -> list:
+        """The Dr.Jit variables an evaluation with ``mlp`` in :data:`PARAM_MODES` reads for inputs of the float
+        type ``float_t``: its kernel parameters (:class:`~mi_neurallens.neural.mlp.KernelParams`) and packed
+        networks, in the order of evaluation — the same list structure for every map of one
+        :meth:`kernel_signature`.  A one-lane evaluation (never run) creates them first; the list is kept with
+        the map (whose numbers do not change)."""
+        cache = self.__dict__.setdefault("_kernel_inputs", {})
+        if float_t not in cache:
+            cache[float_t] = self._collect_kernel_inputs(float_t)
+        return cache[float_t]
+
+    def _collect_kernel_inputs(self, float_t) -> list:
+        z = float_t(0.0)
+        self.eval_dr((z, z, z + (self.z_in - self.heading)), (z, z, z + float(self.heading)), z + 550.0, True)
+        pool = [var for (t, _), (_, var) in self.params_pool._vars.items() if t is float_t]
+        owners = [self] + ([self.stop_head] if self.stop_head is not None else [])
+        nets = [c.net for o in owners for (name, t), c in sorted(o.__dict__.get("_coopvec_cache", {}).items(),
+                                                                 key=lambda kv: kv[0][0]) if t is float_t]
+        return pool + nets
+
     def core_reduced_dr(self, x, active):
         logit, y = self.eval_reduced_dr(x)
         valid = (active & (logit > 0.0)) if self.use_classifier else active

@@ -25,12 +25,18 @@ import drjit as dr
 import mitsuba as mi
 
 from ..constants import FULL_FRAME_MM
+from ..jit import untraversed
 from .common import PropertyReader, SensorPropertyError, configure_lens, film_to_sensor, lens_to_camera
 from .pupil import EXIT_PUPIL, MODES, PupilBounds
 from .wavelengths import prepare_shutter, sample_wavelength
 
 class LensSensorBase(mi.Sensor):
     PLUGIN = "lens_sensor"
+    # the lens, its set-up and its transport map are Python data, not kernel inputs: kept out of Dr.Jit's
+    # traversal of the scene (mi_neurallens.jit.untraversed)
+    setup = untraversed()
+    pupil = untraversed()
+    tmap = untraversed()
 
     def __init__(self, props):
         plugin = self.PLUGIN

@@ -14,6 +14,7 @@ import os
 from ..errors import ModelError
 from ..neural.model import MLP_MODES, bundled_model_path, load_model
 from ..trace.iris import Iris
+from ..jit import untraversed
 from .base import LensSensorBase
 from .common import SensorPropertyError, load_lens
 
@@ -137,6 +138,7 @@ def resolve_model_path(spec: str, plugin: str = PLUGIN) -> str:
 class NeuralLens(LensSensorBase):
     __doc__ = DOC
     PLUGIN = PLUGIN
+    model = untraversed()      # the neural model: Python data, kept out of Dr.Jit's traversal (see base)
 
     def _read_properties(self, rd):
         self.lens_prop = rd.string("lens", None)

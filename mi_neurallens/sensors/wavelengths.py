@@ -45,12 +45,13 @@ def prepare_shutter(mi, props, lambda_dependent: bool) -> str:
     return LAMBDA_HASH
 
 
-def sample_wavelength(mi, dr, sensor, mode: str, time, sample1, sample2, sample3, active=True):
+def sample_wavelength(mi, dr, sensor, mode: str, time, sample1, sample2, sample3, active=True, deferred=False):
     """Returns ``(lam_nm, wavelengths_for_ray, weight, ray_time)``.
 
     ``lam_nm``: mi.Float (or a Python float for λ-independent lenses) used to trace the lens;
     ``wavelengths_for_ray``: the ray's ``wavelengths`` (spectral) or None; ``weight``: mi.Spectrum
-    (or a Python float 1.0) to multiply the lens weight with; ``ray_time``.
+    (or a Python float 1.0) to multiply the lens weight with; ``ray_time``.  ``deferred`` (RGB variants, a
+    sampled λ): ``weight`` is the sampling's 1/pdf alone, the caller multiplies by :func:`rgb_weight` of λ.
     """
     if mode == LAMBDA_NONE:
         if mi.is_spectral:
@@ -69,5 +70,14 @@ def sample_wavelength(mi, dr, sensor, mode: str, time, sample1, sample2, sample3
     lam, inv_pdf = mi.sample_rgb_spectrum(u)
     if mi.is_spectral:
         return lam, mi.Spectrum(lam), mi.Spectrum(inv_pdf), time
+    if deferred:
+        return lam, None, inv_pdf, time
     w = mi.xyz_to_srgb(mi.cie1931_xyz(lam)) * (mi.cie_d65(lam) * inv_pdf * mi.MI_CIE_Y_NORMALIZATION)
     return lam, None, mi.Spectrum(w), time
+
+
+def rgb_weight(mi, lam):
+    """The sRGB weight of the wavelength ``lam`` (nm) in RGB variants without its sampling pdf: the factor
+    :func:`sample_wavelength` with ``deferred = True`` leaves to the caller (it reads Mitsuba's CIE tables,
+    which a frozen kernel, ``dr.freeze``, cannot take as inputs)."""
+    return mi.xyz_to_srgb(mi.cie1931_xyz(lam)) * (mi.cie_d65(lam) * mi.MI_CIE_Y_NORMALIZATION)
