@@ -12,9 +12,9 @@ import dataclasses
 import os
 
 from ..errors import ModelError
+from ..jit import untraversed
 from ..neural.model import MLP_MODES, bundled_model_path, load_model
 from ..trace.iris import Iris
-from ..jit import untraversed
 from .base import LensSensorBase
 from .common import SensorPropertyError, load_lens
 

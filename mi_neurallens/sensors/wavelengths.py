@@ -72,8 +72,7 @@ def sample_wavelength(mi, dr, sensor, mode: str, time, sample1, sample2, sample3
         return lam, mi.Spectrum(lam), mi.Spectrum(inv_pdf), time
     if deferred:
         return lam, None, inv_pdf, time
-    w = mi.xyz_to_srgb(mi.cie1931_xyz(lam)) * (mi.cie_d65(lam) * inv_pdf * mi.MI_CIE_Y_NORMALIZATION)
-    return lam, None, mi.Spectrum(w), time
+    return lam, None, mi.Spectrum(rgb_weight(mi, lam) * inv_pdf), time
 
 
 def rgb_weight(mi, lam):
