@@ -223,6 +223,7 @@ class FlareRenderer:
 
     def __init__(self, scene, sensor, opts: FlareOptions | None = None):
         import mitsuba as mi
+        import drjit as dr
         self.opts = (opts or FlareOptions()).validate()
         if isinstance(sensor, int):
             sensor = scene.sensors()[sensor]
@@ -257,9 +258,9 @@ class FlareRenderer:
         self.K = float(setup.normalisation)
         self._refresh()
         self._box = mi.load_dict({"type": "box"})
-        import drjit as dr
         #: the splat weight's film factor K / A_pix, a kernel input (one kernel for every film)
         self._k_pix = dr.opaque(mi.Float, self.K / self.pix_area_mm2)
+        self._kernels = {"pilot": self._pilot_kernel, "splat": self._splat_kernel}     # kind -> its body
         self._frozen = {}           # kind -> the frozen kernel (dr.freeze), see _kernel
         self._unfrozen = {}         # (kind, signature) -> why it could not be frozen
         self._uses = {}             # (kind, signature) -> calls so far
@@ -560,7 +561,7 @@ class FlareRenderer:
         reads a variable it was not given) is traced."""
         import mitsuba as mi
         import drjit as dr
-        body = self._pilot_kernel if kind == "pilot" else self._splat_kernel
+        body = self._kernels[kind]
         scene = self.scene if self.opts.visibility else None
         xf = (self._to_world, self._to_cam, self._k_pix)
         if not self.opts.freeze or mi.is_spectral:
@@ -572,8 +573,7 @@ class FlareRenderer:
         f = self._frozen.get(kind)
         if f is None:
             def frozen(kind, sig, state, emitter, scene, xf, d):
-                return (self._pilot_kernel if kind == "pilot" else self._splat_kernel)(
-                    self._frozen_ev, emitter, scene, xf, d)
+                return self._kernels[kind](self._frozen_ev, emitter, scene, xf, d)
             f = self._frozen[kind] = dr.freeze(frozen, warn_after=1 << 30)
         n0 = f.n_recordings
         pool = getattr(ev.map, "params_pool", None)
