@@ -574,7 +574,9 @@ class FlareRenderer:
         if f is None:
             def frozen(kind, sig, state, emitter, scene, xf, d):
                 return self._kernels[kind](self._frozen_ev, emitter, scene, xf, d)
-            f = self._frozen[kind] = dr.freeze(frozen, warn_after=1 << 30)
+            # every input opaque: with auto_opaque, an input that changed from one call to the next (a sample count,
+            # a moved camera) was recorded once more before Dr.Jit made it an input
+            f = self._frozen[kind] = dr.freeze(frozen, warn_after=1 << 30, auto_opaque=False)
         n0 = f.n_recordings
         pool = getattr(ev.map, "params_pool", None)
         n_pool = len(pool) if pool is not None else 0
