@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+import gc
 import math
 import time
 import zlib
@@ -581,6 +582,10 @@ class FlareRenderer:
         pool = getattr(ev.map, "params_pool", None)
         n_pool = len(pool) if pool is not None else 0
         self._frozen_ev = ev
+        gc_on = gc.isenabled()
+        # no garbage collection inside a recording: an unrelated Dr.Jit variable freed there (a mapped numpy
+        # buffer's release is a host callback) aborts the process ("cannot be recorded")
+        gc.disable()
         try:
             out = f(kind, sig, state, light.emitter, scene, xf, d)
         except Exception as e:     # e.g. a kernel reading a variable it was not given: run it unfrozen
@@ -588,6 +593,8 @@ class FlareRenderer:
             return body(ev, light.emitter, scene, xf, d)
         finally:
             self._frozen_ev = None
+            if gc_on:
+                gc.enable()
         if f.n_recordings != n0 and pool is not None and len(pool) != n_pool:
             # the recording created kernel parameters it was not handed: baked into it, wrong for other maps
             raise RuntimeError(f"lens_flare: the frozen {kind} kernel of path {ev.pid} read numbers it was not "

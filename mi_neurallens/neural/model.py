@@ -314,14 +314,9 @@ class NeuralMap(TransportMap):
         """The Dr.Jit variables an evaluation with ``mlp`` in :data:`PARAM_MODES` reads for inputs of the float
         type ``float_t``: its kernel parameters (:class:`~mi_neurallens.neural.mlp.KernelParams`) and packed
         networks, in the order of evaluation — the same list structure for every map of one
-        :meth:`kernel_signature`.  A one-lane evaluation (never run) creates them first; the list is kept with
-        the map (whose numbers do not change)."""
-        cache = self.__dict__.setdefault("_kernel_inputs", {})
-        if float_t not in cache:
-            cache[float_t] = self._collect_kernel_inputs(float_t)
-        return cache[float_t]
-
-    def _collect_kernel_inputs(self, float_t) -> list:
+        :meth:`kernel_signature`.  A one-lane evaluation (never run) creates them first, at every call: the
+        parameter pool is shared with copies of the map (``dataclasses.replace``), and a copy with other numbers
+        replaces its variables — one created inside a frozen recording aborts the process."""
         z = float_t(0.0)
         self.eval_dr((z, z, z + (self.z_in - self.heading)), (z, z, z + float(self.heading)), z + 550.0, True)
         pool = [var for (t, _), (_, var) in self.params_pool._vars.items() if t is float_t]
