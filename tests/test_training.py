@@ -223,6 +223,28 @@ def test_config_rejects_unknown_keys(tmp_path):
     assert load_config(str(p)).net("stop", "forward").lm_minutes == 2.0
 
 
+def test_budget_is_the_sum_of_the_networks_wall_budgets():
+    """What `train` announces before a lens: the most minutes its networks may take — Adam's budget once per
+    size tried plus the finish, per map — checked against the defaults' numbers written out."""
+    from mi_neurallens.training.config import budget_minutes, minutes_text
+    from mi_neurallens.training.trainer import _budget_text, _spent_text
+    c = load_config(None)
+    fwd = budget_minutes(c, "forward", 33)
+    # forward: regressor 1 + 1, classifier 1.25 + 0.75, stop head 0.5 + 0.5 minutes per map
+    assert fwd == pytest.approx({"regressor": 66.0, "classifier": 66.0, "stop": 33.0})
+    bwd = budget_minutes(c, "backward", 1)
+    assert bwd == pytest.approx({"regressor": 5.5, "classifier": 2.0, "stop": 2.0})
+    sized = load_config(None, overrides={"forward_regressor": {"sizes": ["3x16", "5x32"]}, "stop": {"max_minutes": 0.0}})
+    got = budget_minutes(sized, "forward", 2)
+    assert got["regressor"] == pytest.approx(2 * (2 * 1.0 + 1.0)) and got["stop"] == 0.0
+    assert minutes_text(12.34) == "12.3 min" and minutes_text(170.0) == "2 h 50 min"
+    line = _budget_text(c, {"backward": [object()], "forward": [object()] * 33})
+    assert "34 map(s) to train (1 backward, 33 forward)" in line and "at most 2 h 54 min" in line
+    done = _spent_text("forward", {"maps": 2, "seconds": 90.0, "phases": {"regressor": 60.0, "classifier": 30.0}}, 4000)
+    assert done.startswith("2 forward map(s) trained in 1.5 min (regressors 1.0 min, classifiers 0.5 min")
+    assert done.endswith("1 h 07 min since the start")
+
+
 def test_bundled_recipes_load():
     """Every recipe in training/ parses (tomllib refuses a repeated key) and names a bundled lens."""
     import glob
@@ -258,6 +280,10 @@ def test_tiny_training_run_learns(tmp_path):
                                  "heldout": 20000, "threads": 1})
     tm = train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, str(tmp_path), progress=False, eval_n=20000)
     m = tm.metrics
+    # where the wall time went, per phase of the call (what `train` reports after each direction)
+    ph = tm.training["phase_seconds"]
+    assert set(ph) == {"regressor", "classifier", "stop", "evaluation", "maps"} and ph["maps"] == 1
+    assert all(ph[k] > 0 for k in ("regressor", "classifier", "stop", "evaluation"))
     # the untrained start: the same map with the regressor's last layer zeroed (predicts the mean)
     import copy
     tm0 = copy.deepcopy(tm)

@@ -179,6 +179,32 @@ def flare_goals(resolution: int, film_half_diagonal_mm: float = FULL_FRAME_HALF_
                 goal_direction_arcsec=tuple(g * scale for g in FLARE_GOAL_ARCSEC_2K))
 
 
+#: the networks of one map, in the order a direction trains them (``TrainConfig.net`` kinds)
+NETWORKS = ("regressor", "classifier", "stop")
+
+
+def budget_minutes(cfg: TrainConfig, direction: str, n_maps: int, n_stop: int | None = None) -> dict:
+    """The most wall-clock minutes the networks of ``n_maps`` maps of ``direction`` may train with ``cfg``, per
+    network kind (:data:`NETWORKS`): Adam's ``max_minutes`` once per size it may try, plus the finish's
+    ``lm_minutes``; stop heads for ``n_stop`` maps (default: all).  An upper bound — each network leaves at its
+    goals, Adam also at ``max_steps`` — without the data set-up and the held-out evaluation."""
+    out = {}
+    for kind in NETWORKS:
+        nc = cfg.net(kind, direction)
+        n = n_maps if kind != "stop" or n_stop is None else n_stop
+        tries = max(len(nc.sizes), 1) if kind != "stop" else 1
+        out[kind] = 0.0 if kind == "stop" and nc.max_minutes <= 0 else n * (tries * nc.max_minutes + nc.lm_minutes)
+    return out
+
+
+def minutes_text(minutes: float) -> str:
+    """``95.2`` → ``"1 h 35 min"``; under an hour ``"12.5 min"``."""
+    if minutes < 60:
+        return f"{minutes:.1f} min"
+    h, m = divmod(int(round(minutes)), 60)
+    return f"{h} h {m:02d} min"
+
+
 def parse_size(size) -> tuple:
     """``"3x16"`` → (3, 16): hidden layers × width, as ``NetConfig.sizes`` lists them."""
     try:

@@ -910,12 +910,18 @@ def train_maps(lens, specs, cfg: TrainConfig, workdir: str | None = None, progre
         if keep != "classifier":
             calibrate_classifier(lens, tm, min(cfg.heldout, 200_000), seeds[j] + 13, cfg.fresnel)
         tms.append(tm)
+    t3 = time.perf_counter()
     heads = _stop_heads_of(lens, tms, cfg, seeds, progress, log, bases if keep is not None else None)
+    t4 = time.perf_counter()
     for tm, head, seed in zip(tms, heads, seeds):
         tm.stop_head = head
         if evaluate:
             tm.metrics = evaluate_map(lens, tm, n=eval_n or cfg.heldout, seed=seed + 99,
                                       mcmc_threshold=cfg.mcmc_threshold, fresnel=cfg.fresnel)
+    # where this call's wall time went (the maps of one call share it): each phase with its data set-up
+    phases = {"regressor": t1 - t0, "classifier": t3 - t1, "stop": t4 - t3, "evaluation": time.perf_counter() - t4}
+    for tm in tms:
+        tm.training["phase_seconds"] = {**phases, "maps": len(tms)}
     return tms
 
 
@@ -965,6 +971,35 @@ def _add_stop_head(lens, base, cfg: TrainConfig, seed: int, progress: bool, log)
 
 
 # ----------------------------------------------------------------------------- a whole lens
+#: how a phase of :func:`train_maps` is named in the time reports
+PHASE_NAMES = {"regressor": "regressors", "classifier": "classifiers", "stop": "stop heads",
+               "evaluation": "held-out evaluation"}
+
+
+def _budget_text(cfg: TrainConfig, pending: dict) -> str:
+    """One line before a lens trains: how many maps, and the most time their networks' budgets allow
+    (:func:`~mi_neurallens.training.config.budget_minutes`), per network kind."""
+    from .config import NETWORKS, budget_minutes, minutes_text
+    per = {k: 0.0 for k in NETWORKS}
+    for d, group in pending.items():
+        for k, v in budget_minutes(cfg, d, len(group)).items():
+            per[k] += v
+    counts = ", ".join(f"{len(g)} {d}" for d, g in pending.items() if g)
+    parts = ", ".join(f"{PHASE_NAMES[k]} {minutes_text(v)}" for k, v in per.items() if v > 0)
+    return (f"{sum(len(g) for g in pending.values())} map(s) to train ({counts}); their budgets allow at most "
+            f"{minutes_text(sum(per.values()))} of training ({parts}) plus data and evaluation; each network "
+            "stops earlier at its goals")
+
+
+def _spent_text(direction: str, spent: dict, since_start: float) -> str:
+    """One line after a direction's maps: the wall time of each phase."""
+    from .config import minutes_text
+    parts = ", ".join(f"{PHASE_NAMES.get(k, k)} {minutes_text(v / 60)}" for k, v in spent["phases"].items())
+    return (f"{spent['maps']} {direction} map(s) trained in {minutes_text(spent['seconds'] / 60)}"
+            + (f" ({parts}; each with its data)" if parts else "")
+            + f"; {minutes_text(since_start / 60)} since the start")
+
+
 def select_maps(cfg: TrainConfig, paths: str | None):
     """Which (direction, path) groups to train: ``paths`` is a comma list of ``transmit`` (the configured
     transmit maps of both directions), ``backward``, ``forward``, ``ghosts`` or integer path ids
@@ -1059,8 +1094,13 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
             if k not in wanted:
                 model.maps.setdefault(k, m)
     # the maps left to train, one stack per direction (maps of one direction share shape and domain)
+    pending = {d: [t for t in todo if t[1] == d and f"{d}.{t[0]}" not in model.maps] for d in ("backward", "forward")}
+    say = (lambda m: print(f"{lens.name}: {m}", file=sys.stderr, flush=True)) if progress or log else (lambda m: None)
+    if keep is None and any(pending.values()):
+        say(_budget_text(cfg, pending))
+    spent, t_run = {}, time.perf_counter()
     for direction in ("backward", "forward"):
-        group = [t for t in todo if t[1] == direction and f"{direction}.{t[0]}" not in model.maps]
+        group = pending[direction]
         if not group:
             continue
         bases = None
@@ -1075,7 +1115,13 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
         if progress:
             print(f"{lens.name}: training {len(group)} {direction} map(s) together: "
                   f"{', '.join(str(t[0]) for t in group)}", file=sys.stderr, flush=True)
+        t_dir = time.perf_counter()
         tms = train_maps(lens, group, cfg, workdir, progress=progress, log=log, keep=keep, bases=bases)
+        phases = dict(tms[0].training.get("phase_seconds", {})) if tms else {}
+        phases.pop("maps", None)
+        spent[direction] = {"maps": len(tms), "seconds": time.perf_counter() - t_dir, "phases": phases}
+        model.extra["training_time"] = {"this_run": spent, "seconds": time.perf_counter() - t_run}
+        say(_spent_text(direction, spent[direction], time.perf_counter() - t_run))
         for tm in tms:
             model.maps[tm.key] = tm
         if base_model is not None:      # the base's order (ghosts: strongest first), new maps after
