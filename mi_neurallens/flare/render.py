@@ -565,8 +565,8 @@ class FlareRenderer:
         body = self._kernels[kind]
         scene = self.scene if self.opts.visibility else None
         xf = (self._to_world, self._to_cam, self._k_pix)
-        if not self.opts.freeze or mi.is_spectral:
-            return body(ev, light.emitter, scene, xf, d)
+        if not self.opts.freeze or mi.is_spectral or not hasattr(ev, "freeze_key"):
+            return body(ev, light.emitter, scene, xf, d)      # (an evaluator of the caller's own: traced)
         sig, state = ev.freeze_key(mi.Float)
         uses = self._uses[(kind, sig)] = self._uses.get((kind, sig), 0) + 1
         if uses == 1 or (kind, sig) in self._unfrozen:      # record only what runs again: a recording costs
