@@ -105,7 +105,11 @@ FORWARD_REGRESSOR = dict(max_minutes=1.0, max_steps=REGRESSOR_ADAM_STEPS, lm_min
 #: µm, 0.17 / 1.7 pixels; direction (median, p99) arcsec.  Both scale with the pixel (:func:`flare_goals`)
 FLARE_GOAL_UM_2K = (3.0, 30.0)
 FLARE_GOAL_ARCSEC_2K = (30.0, 200.0)
-FORWARD_CLASSIFIER = dict(target="margin", goal_misclassification=0.0005, max_minutes=1.25, lm_minutes=0.75,
+#: the forward classifier: 0.4 min of Adam before its 0.75-min finish.  With 1.25 min of Adam, dgauss-50mm's whole
+#: lens spent half its 94 min on classifiers, each stack its whole budget; on eight of its ghosts 0.4 min of Adam
+#: and the same finish gave flare errors within ±0.002 of the 1.25-min maps in 5.0 instead of ≈ 8 min a stack of
+#: four (docs/results.md, "A whole new lens with the defaults on this CPU").  The paper lenses' recipes keep 1.25
+FORWARD_CLASSIFIER = dict(target="margin", goal_misclassification=0.0005, max_minutes=0.4, lm_minutes=0.75,
                           max_steps=40000, patience=30)
 #: a forward map's stop head (used only through an iris) gets at most this much of the finish unless
 #: ``[forward_stop]`` says otherwise: 32 ghosts × the camera head's 1.5 min would add up to half an hour to a lens
