@@ -187,17 +187,16 @@ def flare_goals(resolution: int, film_half_diagonal_mm: float = FULL_FRAME_HALF_
 NETWORKS = ("regressor", "classifier", "stop")
 
 
-def budget_minutes(cfg: TrainConfig, direction: str, n_maps: int, n_stop: int | None = None) -> dict:
+def budget_minutes(cfg: TrainConfig, direction: str, n_maps: int) -> dict:
     """The most wall-clock minutes the networks of ``n_maps`` maps of ``direction`` may train with ``cfg``, per
     network kind (:data:`NETWORKS`): Adam's ``max_minutes`` once per size it may try, plus the finish's
-    ``lm_minutes``; stop heads for ``n_stop`` maps (default: all).  An upper bound — each network leaves at its
-    goals, Adam also at ``max_steps`` — without the data set-up and the held-out evaluation."""
+    ``lm_minutes`` (a stop head for every map).  An upper bound — each network leaves at its goals, Adam also
+    at ``max_steps`` — without the data set-up and the held-out evaluation."""
     out = {}
     for kind in NETWORKS:
         nc = cfg.net(kind, direction)
-        n = n_maps if kind != "stop" or n_stop is None else n_stop
         tries = max(len(nc.sizes), 1) if kind != "stop" else 1
-        out[kind] = 0.0 if kind == "stop" and nc.max_minutes <= 0 else n * (tries * nc.max_minutes + nc.lm_minutes)
+        out[kind] = 0.0 if kind == "stop" and nc.max_minutes <= 0 else n_maps * (tries * nc.max_minutes + nc.lm_minutes)
     return out
 
 
