@@ -393,6 +393,43 @@ def test_flare_verification_sees_a_shifted_map(tmp_path):
     r = rec[pid]
     assert len(r["per_light"]) == 2 and r["paired_mape"] == max(v for v in r["per_light"] if v is not None)
     assert r["log2_samples"] == 14 and r["film"] == [48, 32]
+    # above a gate of 0 it is refined with 4x the samples (here up to 2^16) until it stops falling
+    rec = verify_model(MODEL, ghosts=[pid], samples_log2=14, max_log2=16, refine_above=0.0, lights=((0.9, 0.45),),
+                       film=film, log=None)[pid]
+    assert rec["per_light_log2_samples"] == [16] and rec["log2_samples"] == 16 and rec["refined_above"] == 0.0
+    assert rec["per_light"][0] == rec["paired_mape"] and rec["paired_mape"] < 0.025
+
+
+def test_refinement_stops_where_the_paired_error_decides():
+    """refine_paired: a ghost within the gate is not rendered again (noise only adds to the paired error); one above
+    it gets 4x the samples until it falls within the gate, stops falling (converged above it) or meets the cap."""
+    from mi_neurallens.flare.verify import refine_paired
+
+    def errors(table):
+        calls = []
+
+        def error_at(log2):
+            calls.append(log2)
+            return {"paired_mape": table[log2], "pixels": 100, "flux_ratio": 1.0}
+        return error_at, calls
+
+    f, calls = errors({24: 0.008})
+    r = refine_paired(f, 24, 28, 0.01)
+    assert calls == [24] and r["converged"] and r["sequence"] == [[24, 0.008]]
+    f, calls = errors({24: 0.02, 26: 0.009, 28: 0.001})
+    r = refine_paired(f, 24, 28, 0.01)                       # noise: halved with 4x, and within the gate
+    assert calls == [24, 26] and r["paired_mape"] == 0.009 and r["converged"] and r["log2_samples"] == 26
+    f, calls = errors({24: 0.02, 26: 0.015, 28: 0.0145, 30: 0.001})
+    r = refine_paired(f, 24, 30, 0.01)                       # the map's own error: it stops falling at 0.0145
+    assert calls == [24, 26, 28] and r["paired_mape"] == 0.0145 and r["converged"]
+    f, calls = errors({24: 0.04, 26: 0.02})
+    r = refine_paired(f, 24, 26, 0.01)                       # the cap, still falling: not converged
+    assert calls == [24, 26] and r["paired_mape"] == 0.02 and not r["converged"]
+    f, calls = errors({24: 0.04})
+    assert refine_paired(f, 24, 24, 0.01)["converged"] is False and calls == [24]
+    f, calls = errors({24: None})
+    r = refine_paired(f, 24, 28, 0.01)
+    assert calls == [24] and r["paired_mape"] is None and not r["converged"]
 
 
 def test_learned_ghosts_share_one_kernel_per_architecture_from_several_maps_on():

@@ -7,8 +7,9 @@ throughput errors, checked against the goals of docs/training.md.  Writes JSON a
 (``--json``, ``--markdown``; default next to the model: ``<model>.eval.json`` / ``.md``).
 
 ``--flare`` also renders every forward ghost map's flare against the tracer's on the same samples
-(:mod:`mi_neurallens.flare.verify`: paired MAPE, the largest over two light positions); ``--write`` records
-it in the model file, where the flare's mode ``auto`` uses it (``auto_max_flare_error``).
+(:mod:`mi_neurallens.flare.verify`: paired MAPE, the largest over two light positions; a ghost above the
+0.01 gate is rendered again with 4× the samples, up to ``--flare-max-samples``, until it converges); ``--write``
+records it in the model file, where the flare's mode ``auto`` uses it (``auto_max_flare_error``).
 """
 from __future__ import annotations
 
@@ -32,6 +33,9 @@ def add_parser(subparsers):
                    help="also verify each ghost map's flare against the tracer on the same samples (paired MAPE)")
     p.add_argument("--flare-samples", type=int, default=24, metavar="LOG2",
                    help="log2 samples of each verification render (default 24)")
+    p.add_argument("--flare-max-samples", type=int, default=None, metavar="LOG2",
+                   help="refine a ghost above the 0.01 gate with 4x the samples up to this (default 26; 28: the "
+                        "benchmarks' converged budget, about 1 min a ghost; the --flare-samples value: no refinement)")
     p.add_argument("--write", action="store_true",
                    help="with --flare: record the verified flare errors in the model file (mode auto reads them)")
     p.set_defaults(func=run)
@@ -92,20 +96,24 @@ def _verify_flare(args, path, model, out):
     """``--flare``: the paired flare error of every forward ghost map, into the report and into the maps'
     ``metrics["flare"]`` (saved by :func:`_record_flare` with ``--write``)."""
     import mitsuba as mi
-    from ..flare.verify import verify_model
+    from ..flare.verify import MAX_SAMPLES_LOG2, verify_model
     from ..render_utils import default_variant
     if not mi.variant():
         mi.set_variant(default_variant())
     # the lens as given (a file of the user's own lens, or a bundled name), for the neural_lens sensor
-    res = verify_model(path, args.lens or model.lens_name, samples_log2=args.flare_samples)
+    top = MAX_SAMPLES_LOG2 if args.flare_max_samples is None else args.flare_max_samples
+    res = verify_model(path, args.lens or model.lens_name, samples_log2=args.flare_samples,
+                       max_log2=max(top, args.flare_samples))
     for pid, rec in res.items():
         tm = model.map(pid, "forward")
         key = next(k for k, m in model.maps.items() if m is tm)
         out["maps"][key]["flare"] = rec
         tm.metrics["flare"] = rec
         err = rec["paired_mape"]
+        samples = "/".join(f"2^{l2}" for l2 in rec["per_light_log2_samples"])
         print(f"{key:>16}: flare, paired MAPE {'no pixel' if err is None else f'{err:.4f}'} "
-              f"(max over {len(rec['lights_m'])} light positions, 2^{rec['log2_samples']} samples)", flush=True)
+              f"(max over {len(rec['lights_m'])} light positions, {samples} samples"
+              f"{'' if all(rec['converged']) or err is None else ', not converged'})", flush=True)
 
 
 def _record_flare(path, model):

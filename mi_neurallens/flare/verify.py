@@ -10,7 +10,12 @@ the film.  This module measures that directly, the protocol of ``benchmarks/flar
   (``pilot_with = "exact"``, same seed: common random numbers), so Monte Carlo noise cancels and what is
   left is the map's own error;
 * the paired MAPE: the mean relative luminance error over the pixels where the exact ghost is brighter
-  than 1 % of its peak (:func:`mi_neurallens.metrics.flare_error_map`).
+  than 1 % of its peak (:func:`mi_neurallens.metrics.flare_error_map`);
+* converged where it decides (:func:`refine_paired`): the noise that pairing leaves (a learned ray landing a
+  few µm from its traced twin changes pixel near a pixel border) only adds to the error, so a ghost within
+  the gate (``auto_max_flare_error``) at 2^24 samples is within it converged; one above it is rendered again
+  with 4× the samples until it falls within the gate, stops falling (the protocol's "converged": less than
+  :data:`CONVERGED_DROP` lower with 4× the samples) or reaches ``max_log2``.
 
 :func:`verify_model` measures every forward ghost map of a model at a few light positions and keeps the
 largest error; ``mi-neurallens evaluate MODEL --flare --write`` records it in the model file
@@ -27,6 +32,33 @@ FILM = (240, 160)
 #: paired error converges only with many samples per pixel, where a learned ray landing one pixel over no longer
 #: shows)
 SAMPLES_LOG2 = 24
+#: the most samples (log2) a ghost above the gate is refined to by default: 4× the start (about 13 s a render
+#: pair of a dgauss-50mm ghost on a 2-core CPU); 28 is the benchmarks' converged budget (≈ 1 min a pair)
+MAX_SAMPLES_LOG2 = 26
+#: converged: 4× the samples lowered the paired error by less than this fraction (pure noise would halve it)
+CONVERGED_DROP = 0.1
+
+
+def refine_paired(error_at, log2_from: int, log2_max: int, above: float, drop: float = CONVERGED_DROP) -> dict:
+    """The paired error of one ghost at one light, refined where it decides: ``error_at(log2)`` → a
+    :func:`paired_flare_error` record at 2^log2 samples; starting at ``log2_from``, 4× the samples (log2 + 2) while
+    the error is above ``above`` and ``log2`` < ``log2_max``, until it falls by less than ``drop`` (its relative
+    fall).  Returns the last record with ``log2_samples``, ``sequence`` ([[log2, paired_mape], …]) and ``converged``
+    (True: within ``above``, or no longer falling; False: stopped at ``log2_max`` still falling, or no pixel)."""
+    log2 = int(log2_from)
+    r = dict(error_at(log2))
+    seq = [[log2, r["paired_mape"]]]
+    converged = r["paired_mape"] is not None and r["paired_mape"] <= above
+    while r["paired_mape"] is not None and not converged and log2 + 2 <= log2_max:
+        prev = r["paired_mape"]
+        log2 += 2
+        r = dict(error_at(log2))
+        seq.append([log2, r["paired_mape"]])
+        if r["paired_mape"] is None:
+            break
+        converged = r["paired_mape"] <= above or r["paired_mape"] >= (1.0 - drop) * prev
+    r.update(log2_samples=log2, sequence=seq, converged=bool(converged))
+    return r
 
 
 def verification_scene(lens, model, light=LIGHTS[0], film=FILM):
@@ -68,12 +100,19 @@ def paired_flare_error(scene, pid, samples=1 << SAMPLES_LOG2, seed=1) -> dict:
             "flux_ratio": yn / ye if ye > 0 else None}
 
 
-def verify_model(model_path, lens=None, *, ghosts=None, lights=LIGHTS, samples_log2=SAMPLES_LOG2, film=FILM,
-                 log=print) -> dict:
+def verify_model(model_path, lens=None, *, ghosts=None, lights=LIGHTS, samples_log2=SAMPLES_LOG2,
+                 max_log2=MAX_SAMPLES_LOG2, refine_above=None, film=FILM, log=print) -> dict:
     """Every forward ghost map (or those of ``ghosts``) of the model at ``model_path`` against the tracer:
     {path_id: record}, the record ``metrics["flare"]`` keeps — ``paired_mape`` the largest over ``lights``
-    (None if the ghost reached no pixel at any of them), the per-light values and flux ratios, and the
-    protocol (samples, film, lights).  ``lens``: a bundled name or a lens file (default: the model's lens)."""
+    (None if the ghost reached no pixel at any of them), the per-light values, flux ratios and sample counts
+    (log2), whether each converged, and the protocol (film, lights).  Each light starts at 2^``samples_log2``
+    samples and a ghost above ``refine_above`` (default: the flare's ``auto_max_flare_error``, 0.01) is refined
+    up to 2^``max_log2`` (:func:`refine_paired`; ``max_log2 = samples_log2``: no refinement).  ``lens``: a
+    bundled name or a lens file (default: the model's lens)."""
+    from .options import FlareOptions
+    if refine_above is None:
+        refine_above = FlareOptions.auto_max_flare_error
+    max_log2 = max(int(max_log2), int(samples_log2))
     from ..neural.model import load_model
     model = load_model(model_path)
     lens = lens or model.lens_name
@@ -82,11 +121,12 @@ def verify_model(model_path, lens=None, *, ghosts=None, lights=LIGHTS, samples_l
     for light in lights:
         scene = verification_scene(lens, model_path, light, film)
         for k, pid in enumerate(ids):
-            r = paired_flare_error(scene, pid, 1 << samples_log2)
+            r = refine_paired(lambda l2: paired_flare_error(scene, pid, 1 << l2), samples_log2, max_log2, refine_above)
             per[pid].append(r)
             if log:
-                m = "no pixel" if r["paired_mape"] is None else f"{r['paired_mape']:.4f}"
-                log(f"light {light}: ghost {pid} ({k + 1}/{len(ids)}) paired MAPE {m}")
+                m = " → ".join("no pixel" if v is None else f"{v:.4f} (2^{l2})" for l2, v in r["sequence"])
+                log(f"light {light}: ghost {pid} ({k + 1}/{len(ids)}) paired MAPE {m}"
+                    + ("" if r["converged"] or r["paired_mape"] is None else ", still falling"))
     out = {}
     for pid, rs in per.items():
         vals = [r["paired_mape"] for r in rs if r["paired_mape"] is not None]
@@ -94,6 +134,11 @@ def verify_model(model_path, lens=None, *, ghosts=None, lights=LIGHTS, samples_l
                     "per_light": [r["paired_mape"] for r in rs],
                     "flux_ratio": [r["flux_ratio"] for r in rs],
                     "lights_m": [[float(x), float(y), 5.0] for x, y in lights],
-                    "log2_samples": int(samples_log2), "film": [int(film[0]), int(film[1])],
-                    "protocol": "paired (same samples, pilot_with=exact), mask > 1 % of the exact ghost's peak"}
+                    "log2_samples": max(r["log2_samples"] for r in rs),
+                    "per_light_log2_samples": [r["log2_samples"] for r in rs],
+                    "converged": [r["converged"] for r in rs],
+                    "refined_above": float(refine_above), "film": [int(film[0]), int(film[1])],
+                    "protocol": "paired (same samples, pilot_with=exact), mask > 1 % of the exact ghost's peak; "
+                                f"refined with 4x the samples above {refine_above:g} until it falls by less than "
+                                f"{CONVERGED_DROP:g}"}
     return out
