@@ -55,10 +55,13 @@ def test_evaluate_flare_write_records_the_verified_error(tmp_path):
     f = tmp_path / "one-ghost.model.safetensors"
     m.save(f)
     jp, mp = tmp_path / "e.json", tmp_path / "e.md"
-    assert main(["evaluate", str(f), "--recorded", "--flare", "--flare-samples", "14", "--write",
-                 "--json", str(jp), "--markdown", str(mp)]) == 0
+    assert main(["evaluate", str(f), "--recorded", "--flare", "--flare-samples", "14", "--flare-max-samples", "16",
+                 "--write", "--json", str(jp), "--markdown", str(mp)]) == 0
     rec = load_model(f).map(2560, "forward").metrics["flare"]
-    assert rec["log2_samples"] == 14 and len(rec["per_light"]) == 2 and 0 < rec["paired_mape"] < 1
+    assert len(rec["per_light"]) == 2 and 0 < rec["paired_mape"] < 1
+    # a light above the 0.01 gate at 2^14 samples is rendered again at 2^16, no further
+    assert set(rec["per_light_log2_samples"]) <= {14, 16} and rec["log2_samples"] == max(rec["per_light_log2_samples"])
+    assert all(v <= 0.01 for l2, v in zip(rec["per_light_log2_samples"], rec["per_light"]) if l2 == 14)
     assert json.loads(jp.read_text())["maps"]["forward.2560"]["flare"]["paired_mape"] == rec["paired_mape"]
     assert "flare, paired MAPE" in mp.read_text()
 

@@ -387,8 +387,8 @@ def test_flare_verification_sees_a_shifted_map(tmp_path):
     _with_map_change(m, pid, out_shift=tm.out_shift + shift).save(bad_file)
     bad = paired_flare_error(verification_scene("wide-22mm", bad_file, film=film), pid, samples=1 << 18)
     assert bad["paired_mape"] > 3 * good["paired_mape"] and bad["paired_mape"] > 0.04
-    rec = verify_model(MODEL, ghosts=[pid], samples_log2=14, lights=((0.9, 0.45), (0.15, 0.1)), film=film,
-                       log=None)
+    rec = verify_model(MODEL, ghosts=[pid], samples_log2=14, max_log2=14, lights=((0.9, 0.45), (0.15, 0.1)),
+                       film=film, log=None)
     assert set(rec) == {pid}
     r = rec[pid]
     assert len(r["per_light"]) == 2 and r["paired_mape"] == max(v for v in r["per_light"] if v is not None)

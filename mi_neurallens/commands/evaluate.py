@@ -101,9 +101,8 @@ def _verify_flare(args, path, model, out):
     if not mi.variant():
         mi.set_variant(default_variant())
     # the lens as given (a file of the user's own lens, or a bundled name), for the neural_lens sensor
-    top = MAX_SAMPLES_LOG2 if args.flare_max_samples is None else args.flare_max_samples
-    res = verify_model(path, args.lens or model.lens_name, samples_log2=args.flare_samples,
-                       max_log2=max(top, args.flare_samples))
+    top = max(MAX_SAMPLES_LOG2 if args.flare_max_samples is None else args.flare_max_samples, args.flare_samples)
+    res = verify_model(path, args.lens or model.lens_name, samples_log2=args.flare_samples, max_log2=top)
     for pid, rec in res.items():
         tm = model.map(pid, "forward")
         key = next(k for k, m in model.maps.items() if m is tm)
@@ -111,9 +110,11 @@ def _verify_flare(args, path, model, out):
         tm.metrics["flare"] = rec
         err = rec["paired_mape"]
         samples = "/".join(f"2^{l2}" for l2 in rec["per_light_log2_samples"])
+        falling = top > args.flare_samples and not all(
+            c for c, v in zip(rec["converged"], rec["per_light"]) if v is not None)
         print(f"{key:>16}: flare, paired MAPE {'no pixel' if err is None else f'{err:.4f}'} "
               f"(max over {len(rec['lights_m'])} light positions, {samples} samples"
-              f"{'' if all(rec['converged']) or err is None else ', not converged'})", flush=True)
+              f"{', still falling' if falling else ''})", flush=True)
 
 
 def _record_flare(path, model):
