@@ -35,7 +35,8 @@ def add_parser(subparsers):
                    help="log2 samples of each verification render (default 24)")
     p.add_argument("--flare-max-samples", type=int, default=None, metavar="LOG2",
                    help="refine a ghost above the 0.01 gate with 4x the samples up to this (default 26; 28: the "
-                        "benchmarks' converged budget, about 1 min a ghost; the --flare-samples value: no refinement)")
+                        "benchmarks' converged budget, about 45 s a ghost and light on 2 cores; the --flare-samples "
+                        "value: no refinement)")
     p.add_argument("--write", action="store_true",
                    help="with --flare: record the verified flare errors in the model file (mode auto reads them)")
     p.set_defaults(func=run)

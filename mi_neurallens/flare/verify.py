@@ -32,8 +32,8 @@ FILM = (240, 160)
 #: paired error converges only with many samples per pixel, where a learned ray landing one pixel over no longer
 #: shows)
 SAMPLES_LOG2 = 24
-#: the most samples (log2) a ghost above the gate is refined to by default: 4× the start (about 13 s a render
-#: pair of a dgauss-50mm ghost on a 2-core CPU); 28 is the benchmarks' converged budget (≈ 1 min a pair)
+#: the most samples (log2) a ghost above the gate is refined to by default: 4× the start (≈ 12 s a render pair
+#: of a dgauss-50mm ghost on a 2-core CPU, ≈ 3 s at 2^24); 28 is the benchmarks' converged budget (≈ 45 s a pair)
 MAX_SAMPLES_LOG2 = 26
 #: converged: 4× the samples lowered the paired error by less than this fraction (pure noise would halve it)
 CONVERGED_DROP = 0.1
