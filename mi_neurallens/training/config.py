@@ -186,16 +186,16 @@ def flare_goals(resolution: int, film_half_diagonal_mm: float = FULL_FRAME_HALF_
 
 
 #: the networks of one map, in the order a direction trains them (``TrainConfig.net`` kinds)
-NETWORKS = ("regressor", "classifier", "stop")
+NETWORK_KINDS = ("regressor", "classifier", "stop")
 
 
 def budget_minutes(cfg: TrainConfig, direction: str, n_maps: int) -> dict:
     """The most wall-clock minutes the networks of ``n_maps`` maps of ``direction`` may train with ``cfg``, per
-    network kind (:data:`NETWORKS`): Adam's ``max_minutes`` once per size it may try, plus the finish's
+    network kind (:data:`NETWORK_KINDS`): Adam's ``max_minutes`` once per size it may try, plus the finish's
     ``lm_minutes`` (a stop head for every map).  An upper bound — each network leaves at its goals, Adam also
     at ``max_steps`` — without the data set-up and the held-out evaluation."""
     out = {}
-    for kind in NETWORKS:
+    for kind in NETWORK_KINDS:
         nc = cfg.net(kind, direction)
         tries = max(len(nc.sizes), 1) if kind != "stop" else 1
         out[kind] = 0.0 if kind == "stop" and nc.max_minutes <= 0 else n_maps * (tries * nc.max_minutes + nc.lm_minutes)

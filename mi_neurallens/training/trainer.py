@@ -29,7 +29,7 @@ import numpy as np
 from ..constants import ARCSEC_PER_RAD
 from ..errors import NeuralLensError
 from ..fileio import atomic_write_text
-from .config import NetConfig, TrainConfig, parse_size
+from .config import NETWORK_KINDS, NetConfig, TrainConfig, budget_minutes, minutes_text, parse_size
 from .data import Domain, PathSampler, RegressorStream, classifier_samples
 from .stacked import Problem
 
@@ -979,8 +979,7 @@ PHASE_NAMES = {"regressor": "regressors", "classifier": "classifiers", "stop": "
 def _budget_text(cfg: TrainConfig, pending: dict) -> str:
     """One line before a lens trains: how many maps, and the most time their networks' budgets allow
     (:func:`~mi_neurallens.training.config.budget_minutes`), per network kind."""
-    from .config import NETWORKS, budget_minutes, minutes_text
-    per = {k: 0.0 for k in NETWORKS}
+    per = {k: 0.0 for k in NETWORK_KINDS}
     for d, group in pending.items():
         for k, v in budget_minutes(cfg, d, len(group)).items():
             per[k] += v
@@ -993,7 +992,6 @@ def _budget_text(cfg: TrainConfig, pending: dict) -> str:
 
 def _spent_text(direction: str, spent: dict, since_start: float) -> str:
     """One line after a direction's maps: the wall time of each phase."""
-    from .config import minutes_text
     parts = ", ".join(f"{PHASE_NAMES.get(k, k)} {minutes_text(v / 60)}" for k, v in spent["phases"].items())
     return (f"{spent['maps']} {direction} map(s) trained in {minutes_text(spent['seconds'] / 60)}"
             + (f" ({parts}; each with its data)" if parts else "")
