@@ -164,10 +164,11 @@ class PathSampler:
 
 # ----------------------------------------------------------------------------- samplers
 def rejection_sample(ps: PathSampler, n: int, rng: np.random.Generator, chunk: int = 1 << 21,
-                     max_rays: int | None = None):
+                     max_rays: int | None = None, whole_chunks: bool = False):
     """Up to ``n`` valid samples uniform over the valid region: returns (u, x, y, stats).
     Random numbers come from Dr.Jit's PCG32 (streams seeded from ``rng``) and the valid rays are
-    compacted inside Dr.Jit.  Stops early (returning fewer) after ``max_rays`` traced rays."""
+    compacted inside Dr.Jit.  Stops early (returning fewer) after ``max_rays`` traced rays.
+    ``whole_chunks``: return every valid ray of the chunks traced (at least ``n``), not the first ``n``."""
     us, ys, got, traced = [], [], 0, 0
     t0 = time.perf_counter()
     while got < n and (max_rays is None or traced < max_rays):
@@ -176,8 +177,9 @@ def rejection_sample(ps: PathSampler, n: int, rng: np.random.Generator, chunk: i
         us.append(u)
         ys.append(y)
         got += len(u)
-    u = np.concatenate(us)[:n] if us else np.zeros((0, 4))
-    y = np.concatenate(ys)[:n] if ys else np.zeros((0, ps.n_out))
+    keep = slice(None) if whole_chunks else slice(n)
+    u = np.concatenate(us)[keep] if us else np.zeros((0, 4))
+    y = np.concatenate(ys)[keep] if ys else np.zeros((0, ps.n_out))
     dt = time.perf_counter() - t0
     stats = {"rays": traced, "valid": int(got), "acceptance": got / max(traced, 1), "seconds": dt,
              "valid_per_s": got / max(dt, 1e-9), "rays_per_s": traced / max(dt, 1e-9)}
@@ -228,15 +230,17 @@ class MCMCSampler:
         self.accepted_large += int((v & large).sum())
         return self.u.copy(), self.y.copy()
 
-    def sample(self, n: int):
-        """At least ``n`` valid samples (whole steps): (u, x, y)."""
+    def sample(self, n: int, whole_steps: bool = False):
+        """``n`` valid samples (from whole steps; ``whole_steps``: all of their samples, at least ``n``):
+        (u, x, y)."""
         us, ys = [], []
         while sum(len(a) for a in us) < n:
             u, y = self.step()
             us.append(u)
             ys.append(y)
-        u = np.concatenate(us)[:n]
-        return u, self.ps.domain.u_to_x(u), np.concatenate(ys)[:n]
+        keep = slice(None) if whole_steps else slice(n)
+        u = np.concatenate(us)[keep]
+        return u, self.ps.domain.u_to_x(u), np.concatenate(ys)[keep]
 
     @property
     def acceptance(self) -> float:
@@ -256,7 +260,16 @@ def valid_fraction(ps: PathSampler, rng: np.random.Generator, n: int = 1 << 20) 
 class RegressorStream:
     """Valid (x, y) training samples of one map: rejection sampling when the valid fraction is at
     least ``mcmc_threshold`` (inside pilot-traced :mod:`~mi_neurallens.training.bounds` when
-    ``bounded``), the Metropolis sampler otherwise."""
+    ``bounded``), the Metropolis sampler otherwise.
+
+    The tracer works in large launches (rejection sampling traces 2²¹ rays a chunk, a Metropolis step moves
+    every chain), and the valid rays of a launch that a call does not take are kept, up to
+    :attr:`KEEP` rows, for the next calls: the Levenberg–Marquardt finish asks for 8 192 rows an iteration,
+    and tracing a whole chunk for each call cost 0.1 s an iteration on dgauss-50mm's ghosts.  The rows kept
+    are untouched samples of the same distribution, so a call's rows are as fresh as before."""
+
+    #: the most traced-but-unused valid rows kept for later calls (≈ 20 MB of float64 rows a map)
+    KEEP = 1 << 18
 
     def __init__(self, ps: PathSampler, seed: int, mcmc_threshold: float = 0.02, n_chains: int = 1 << 16,
                  p_large: float = 0.3, sigma: float = 0.02, bounded: bool = True):
@@ -264,17 +277,33 @@ class RegressorStream:
         self.rng = np.random.default_rng(seed)
         self.fraction = valid_fraction(ps, self.rng)
         self.mcmc = None
+        self._u = np.zeros((0, 4))
+        self._y = np.zeros((0, ps.n_out))
         if self.fraction < mcmc_threshold:
             self.mcmc = MCMCSampler(ps, self.rng, n_chains=n_chains, p_large=p_large, sigma=sigma)
         elif bounded:
             ps.build_bounds(self.rng)
 
+    def reseed(self, seed):
+        """A new random stream (``np.random.default_rng(seed)``), without the rows kept from the old one (a
+        resumed run's data depend only on its seed and step)."""
+        self.rng = np.random.default_rng(seed)
+        self._u, self._y = self._u[:0], self._y[:0]
+
     def sample(self, n: int):
-        if self.mcmc is not None:
-            u, x, y = self.mcmc.sample(n)
-        else:
-            u, x, y, _ = rejection_sample(self.ps, n, self.rng)
-        return u, x, y
+        """``n`` valid samples (u (n, 4), x (n, 4), y (n, ``ps.n_out``)): the rows kept from earlier launches
+        first, then new ones."""
+        n = int(n)
+        if len(self._u) < n:
+            need = n - len(self._u)
+            if self.mcmc is not None:
+                u, _, y = self.mcmc.sample(need, whole_steps=True)
+            else:
+                u, _, y, _ = rejection_sample(self.ps, need, self.rng, whole_chunks=True)
+            self._u, self._y = np.concatenate([self._u, u]), np.concatenate([self._y, y])
+        u, y = self._u[:n], self._y[:n]
+        self._u, self._y = self._u[n:n + self.KEEP].copy(), self._y[n:n + self.KEEP].copy()
+        return u, self.ps.domain.u_to_x(u), y
 
     @property
     def method(self):

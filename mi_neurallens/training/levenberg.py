@@ -5,9 +5,9 @@ fit it needs tens of thousands of steps per halving of the error.  A map's netwo
 ghost regressor has 709 weights, a 2×16 classifier 369), and both losses are sums of squared
 residuals — the regressor's weighted standardised MSE, the classifier's margin interval loss — so the
 Gauss–Newton matrix ``JᵀJ`` of a batch is a few hundred squared and cheap to form and solve.  Each
-iteration here draws fresh rows from the map's tracer stream (the :class:`~.stacked.Problem`'s
-``fresh_rows``), forms the Jacobian of the network's outputs with respect to every weight in closed
-form (one backward pass per output column), and takes the damped Gauss–Newton step
+iteration here takes fresh rows from the map's tracer stream (the :class:`~.stacked.Problem`'s
+``fresh_rows``, drawn :data:`ROW_CHUNK` iterations at a time), forms the Jacobian of the network's outputs
+with respect to every weight in closed form (one backward pass per output column), and takes the damped Gauss–Newton step
 
     (JᵀJ + λ·diag(JᵀJ)) δ = −Jᵀr,
 
@@ -31,6 +31,29 @@ import numpy as np
 
 #: networks with more weights than this are not polished (JᵀJ would cost seconds per iteration on a CPU)
 MAX_PARAMS = 2500
+
+#: iterations' worth of rows one call of a problem's ``fresh_rows`` draws: a call costs a tracer launch (and a
+#: classifier's margin trace) whose Python and launch overhead is about the same for 8 192 rows as for 16×, and
+#: was most of a classifier's iteration (dgauss-50mm's ghosts: 0.155 s an iteration, 0.1 of it drawing rows)
+ROW_CHUNK = 16
+
+
+class RowFeed:
+    """A problem's fresh rows, ``rows`` per :meth:`next`, drawn :data:`ROW_CHUNK` iterations at a time from
+    ``fit.fresh_rows`` and handed out in order (every row once: each iteration's rows are as fresh as one
+    call's).  A batch is a dict of tensors (or arrays) whose first dimension is the row."""
+
+    def __init__(self, fit, rows: int, chunk: int = ROW_CHUNK):
+        self.fit, self.rows, self.chunk = fit, int(rows), max(int(chunk), 1)
+        self.buf, self.pos, self.n = None, 0, 0
+
+    def next(self) -> dict:
+        if self.buf is None or self.pos + self.rows > self.n:
+            self.buf = self.fit.fresh_rows(self.rows * self.chunk)
+            self.n = min(len(v) for v in self.buf.values() if v is not None)
+            self.pos = 0
+        i, self.pos = self.pos, self.pos + self.rows
+        return {k: (None if v is None else v[i:i + self.rows]) for k, v in self.buf.items()}
 
 
 def n_params(layers) -> int:
@@ -172,6 +195,7 @@ def polish_stack(torch, fits, layers, nc, *, seconds: float, max_iterations: int
     def stop(k, reason):
         reasons[k], iters[k], ended[k] = reason, it, time.perf_counter() - t0
 
+    feeds = [RowFeed(f, rows) for f in fits]
     best_theta = [theta[k].clone() for k in range(K)]
     best = [validate(k, None) for k in range(K)]
     for k in range(K):
@@ -183,7 +207,7 @@ def polish_stack(torch, fits, layers, nc, *, seconds: float, max_iterations: int
             for k in active:
                 stop(k, "max_iterations")
             break
-        batches = [fits[k].fresh_rows(rows) for k in active]
+        batches = [feeds[k].next() for k in active]
         X = torch.stack([b["X"].to(f32) for b in batches])                 # (A, n, in)
         idx = torch.as_tensor(active, device=theta.device)
         with torch.no_grad():

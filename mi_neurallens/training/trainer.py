@@ -296,7 +296,7 @@ def train_regressors(problems, nc: NetConfig, *, ckpt: str | None = None, thread
             if bool(state.get("odd_y", False)) != (odd_s is not None):
                 raise NeuralLensError(f"{ckpt}: checkpoint was trained with odd_y={state.get('odd_y', False)}; "
                                       "use another work directory or the same setting")
-            stream.rng = np.random.default_rng([int(p["seed"]), state["step"]])
+            stream.reseed([int(p["seed"]), state["step"]])
         u0, x0, y0 = stream.sample(n_pool)
         xn0 = (x0 - center) / scale_in
         if not resumed:
