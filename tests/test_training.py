@@ -230,8 +230,8 @@ def test_budget_is_the_sum_of_the_networks_wall_budgets():
     from mi_neurallens.training.trainer import _budget_text, _spent_text
     c = load_config(None)
     fwd = budget_minutes(c, "forward", 33)
-    # forward: regressor 1 + 1, classifier 0.4 + 0.75, stop head 0.5 + 0.5 minutes per map
-    assert fwd == pytest.approx({"regressor": 66.0, "classifier": 37.95, "stop": 33.0})
+    # forward: regressor 1 + 1, classifier 0.4 + 0.35, stop head 0.5 + 0.5 minutes per map
+    assert fwd == pytest.approx({"regressor": 66.0, "classifier": 24.75, "stop": 33.0})
     bwd = budget_minutes(c, "backward", 1)
     assert bwd == pytest.approx({"regressor": 5.5, "classifier": 2.0, "stop": 2.0})
     sized = load_config(None, overrides={"forward_regressor": {"sizes": ["3x16", "5x32"]}, "stop": {"max_minutes": 0.0}})
@@ -239,7 +239,7 @@ def test_budget_is_the_sum_of_the_networks_wall_budgets():
     assert got["regressor"] == pytest.approx(2 * (2 * 1.0 + 1.0)) and got["stop"] == 0.0
     assert minutes_text(12.34) == "12.3 min" and minutes_text(170.0) == "2 h 50 min"
     line = _budget_text(c, {"backward": [object()], "forward": [object()] * 33})
-    assert "34 map(s) to train (1 backward, 33 forward)" in line and "at most 2 h 26 min" in line
+    assert "34 map(s) to train (1 backward, 33 forward)" in line and "at most 2 h 13 min" in line
     done = _spent_text("forward", {"maps": 2, "seconds": 90.0, "phases": {"regressor": 60.0, "classifier": 30.0}}, 4000)
     assert done.startswith("2 forward map(s) trained in 1.5 min (regressors 1.0 min, classifiers 0.5 min")
     assert done.endswith("1 h 07 min since the start")

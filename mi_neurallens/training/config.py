@@ -105,17 +105,26 @@ FORWARD_REGRESSOR = dict(max_minutes=1.0, max_steps=REGRESSOR_ADAM_STEPS, lm_min
 #: µm, 0.17 / 1.7 pixels; direction (median, p99) arcsec.  Both scale with the pixel (:func:`flare_goals`)
 FLARE_GOAL_UM_2K = (3.0, 30.0)
 FLARE_GOAL_ARCSEC_2K = (30.0, 200.0)
-#: the forward classifier: 0.4 min of Adam before its 0.75-min finish.  With 1.25 min of Adam, dgauss-50mm's whole
+#: the forward classifier: 0.4 min of Adam before its 0.35-min finish.  With 1.25 min of Adam, dgauss-50mm's whole
 #: lens spent half its 94 min on classifiers, each stack its whole budget; on eight of its ghosts 0.4 min of Adam
 #: and the same finish gave flare errors within ±0.002 of the 1.25-min maps in 5.0 instead of ≈ 8 min a stack of
 #: four (docs/results.md, "A whole new lens with the defaults on this CPU"); the whole lens then took 77.5 min, its
 #: classifiers 27 instead of 46, its ghosts' verified flare errors no worse (median 0.0108 against 0.0127, 2^24
-#: samples).  The paper lenses' recipes keep 1.25
-FORWARD_CLASSIFIER = dict(target="margin", goal_misclassification=0.0005, max_minutes=0.4, lm_minutes=0.75,
+#: samples).  The finish was 0.75 min until its rows came from the tracer in chunks (levenberg.ROW_CHUNK): an
+#: iteration then cost 0.042 s instead of 0.155, and 0.35 min left ghosts 1152, 16896, 4224 at 0.058–0.084 %
+#: misclassified where 0.75 min had left them at 0.097–0.138 % (96: 0.045 % both).  The paper lenses' recipes keep
+#: their own
+FORWARD_CLASSIFIER = dict(target="margin", goal_misclassification=0.0005, max_minutes=0.4, lm_minutes=0.35,
                           max_steps=40000, patience=30)
 #: a forward map's stop head (used only through an iris) gets at most this much of the finish unless
 #: ``[forward_stop]`` says otherwise: 32 ghosts × the camera head's 1.5 min would add up to half an hour to a lens
 FORWARD_STOP_LM_MINUTES = 0.5
+#: a forward map's stop head: the regressor's recipe, a 3×16 network with :data:`REGRESSOR_ADAM_STEPS` of Adam and
+#: the finish, not the camera head's 2×32 with Adam to its budget.  A ghost crossing the stop plane two or three
+#: times is as hard to place there as on the film: on dgauss-50mm's ghosts 96, 1152, 16896 and 4224 the 3×16 heads
+#: reached 1.5–1.8 µm median, 7.1–8.9 µm p99 in 2.9 min for the four, the 2×32 ones 2.7–5.2 / 12.5–24 µm in 4.7
+#: (docs/results.md, "Stop heads as small as the regressor")
+FORWARD_STOP = dict(hidden=3, width=16, max_steps=REGRESSOR_ADAM_STEPS)
 
 PAPER = dict(schedule="paper", lr=1e-4, decay=0.95, decay_every=10000, batch=8192, warmup_steps=0,
              residual="none", direction_loss="cosine", loss_weights="uniform", odd_y=False, target="label")
@@ -152,7 +161,7 @@ class TrainConfig:
     # overrides for forward maps (flares); a recipe's [forward_*] table is merged into these
     forward_regressor: dict = field(default_factory=lambda: dict(FORWARD_REGRESSOR))
     forward_classifier: dict = field(default_factory=lambda: dict(FORWARD_CLASSIFIER))
-    forward_stop: dict = field(default_factory=dict)
+    forward_stop: dict = field(default_factory=lambda: dict(FORWARD_STOP))
 
     def to_dict(self) -> dict:
         return asdict(self)
