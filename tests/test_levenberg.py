@@ -268,3 +268,27 @@ def test_trainer_finishes_small_networks_and_refines_a_model(tmp_path):
     np.testing.assert_array_equal(again.regressor[0][0], ref.regressor[0][0])
     with pytest.raises(NeuralLensError, match="lm_minutes is 0"):
         train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, None, progress=False, keep="refine", base=adam)
+
+
+def test_row_feed_hands_out_each_fresh_row_once_in_chunks():
+    """The finish's rows come ROW_CHUNK iterations at a time from one ``fresh_rows`` call, in order, each row
+    once; a chunk that does not divide evenly is not reused past its end."""
+    from mi_neurallens.training.levenberg import RowFeed
+
+    class Counter:
+        calls = 0
+        next_id = 0
+
+        def fresh_rows(self, n):
+            Counter.calls += 1
+            ids = np.arange(Counter.next_id, Counter.next_id + n)
+            Counter.next_id += n
+            return {"X": ids[:, None] * 1.0, "Y": ids * 2.0, "W": None}
+
+    feed = RowFeed(Counter(), 100, chunk=4)
+    got = [feed.next() for _ in range(10)]
+    assert Counter.calls == 3                          # 4 + 4 + 2 of 4
+    ids = np.concatenate([g["X"][:, 0] for g in got])
+    np.testing.assert_array_equal(ids, np.arange(1000))
+    assert all(len(g["Y"]) == 100 and g["W"] is None for g in got)
+    np.testing.assert_array_equal(got[7]["Y"], 2.0 * np.arange(700, 800))

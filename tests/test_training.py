@@ -89,6 +89,36 @@ def test_mcmc_samples_valid_and_cover_valid_region():
 
 
 
+def test_stream_keeps_the_rows_a_launch_traced_beyond_a_call():
+    """The finish asks a stream for 8 192 rows an iteration while a rejection launch traces 2^21 rays: the
+    valid rays a call does not take are handed out by the next calls (no new launch until they run out),
+    every row once, all valid and uniform like a single large draw; a reseed drops them."""
+    lens = thick_lens()
+    ps = data.PathSampler(lens, 0, "forward", -1.0, 60.0, data.Domain(8.0, 0.1))
+    st = data.RegressorStream(ps, seed=3, bounded=False)
+    t0 = ps.rays_traced
+    u1, x1, y1 = st.sample(4096)
+    launched = ps.rays_traced - t0
+    assert launched == 1 << 21 and len(u1) == 4096 and np.isfinite(y1).all()
+    parts = [st.sample(4096)[0] for _ in range(20)]
+    assert ps.rays_traced - t0 == launched            # 84 k rows from the first launch's ≈ 0.6 M valid rays
+    u = np.concatenate([u1] + parts)
+    assert len(np.unique(u, axis=0)) == len(u)        # no row handed out twice
+    assert ps.valid_u(u).all()
+    np.testing.assert_allclose(ps.domain.u_to_x(u1), x1)
+    ref, _, _, _ = data.rejection_sample(ps, len(u), np.random.default_rng(9))
+    for k in range(4):
+        hm, _ = np.histogram(u[:, k], np.linspace(0, 1, 11))
+        hr, _ = np.histogram(ref[:, k], np.linspace(0, 1, 11))
+        assert 0.5 * np.abs(hm / hm.sum() - hr / hr.sum()).sum() < 0.02, k
+    assert len(st._u) <= data.RegressorStream.KEEP
+    st.reseed(5)
+    assert len(st._u) == 0
+    t1 = ps.rays_traced
+    st.sample(16)
+    assert ps.rays_traced - t1 == launched
+
+
 def test_film_reach_keeps_exactly_the_rays_that_come_near_the_film():
     """Ghost 3072 of the 22 mm lens (a reflection between its last two surfaces) leaves the lens at grazing
     angles: a third of its rays land more than 1.5 film half-diagonals off axis, some metres away.  With a
