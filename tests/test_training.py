@@ -245,6 +245,9 @@ def test_config_rejects_unknown_keys(tmp_path):
     # head takes at most 0.5 min of it unless [forward_stop] names its own, and none when [stop] has none
     c = load_config(None)
     assert c.net("stop", "backward").lm_minutes == 1.5 and c.net("stop", "forward").lm_minutes == 0.5
+    # a ghost's head is the regressor's recipe (3×16, 4 000 Adam steps, the finish); the camera head stays 2×32
+    fs, bs = c.net("stop", "forward"), c.net("stop", "backward")
+    assert (fs.hidden, fs.width, fs.max_steps) == (3, 16, 4000) and (bs.hidden, bs.width) == (2, 32)
     p.write_text("[forward_stop]\nmax_minutes = 1.0\n")
     assert load_config(str(p)).net("stop", "forward").lm_minutes == 0.5
     p.write_text("[stop]\nlm_minutes = 0.0\n")
@@ -284,8 +287,11 @@ def test_bundled_recipes_load():
     recipes = sorted(glob.glob(os.path.join(root, "*.toml")))
     assert len(recipes) >= 3
     for r in recipes:
-        load_config(r)
+        c = load_config(r)
         assert os.path.basename(r)[:-len(".toml")] in bundled_lenses()
+        # the paper lenses' ghost stop heads shipped as 2×32 Adam heads: their recipes reproduce that
+        fs = c.net("stop", "forward")
+        assert (fs.hidden, fs.width, fs.lm_minutes) == (2, 32, 0.0), r
 
 
 # ----------------------------------------------------------------------------- a tiny training run
