@@ -7,7 +7,8 @@ residuals — the regressor's weighted standardised MSE, the classifier's margin
 Gauss–Newton matrix ``JᵀJ`` of a batch is a few hundred squared and cheap to form and solve.  Each
 iteration here takes fresh rows from the map's tracer stream (the :class:`~.stacked.Problem`'s
 ``fresh_rows``, drawn :data:`ROW_CHUNK` iterations at a time), forms the Jacobian of the network's outputs
-with respect to every weight in closed form (one backward pass per output column), and takes the damped Gauss–Newton step
+with respect to every weight in closed form (one backward pass per output column), and takes the damped
+Gauss–Newton step
 
     (JᵀJ + λ·diag(JᵀJ)) δ = −Jᵀr,
 
