@@ -10,9 +10,16 @@ from mi_neurallens.cli import main
 
 
 def test_evaluate_command_writes_reports(tmp_path, capsys):
-    # a model with one map (the paper lenses' hold 34 since their ghost sets are complete: a kernel each)
+    # a model file with one map, the RF 24 mm's camera map (every bundled model holds 29-34 maps since their
+    # ghost sets are complete: a kernel each)
+    from mi_neurallens.neural.model import bundled_model_path, load_model
+    model = load_model(bundled_model_path("canon-rf-24mm-f1.4l-vcm"))
+    for key in [k for k in model.maps if k != "backward.0"]:
+        del model.maps[key]
+    one = tmp_path / "camera.model.safetensors"
+    model.save(str(one))
     jp, mp = tmp_path / "e.json", tmp_path / "e.md"
-    assert main(["evaluate", "canon-rf-24mm-f1.4l-vcm", "-n", "3000", "--json", str(jp), "--markdown", str(mp)]) == 0
+    assert main(["evaluate", str(one), "-n", "3000", "--json", str(jp), "--markdown", str(mp)]) == 0
     doc = json.loads(jp.read_text())
     r = doc["maps"]["backward.0"]["regressor"]
     assert r["n"] == 3000 and 0 < r["position_um_median"] < 100
