@@ -956,7 +956,7 @@ def _add_stop_heads(lens, bases, cfg: TrainConfig, seeds, progress: bool, log) -
     """``keep = "both"``: ``bases`` with new stop heads, trained together as in a whole run (one stack per
     stop-crossing count, :func:`_stop_heads_of`), each with its held-out stop metrics; the classifiers,
     regressors and their metrics are unchanged.  (Until 2026-11 each map's head trained alone, a stack of
-    one: the Canon EF's 33 forward heads took 29 min that way.)"""
+    one: the Canon EF's 33 forward heads took 18 min that way.)"""
     import dataclasses
     from .evaluate import heldout_valid, stop_errors
     if bases and cfg.net("stop", bases[0].direction).max_minutes <= 0:
