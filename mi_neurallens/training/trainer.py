@@ -955,8 +955,7 @@ def _stop_heads_of(lens, tms, cfg: TrainConfig, seeds, progress: bool, log, base
 def _add_stop_heads(lens, bases, cfg: TrainConfig, seeds, progress: bool, log) -> list:
     """``keep = "both"``: ``bases`` with new stop heads, trained together as in a whole run (one stack per
     stop-crossing count, :func:`_stop_heads_of`), each with its held-out stop metrics; the classifiers,
-    regressors and their metrics are unchanged.  (Until 2026-11 each map's head trained alone, a stack of
-    one: the Canon EF's 33 forward heads took 18 min that way.)"""
+    regressors and their metrics are unchanged."""
     import dataclasses
     from .evaluate import heldout_valid, stop_errors
     if bases and cfg.net("stop", bases[0].direction).max_minutes <= 0:
@@ -965,8 +964,7 @@ def _add_stop_heads(lens, bases, cfg: TrainConfig, seeds, progress: bool, log) -
     out = []
     for base, head, seed in zip(bases, heads, seeds):
         if head is None:
-            raise NeuralLensError(f"map {base.key}: no stop head to train (its path does not cross the stop plane, "
-                                  "or stop.max_minutes = 0)")
+            raise NeuralLensError(f"map {base.key}: no stop head to train (its path does not cross the stop plane)")
         tm = dataclasses.replace(base, stop_head=head)
         x, y = heldout_valid(lens, (tm.path_id, tm.direction, tm.z_in, tm.z_out), tm.domain, cfg.heldout,
                              seed + 101, cfg.mcmc_threshold, cfg.fresnel, stops=True)
