@@ -208,6 +208,38 @@ def test_residuals_are_the_losses_adam_minimises():
         ClassifierFit.lm_residual(cf, logit[:, None], {"L": t})
 
 
+def test_stop_head_residuals_are_its_weighted_loss():
+    """The stop head's residuals square to its column-weighted MSE, stacked or not; ``goals`` weights follow
+    each column's spread (mm), so the µm error of a wide column counts as much as a narrow one's."""
+    from mi_neurallens import NeuralLensError
+    from mi_neurallens.training.stop_head import StopFit, stop_loss_weights
+    oscale = np.array([1.3, 0.05, 0.24, 0.13, 1.2, 0.42])
+    w = stop_loss_weights("goals", oscale)
+    np.testing.assert_allclose(w, np.maximum(oscale / oscale.mean(), 0.05))
+    assert w[0] > 14 * w[1]
+    assert stop_loss_weights("goals", [1.0, 1e-4])[1] == 0.05          # no column is ignored
+    np.testing.assert_array_equal(stop_loss_weights("uniform", oscale), np.ones(6))
+    with pytest.raises(NeuralLensError, match="loss_weights"):
+        stop_loss_weights("physical", oscale)
+    g = np.random.default_rng(5)
+    n = 400
+    fit = types.SimpleNamespace(torch=torch, W=torch.as_tensor(w), k=3, wy_c=0.1, wy_s=0.2, s_max=0.7)
+    fit.M_of = lambda xb: StopFit.M_of(fit, xb)
+    batch = {"X": torch.as_tensor(g.normal(size=(n, 4))), "Y": torch.as_tensor(g.normal(size=(n, 6)))}
+    z = torch.as_tensor(g.normal(size=(n, 6)))
+    r, s = StopFit.lm_residual(fit, z, batch)
+    loss = StopFit.rows_loss(fit, z, batch, StopFit.constants(fit))
+    np.testing.assert_allclose(float((r ** 2).sum(1).mean() / 6), float(loss), rtol=1e-12)
+    r2, _ = StopFit.lm_residual(fit, z + 1e-3, batch)
+    np.testing.assert_allclose(((r2 - r) / 1e-3).numpy(), s.numpy(), rtol=1e-6)
+    # a stack of two maps: each map's loss with its own weights
+    const = {"W": torch.stack([fit.W[None], torch.ones(1, 6, dtype=torch.float64)])}
+    both = StopFit.rows_loss(fit, torch.stack([z, z]), {k: torch.stack([v, v]) for k, v in batch.items()}, const)
+    np.testing.assert_allclose(float(both[0]), float(loss), rtol=1e-12)
+    plain = ((z * fit.M_of(batch["X"]) - batch["Y"]) ** 2).mean()
+    np.testing.assert_allclose(float(both[1]), float(plain), rtol=1e-12)
+
+
 def test_large_networks_are_left_to_adam():
     """A 5×32 regressor has more weights than the finish handles; the trainer records why it skipped."""
     from mi_neurallens.training.trainer import polish_results

@@ -36,7 +36,8 @@ class NetConfig:
     residual: str = "linear"            # regressor: predict the residual of a least-squares linear guess
     direction_loss: str = "mse+cosine"  # or "cosine" (paper)
     cosine_weight: float = 1.0
-    loss_weights: str = "goals"         # regressor: per-output MSE weights ∝ (output std / accuracy goal), floored; or "uniform"
+    loss_weights: str = "goals"         # regressor, stop head: per-output MSE weights ∝ (output std / accuracy goal),
+                                        # floored; or "uniform"
     odd_y: bool = True                  # regressor: y, dy = (ωy / s_max) × network: exactly odd in ωy, no mirror-plane seam
     target: str = "margin"              # classifier: "margin" (regress scale·(aperture margin) inside ±clip, one-sided
                                         # beyond: a sharper boundary) or "label" (BCE on blocked/passed, the paper's)
@@ -89,9 +90,10 @@ def classifier_defaults() -> NetConfig:
 def stop_defaults() -> NetConfig:
     """The stop head (where rays cross the stop plane): smooth and nearly linear, so a small network; up to
     1.5 min of the finish (it stops at the goal: 0.5 min left wide-22mm's camera head at 2.08 µm median,
-    1.5 min took ood-59mm's to 1.06 µm — docs/results.md)."""
+    1.5 min took ood-59mm's to 1.06 µm — docs/results.md).  Its loss weighs each crossing column by its spread
+    (``loss_weights = "goals"``, :func:`~mi_neurallens.training.stop_head.stop_loss_weights`)."""
     return NetConfig(hidden=2, width=32, lr=3e-3, max_steps=60000, max_minutes=0.5, lm_minutes=1.5, patience=12,
-                     residual="linear", loss_weights="uniform", direction_loss="none", odd_y=True,
+                     residual="linear", loss_weights="goals", direction_loss="none", odd_y=True,
                      pool=1_000_000)
 
 

@@ -27,6 +27,22 @@ from .stacked import Problem
 from .trainer import _torch, fit_output_transform, pick_device, polish_results
 
 
+def stop_loss_weights(mode: str, oscale) -> np.ndarray:
+    """Per-column weights (2k,) of the stop head's standardised MSE.  ``goals``: ∝ the column's spread
+    ``oscale`` (mm) over its goal, which is the same µm for every column — the regressor's rule
+    (:func:`~mi_neurallens.training.trainer.loss_weights`), normalised to mean 1 and floored at 0.05.  It
+    moves the network's effort from the narrow columns (sy, whose spread the odd-y factor makes small) to the
+    wide ones, where the µm error is: on the Canon EF's two worst three-crossing heads it gave 8.8 and 4.2 µm
+    median where ``uniform`` gave 12.5 and 7.6 (and the physical MSE, ∝ ``oscale``², 12.5 and 5.1;
+    docs/results.md).  ``uniform``: all 1 (each column's error relative to its own spread)."""
+    oscale = np.asarray(oscale, np.float64)
+    if mode == "uniform":
+        return np.ones(len(oscale))
+    if mode != "goals":
+        raise NeuralLensError(f"unknown loss_weights {mode!r}: use 'goals' or 'uniform'")
+    return np.maximum(oscale / oscale.mean(), 0.05)
+
+
 def odd_columns(x_wy: np.ndarray, s_max: float, k: int) -> np.ndarray:
     """(N, 2k) multiplier M of the stop outputs: ωy/s_max on the sy columns, 1 on the sx columns."""
     M = np.ones((len(x_wy), 2 * k))
@@ -54,6 +70,7 @@ class StopFit(Problem):
         self.xv, self.sv = val
         self.Xv, self.Yv = self._pair(self.xv, self.sv)
         self.wy_c, self.wy_s = float(center[2]), float(scale_in[2])
+        self.W = self.f32(stop_loss_weights(nc.loss_weights, self.oscale))
 
     def f32(self, a):
         return self.torch.as_tensor(np.ascontiguousarray(a, dtype=np.float32), device=self.dev)
@@ -78,15 +95,21 @@ class StopFit(Problem):
         return p * self.oscale + odd_columns(x[:, 2], self.s_max, self.k) * (self.shift + xn @ self.skip.T)
 
     # -- the pieces :func:`~mi_neurallens.training.stacked.train_stack` runs --------------------------
+    def constants(self):
+        """This map's column weights, (1, 2k) (stacked: (K, 1, 2k))."""
+        return {"W": self.W[None]}
+
     def rows_loss(self, out, batch, const):
-        """Mean squared error of the standardised crossings, reduced over the samples ((B,) or (K, B)).
-        The maps of one stack share the domain (the ωy scale of M)."""
-        return ((out * self.M_of(batch["X"]) - batch["Y"]) ** 2).mean(-1).mean(-1)
+        """Weighted mean squared error of the standardised crossings (:func:`stop_loss_weights`), reduced over
+        the samples ((B,) or (K, B)).  The maps of one stack share the domain (the ωy scale of M)."""
+        return (((out * self.M_of(batch["X"]) - batch["Y"]) ** 2) * const["W"]).mean(-1).mean(-1)
 
     def lm_residual(self, z, batch):
-        """Levenberg–Marquardt's residuals (the standardised crossing errors of :meth:`rows_loss`) and ∂r/∂z."""
+        """Levenberg–Marquardt's residuals (the weighted standardised crossing errors of :meth:`rows_loss`) and
+        ∂r/∂z."""
+        w = self.torch.sqrt(self.W).to(z.dtype)
         M = self.M_of(batch["X"]).to(z.dtype)
-        return z * M - batch["Y"].to(z.dtype), M
+        return w * (z * M - batch["Y"].to(z.dtype)), w * M
 
     def fresh_rows(self, n):
         _, x, y = self.stream.sample(n)
