@@ -2,7 +2,8 @@
 positions: the numbers a user decides ``lens_flare``'s mode by.
 
     python benchmarks/complete_flare.py [--lens wide-22mm] [--model FILE] [--before FILE] [--samples 24]
-                                        [--reference 27] [--mlp auto|fused|shared|coopvec] [--json OUT]
+                                        [--reference 27] [--mlp auto|fused|shared|coopvec] [--boundary-band B]
+                                        [--json OUT]
 
 ``scenes/night_point.xml`` (one point light 5 m away, 240×160 full-frame film) with the light at four places
 across the field (``--positions``, x:y in m).  Per position, the default ghost selection of the flare
@@ -20,6 +21,9 @@ flux ratio; the neural render also paired against an exact one with the same sam
 
 ``--mlp``: how the learned renders evaluate their networks (the flare's ``mlp`` option; ``coopvec`` is fp16
 on CUDA: what tensor cores cost the flare in accuracy).
+
+``--boundary-band B``: the learned renders (neural and auto) trace their samples within ±B of a classifier's
+decision (the flare's ``boundary_band``).
 
 ``--equal-time``: the exact and neural renders are timed as the best of three warm renders, and the neural
 flare is rendered again with the samples it can draw in the exact flare's time (2^samples × exact time /
@@ -47,6 +51,8 @@ def main(argv=None):
     ap.add_argument("--json", help="write the rows here")
     ap.add_argument("--equal-time", action="store_true", help="also the neural flare at the exact one's wall time")
     ap.add_argument("--mlp", default="auto", help="network evaluation of the learned renders (the flare's mlp option)")
+    ap.add_argument("--boundary-band", type=float, default=0.0,
+                    help="the learned renders' boundary_band (samples at a classifier's edge traced exactly)")
     a = ap.parse_args(argv)
     sys.path.insert(0, ROOT)
     import mitsuba as mi
@@ -66,6 +72,7 @@ def main(argv=None):
     def render(scene, seed, samples, **opts):
         if opts.get("mode") != "exact":
             opts["mlp"] = a.mlp
+            opts["boundary_band"] = a.boundary_band
         r = FlareRenderer(scene, 0, FlareOptions(samples=samples, **opts))
         t0 = time.perf_counter()
         img = r.render(seed=seed).total
@@ -109,6 +116,7 @@ def main(argv=None):
             ab, t_ab, _ = render(sb, 1, n, mode="auto")
             row["auto_before"] = dict(mape=float(mape_masked(ab, ref)), flux_ratio=flux(ab) / flux(ref), seconds=t_ab)
         row["mlp"] = rn.learned_mlp()
+        row["boundary_band"] = a.boundary_band
         rows.append(row)
         e, nn = row["exact"], row["neural"]
         line = (f"light ({x}, {y}, 5) m, {len(ids)} ghosts, 2^{a.samples} vs 2^{a.reference}: exact {e['mape']:.4f} "

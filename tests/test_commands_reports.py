@@ -46,7 +46,7 @@ def test_evaluate_recorded_shows_the_verified_flare_errors(tmp_path):
     jp, mp = tmp_path / "e.json", tmp_path / "e.md"
     assert main(["evaluate", "canon-ef-24mm-f1.4l", "--recorded", "--json", str(jp), "--markdown", str(mp)]) == 0
     f = json.loads(jp.read_text())["maps"]["forward.12"]["flare"]
-    assert 0 < f["paired_mape"] < 1 and f["log2_samples"] == 24 and len(f["per_light"]) == 2
+    assert 0 < f["paired_mape"] < 1 and f["log2_samples"] in (24, 26) and len(f["per_light"]) == 2
     assert f["paired_mape"] == max(f["per_light"])
     assert "flare, paired MAPE" in mp.read_text()
     assert main(["evaluate", "canon-ef-24mm-f1.4l", "--recorded", "--write", "--json", str(jp)]) == 1

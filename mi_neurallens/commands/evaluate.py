@@ -37,6 +37,10 @@ def add_parser(subparsers):
                    help="refine a ghost above the 0.01 gate with 4x the samples up to this (default 26; 28: the "
                         "benchmarks' converged budget, about 45 s a ghost and light on 2 cores; the --flare-samples "
                         "value: no refinement)")
+    p.add_argument("--flare-boundary-band", type=float, default=0.0, metavar="LOGIT",
+                   help="verify the learned renders with lens_flare's boundary_band (samples at the classifier's "
+                        "edge traced exactly; default 0: off). A record made with it gates mode auto only in "
+                        "renders with at least that band")
     p.add_argument("--write", action="store_true",
                    help="with --flare: record the verified flare errors in the model file (mode auto reads them)")
     p.set_defaults(func=run)
@@ -103,7 +107,8 @@ def _verify_flare(args, path, model, out):
         mi.set_variant(default_variant())
     # the lens as given (a file of the user's own lens, or a bundled name), for the neural_lens sensor
     top = max(MAX_SAMPLES_LOG2 if args.flare_max_samples is None else args.flare_max_samples, args.flare_samples)
-    res = verify_model(path, args.lens or model.lens_name, samples_log2=args.flare_samples, max_log2=top)
+    res = verify_model(path, args.lens or model.lens_name, samples_log2=args.flare_samples, max_log2=top,
+                       boundary_band=args.flare_boundary_band)
     for pid, rec in res.items():
         tm = model.map(pid, "forward")
         key = next(k for k, m in model.maps.items() if m is tm)

@@ -41,6 +41,9 @@ def add_parser(subparsers):
     p.add_argument("--auto-max-flare-error", type=float, default=0.01, metavar="MAPE",
                    help="mode auto: where the model records a verified flare error for a map (mi-neurallens evaluate "
                         "--flare --write), use the map only if it is at most MAPE (default 0.01)")
+    p.add_argument("--boundary-band", type=float, default=0.0, metavar="LOGIT",
+                   help="learned ghosts: trace the samples whose classifier logit is within +-LOGIT of its decision "
+                        "(their edges; 1.0 traces about 5%% of a ghost's samples; default 0: off)")
     p.add_argument("--mlp", choices=("auto", "fused", "shared", "coopvec"), default="auto",
                    help="how learned ghost maps enter their kernels: fused (weights as literals, a kernel per map), "
                         "shared (every number a kernel input, weights in packed buffers on a CPU: one kernel per "
@@ -102,7 +105,7 @@ def run(args) -> int:
     kw = dict(samples=int(n), ghosts=parse_id_list(args.ghosts) or None, exclude_ghosts=parse_id_list(args.exclude),
               max_ghosts=args.max_ghosts, coating=args.coating, blades=args.blades, model=model,
               auto_max_error_px=args.auto_max_error, auto_max_flare_error=args.auto_max_flare_error, mlp=args.mlp,
-              freeze=args.freeze)
+              freeze=args.freeze, boundary_band=args.boundary_band)
     out = args.output or os.path.splitext(os.path.basename(args.scene))[0] + "_flare.png"
     base = os.path.splitext(out)[0]
     report = {"scene": args.scene, "samples_per_light": int(n), "film": [W, H]}

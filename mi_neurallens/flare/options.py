@@ -29,6 +29,11 @@ class FlareOptions:
     #: mode auto: and, where the model records a verified flare error for the map (``metrics["flare"]``,
     #: :mod:`mi_neurallens.flare.verify`), only if that paired MAPE is at most this (0.01: issue 17's per-ghost goal)
     auto_max_flare_error: float = 0.01
+    #: learned ghosts: a sample whose classifier logit lies within ±this of the decision (0) is traced exactly
+    #: instead, in a second, compacted pass (0: off).  A learned ghost's flare error sits on its edges, where the
+    #: classifier decides; the margin classifiers' logit is ≈ 40 × the aperture margin there, so 0.4 traces the
+    #: rays within ≈ 0.01 of an aperture edge (docs/flares.md, "Exact edges")
+    boundary_band: float = 0.0
     ghosts: list | None = None         #: ghost path ids to render (None: automatic selection)
     exclude_ghosts: list = field(default_factory=list)
     max_ghosts: int = 32               #: cap of the automatic selection
@@ -84,6 +89,8 @@ class FlareOptions:
             raise FlareError(f"lens_flare: 'blades' must be 0 (circular) or >= 3, got {self.blades}")
         if not self.auto_max_error_px >= 0:
             raise FlareError(f"lens_flare: 'auto_max_error' must be >= 0 (pixels), got {self.auto_max_error_px}")
+        if not self.boundary_band >= 0:
+            raise FlareError(f"lens_flare: 'boundary_band' must be >= 0 (a classifier logit), got {self.boundary_band}")
         if not self.auto_max_flare_error >= 0:
             raise FlareError(f"lens_flare: 'auto_max_flare_error' must be >= 0, got {self.auto_max_flare_error}")
         if self.mlp not in ("auto",) + MLP_MODES:

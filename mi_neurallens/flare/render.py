@@ -85,6 +85,7 @@ class GhostStats:
     cells_total: int = 0
     energy: float = 0.0               #: pilot estimate of the luminance flux on the film (pixel units · pixels)
     seconds: float = 0.0
+    traced: int = 0                   #: of ``samples``, traced exactly near a learned map's edges (boundary_band)
 
     @property
     def fraction_before(self):
@@ -99,7 +100,7 @@ class GhostStats:
                 "evaluator": self.evaluator, "samples": self.samples, "hits": self.hits,
                 "fraction_before": self.fraction_before, "fraction_after": self.fraction_after,
                 "cells": self.cells, "cells_total": self.cells_total, "energy": self.energy,
-                "seconds": self.seconds}
+                "seconds": self.seconds, "traced": self.traced}
 
 
 @dataclass
@@ -127,13 +128,17 @@ class FlareResult:
 # ------------------------------------------------------------------------------------ evaluators
 class GhostEvaluator:
     """One path's transport map (exact, learned or a baseline), from the flare's input plane, continued
-    straight to the sensor plane ``z_sensor``: ``(o, d, lam, active)`` → ``(valid, x, y, T)`` on the
-    sensor (lens space, mm).  ``fresnel = False``: T = 1."""
+    straight to the sensor plane ``z_sensor``: ``(o, d, lam, active)`` → ``(valid, x, y, T, near)`` on the
+    sensor (lens space, mm).  ``fresnel = False``: T = 1.  ``band`` > 0 (a learned map with a classifier):
+    ``near`` marks the samples whose classifier logit is within ±``band`` of its decision, which this map
+    leaves out (``valid`` is false there) for the tracer to take (:meth:`FlareRenderer.splat`); otherwise
+    ``near`` is None."""
 
-    def __init__(self, tmap, z_sensor, fresnel=True):
+    def __init__(self, tmap, z_sensor, fresnel=True, band=0.0):
         self.map, self.z, self.fresnel = tmap, float(z_sensor), fresnel
         #: ``exact`` for the tracer, ``neural`` for every other map (the learned ones and the baselines)
         self.kind = "exact" if tmap.method == "exact" else "neural"
+        self.band = float(band) if self.kind == "neural" and getattr(tmap, "use_classifier", False) else 0.0
 
     @property
     def pid(self) -> int:
@@ -147,8 +152,8 @@ class GhostEvaluator:
         tm = self.map
         sig = tm.kernel_signature() if hasattr(tm, "kernel_signature") else None
         if sig is None:
-            return ("map", tm.method, tm.key, self.z, self.fresnel), []
-        return (sig, self.z, self.fresnel), tm.kernel_inputs(float_t)
+            return ("map", tm.method, tm.key, self.z, self.fresnel, self.band), []
+        return (sig, self.z, self.fresnel, self.band), tm.kernel_inputs(float_t)
 
     def __call__(self, o, d, lam, active):
         import drjit as dr
@@ -157,7 +162,12 @@ class GhostEvaluator:
         t = (self.z - pz) / dz
         x, y = dr.fma(t, dx, px), dr.fma(t, dy, py)
         T = res.throughput if self.fresnel else res.throughput * 0.0 + 1.0
-        return res.valid & (dz > 0.0), x, y, T
+        valid = res.valid & (dz > 0.0)
+        near = None
+        if self.band > 0.0 and res.logit is not None:
+            near = active & (dr.abs(res.logit) < self.band)
+            valid &= ~near
+        return valid, x, y, T, near
 
 
 # ------------------------------------------------------------------------------------ helpers
@@ -267,6 +277,7 @@ class FlareRenderer:
         self._uses = {}             # (kind, signature) -> calls so far
         self._frozen_ev = None      # the evaluator of the call being recorded
         self._learned_maps = {}     # (map key, mlp) -> the learned map as this renderer evaluates it
+        self._exact_evs = {}        # path id -> the tracer's evaluator (boundary_band's second pass)
         self._mlp = None            # learned_mlp(), resolved at the first learned map
 
     def _refresh(self):
@@ -348,7 +359,7 @@ class FlareRenderer:
             tmap = self._learned(m.map(pid, "forward"), strict=False) or self.exact_map(pid)
         else:
             tmap = self.exact_map(pid)
-        return GhostEvaluator(tmap, self.z_img, self.fresnel)
+        return GhostEvaluator(tmap, self.z_img, self.fresnel, self.opts.boundary_band)
 
     def auto_learns(self, pid) -> bool:
         """Whether mode ``auto`` evaluates ghost ``pid`` with its learned map: the model has one, the lens is
@@ -379,7 +390,8 @@ class FlareRenderer:
         exit-position error (the model file's ``metrics``; none recorded: no) must be at most
         ``auto_max_error_px`` pixels of this film, and its verified flare error
         (``metrics["flare"]["paired_mape"]``, :mod:`~mi_neurallens.flare.verify`), where recorded, at most
-        ``auto_max_flare_error``."""
+        ``auto_max_flare_error`` — measured with at most this render's ``boundary_band`` (a record of the map
+        with exact edges says nothing of it without them)."""
         err_um = (tm.metrics.get("regressor") or {}).get("position_um_median")
         lim_um = self.opts.auto_max_error_px * 1000.0 * self.setup.sensor_width_mm / self.size[0]
         if err_um is None:
@@ -389,6 +401,10 @@ class FlareRenderer:
         flare = tm.metrics.get("flare")
         if flare is None:
             return None
+        band = float(flare.get("boundary_band", 0.0))
+        if band > self.opts.boundary_band:
+            return (f"its flare error was verified with boundary_band {band:g}, this render uses "
+                    f"{self.opts.boundary_band:g}")
         err = flare.get("paired_mape")
         if err is None:
             return "verified flare error: none (the ghost reached no pixel)"
@@ -462,10 +478,11 @@ class FlareRenderer:
         return it
 
     def _contrib(self, ev, emitter, scene, xf, qx, qy, u_lam, u_em, active=True):
-        """One forward sample per lane: ``(hit, px, py, value, lam)``, ``value`` its film value without the
+        """One forward sample per lane: ``(hit, px, py, value, lam, near)``, ``value`` its film value without the
         A_q/N area factor (the caller scales) and, where ``lam`` is not None (RGB variants, a sampled
         wavelength), without the wavelength's colour either (:meth:`_rgb` applies it: it reads Mitsuba's CIE
-        tables, which a frozen kernel cannot).  ``scene``: for the light's visibility test (None: none);
+        tables, which a frozen kernel cannot), ``near`` the samples a learned evaluator leaves to the tracer
+        (:class:`GhostEvaluator`; None without).  ``scene``: for the light's visibility test (None: none);
         ``xf``: the sensor's (to_world, to_camera) transforms and the film factor K / A_pix (opaque)."""
         import mitsuba as mi
         import drjit as dr
@@ -483,7 +500,8 @@ class FlareRenderer:
                            mi.Float(0.0), wav if wav is not None else [])
             ok &= ~scene.ray_test(ray, ok)
         zq = dr.zeros(mi.Float, dr.width(qx)) + self.z_in
-        valid, x, y, T = ev((qx, qy, zq), (dx, dy, dz), lam, ok)
+        valid, x, y, T, *near = ev((qx, qy, zq), (dx, dy, dz), lam, ok)
+        near = near[0] if near else None
         W, H = self.size
         px = (x * (1.0 / self.setup.sensor_width_mm) + 0.5) * W
         py = (y * (1.0 / self.setup.sensor_height_mm) + 0.5) * H
@@ -494,8 +512,8 @@ class FlareRenderer:
         if not isinstance(wspec, float):
             val = val * wspec
         if mi.is_spectral:
-            return hit, px, py, mi.spectrum_to_srgb(val, wav, hit), None
-        return hit, px, py, val, (None if isinstance(lam, float) else lam)
+            return hit, px, py, mi.spectrum_to_srgb(val, wav, hit), None, near
+        return hit, px, py, val, (None if isinstance(lam, float) else lam), near
 
     @staticmethod
     def _rgb(hit, val, lam):
@@ -523,13 +541,14 @@ class FlareRenderer:
         indisk = dr.fma(qx, qx, qy * qy) <= d["R"] * d["R"]
         u_lam = rng.next_float32()
         u_em = mi.Point2f(rng.next_float32(), rng.next_float32())
-        hit, _, _, val, lam = self._contrib(ev, emitter, scene, xf, qx, qy, u_lam, u_em, indisk)
+        hit, _, _, val, lam, _ = self._contrib(ev, emitter, scene, xf, qx, qy, u_lam, u_em, indisk)
         return hit, val, lam, indisk
 
     def _splat_kernel(self, ev, emitter, scene, xf, d):
         """The main pass's samples ``d["idx"]`` (0..n−1, a rank-1 lattice shifted by ``d["shift"]``) inside the
         kept cells ``d["cells_x"], d["cells_y"]`` of size ``d["c"]`` (or, without cells, the disk of radius
-        ``d["R"]``), each weighted by ``d["scale"]`` = sampled area / n: (px, py, value, λ, hit)."""
+        ``d["R"]``), each weighted by ``d["scale"]`` = sampled area / n: (px, py, value, λ, hit), and ``near`` where
+        the evaluator leaves samples to the tracer (``boundary_band``)."""
         import mitsuba as mi
         import drjit as dr
         idx = d["idx"]
@@ -543,8 +562,11 @@ class FlareRenderer:
             k = dr.minimum(mi.UInt32(u[0] * mi.Float(nc)), nc - 1)
             qx = dr.gather(mi.Float, d["cells_x"], k) + u[1] * d["c"]
             qy = dr.gather(mi.Float, d["cells_y"], k) + u[2] * d["c"]
-        hit, px, py, val, lam = self._contrib(ev, emitter, scene, xf, qx, qy, u[3], mi.Point2f(u[4], u[5]), True)
-        return px, py, val * d["scale"], lam, hit
+        hit, px, py, val, lam, near = self._contrib(ev, emitter, scene, xf, qx, qy, u[3], mi.Point2f(u[4], u[5]),
+                                                    True)
+        if near is None:
+            return px, py, val * d["scale"], lam, hit
+        return px, py, val * d["scale"], lam, hit, near
 
     def _kernel(self, kind, ev, light, d):
         """Run the ``kind`` (``"pilot"`` or ``"splat"``) kernel of evaluator ``ev`` for ``light`` on the inputs
@@ -644,7 +666,10 @@ class FlareRenderer:
         return Pilot(np.stack([x0[keep], y0[keep]], 1), c, R, n_in, n_hit, energy)
 
     def splat(self, light, ev, n, block, cells, c, R, seed=0):
-        """Splat ``n`` samples of one (light, path) into ``block``; cells None = whole disk."""
+        """Splat ``n`` samples of one (light, path) into ``block``; cells None = whole disk.  Returns (film hits,
+        samples traced exactly): a learned evaluator with ``boundary_band`` leaves the samples its classifier
+        has not decided (``near``) to the tracer, which renders just those, at the same lattice points, in a
+        second pass — the sample set and its weights are unchanged, only who evaluates each sample."""
         import mitsuba as mi
         import drjit as dr
         rng = np.random.default_rng([seed, ev_hash(ev), zlib.crc32(light.name.encode()) & 0xFFFF])
@@ -658,10 +683,31 @@ class FlareRenderer:
                      ncells=dr.opaque(mi.UInt32, len(cells)), c=dr.opaque(mi.Float, c))
             area = len(cells) * c * c
         d["scale"] = dr.opaque(mi.Float, area / n)
-        px, py, val, lam, hit = self._kernel("splat", ev, light, d)
+        px, py, val, lam, hit, *near = self._kernel("splat", ev, light, d)
         rgb, _ = self._rgb(hit, val, lam)
         block.put(mi.Point2f(px, py), rgb, hit)
-        return dr.count(hit)
+        if not near:
+            return dr.count(hit), 0
+        # the samples the learned map left to the tracer (its classifier undecided): the same lattice points
+        # (their indices), traced in a second pass over just them
+        dr.eval(block.tensor(), near[0])
+        idx = dr.compress(near[0])
+        n_near = dr.width(idx)
+        hits = dr.count(hit)
+        if n_near:
+            d = {**d, "idx": idx}
+            px, py, val, lam, hit = self._kernel("splat", self._exact_evaluator(ev.pid), light, d)[:5]
+            rgb, _ = self._rgb(hit, val, lam)
+            block.put(mi.Point2f(px, py), rgb, hit)
+            hits = hits + dr.count(hit)
+        return hits, n_near
+
+    def _exact_evaluator(self, pid):
+        """The tracer's :class:`GhostEvaluator` of path ``pid`` (one per path and renderer)."""
+        ev = self._exact_evs.get(pid)
+        if ev is None:
+            ev = self._exact_evs[pid] = GhostEvaluator(self.exact_map(pid), self.z_img, self.fresnel)
+        return ev
 
     def new_block(self):
         import mitsuba as mi
@@ -713,8 +759,8 @@ class FlareRenderer:
                 blk = total
                 if per_ghost:
                     blk = blocks.setdefault(pid, self.new_block())
-                nh = self.splat(light, ev, n, blk, None if opts.bounds == "none" else pl.cells, pl.cell_size,
-                                pl.radius, seed=seed * 7919 + li)
+                nh, st.traced = self.splat(light, ev, n, blk, None if opts.bounds == "none" else pl.cells,
+                                           pl.cell_size, pl.radius, seed=seed * 7919 + li)
                 dr.eval(blk.tensor())
                 st.samples, st.hits = n, int(nh[0] if hasattr(nh, "__len__") else nh)
                 st.seconds += time.perf_counter() - t0

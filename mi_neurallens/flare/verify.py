@@ -78,22 +78,23 @@ def verification_scene(lens, model, light=LIGHTS[0], film=FILM):
     })
 
 
-def paired_renders(scene, ghosts, samples, seed=1, sensor=0):
-    """(exact, learned) flare images (H×W×3 numpy) of ``ghosts`` on the same samples."""
+def paired_renders(scene, ghosts, samples, seed=1, sensor=0, boundary_band=0.0):
+    """(exact, learned) flare images (H×W×3 numpy) of ``ghosts`` on the same samples; ``boundary_band``: the
+    learned render's (:class:`~mi_neurallens.flare.options.FlareOptions`)."""
     from .render import render_flare
     ex = render_flare(scene, sensor, seed=seed, ghosts=list(ghosts), samples=samples, mode="exact").total
     ne = render_flare(scene, sensor, seed=seed, ghosts=list(ghosts), samples=samples, mode="neural",
-                      pilot_with="exact").total
+                      pilot_with="exact", boundary_band=boundary_band).total
     return ex, ne
 
 
-def paired_flare_error(scene, pid, samples=1 << SAMPLES_LOG2, seed=1) -> dict:
+def paired_flare_error(scene, pid, samples=1 << SAMPLES_LOG2, seed=1, boundary_band=0.0) -> dict:
     """The learned map of ghost ``pid`` against the tracer on the same samples: ``paired_mape`` (None when
     the exact ghost leaves no pixel above the mask threshold: nothing to compare), ``pixels`` in the
     mask, ``flux_ratio`` (learned / exact luminance)."""
     import numpy as np
     from ..metrics import LUMINANCE, flare_error_map
-    ex, ne = paired_renders(scene, [pid], samples, seed)
+    ex, ne = paired_renders(scene, [pid], samples, seed, boundary_band=boundary_band)
     rel, mask = flare_error_map(ne, ex)
     ye, yn = float(np.sum(ex[..., :3] @ LUMINANCE)), float(np.sum(ne[..., :3] @ LUMINANCE))
     return {"paired_mape": float(rel[mask].mean()) if mask.any() else None, "pixels": int(mask.sum()),
@@ -101,14 +102,15 @@ def paired_flare_error(scene, pid, samples=1 << SAMPLES_LOG2, seed=1) -> dict:
 
 
 def verify_model(model_path, lens=None, *, ghosts=None, lights=LIGHTS, samples_log2=SAMPLES_LOG2,
-                 max_log2=MAX_SAMPLES_LOG2, refine_above=None, film=FILM, log=print) -> dict:
+                 max_log2=MAX_SAMPLES_LOG2, refine_above=None, film=FILM, boundary_band=0.0, log=print) -> dict:
     """Every forward ghost map (or those of ``ghosts``) of the model at ``model_path`` against the tracer:
     {path_id: record}, the record ``metrics["flare"]`` keeps — ``paired_mape`` the largest over ``lights``
     (None if the ghost reached no pixel at any of them), the per-light values, flux ratios and sample counts
     (log2), whether each converged, and the protocol (film, lights).  Each light starts at 2^``samples_log2``
     samples and a ghost above ``refine_above`` (default: the flare's ``auto_max_flare_error``, 0.01) is refined
     up to 2^``max_log2`` (:func:`refine_paired`; ``max_log2 = samples_log2``: no refinement).  ``lens``: a
-    bundled name or a lens file (default: the model's lens)."""
+    bundled name or a lens file (default: the model's lens).  ``boundary_band``: the learned renders'
+    (:class:`~mi_neurallens.flare.options.FlareOptions`; 0, the default, is what ``auto`` gates on)."""
     from .options import FlareOptions
     if refine_above is None:
         refine_above = FlareOptions.auto_max_flare_error
@@ -121,7 +123,8 @@ def verify_model(model_path, lens=None, *, ghosts=None, lights=LIGHTS, samples_l
     for light in lights:
         scene = verification_scene(lens, model_path, light, film)
         for k, pid in enumerate(ids):
-            r = refine_paired(lambda l2: paired_flare_error(scene, pid, 1 << l2), samples_log2, max_log2, refine_above)
+            r = refine_paired(lambda l2: paired_flare_error(scene, pid, 1 << l2, boundary_band=boundary_band),
+                              samples_log2, max_log2, refine_above)
             per[pid].append(r)
             if log:
                 m = " → ".join("no pixel" if v is None else f"{v:.4f} (2^{l2})" for l2, v in r["sequence"])
@@ -138,6 +141,7 @@ def verify_model(model_path, lens=None, *, ghosts=None, lights=LIGHTS, samples_l
                     "per_light_log2_samples": [r["log2_samples"] for r in rs],
                     "converged": [r["converged"] for r in rs],
                     "refined_above": float(refine_above), "film": [int(film[0]), int(film[1])],
+                    "boundary_band": float(boundary_band),
                     "protocol": "paired (same samples, pilot_with=exact), mask > 1 % of the exact ghost's peak; "
                                 f"refined with 4x the samples above {refine_above:g} until it falls by less than "
                                 f"{CONVERGED_DROP:g}"}
