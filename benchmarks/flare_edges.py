@@ -2,6 +2,7 @@
 
     python benchmarks/flare_edges.py wide-22mm 192 [288 ...|all] [--model FILE] [--samples 24]
                                      [--reference 28] [--json OUT] [--set fstop=5.4 --set blades=6]
+                                     [--boundary-band B]
 
 Renders each ghost of ``scenes/night_point.xml`` alone, exactly and with its neural map *with the same samples*
 (``pilot_with = "exact"``, same seed: common random numbers, so Monte Carlo noise cancels), then splits
@@ -17,7 +18,8 @@ once it no longer falls with 4× the samples.  ``--reference K`` also renders an
 render against it: the exact one is the test budget's noise floor.  ``--set KEY=VALUE`` sets a property
 of the scene's ``neural_lens`` (e.g. ``fstop``, ``blades``: the learned ghosts then test the iris on
 their predicted stop crossings).  ``--combined`` adds one row with every listed ghost at once
-(``--combined-only``: just that row).
+(``--combined-only``: just that row).  ``--boundary-band B``: the learned renders trace their samples within ±B of
+a classifier's decision (the flare's ``boundary_band``).
 """
 from __future__ import annotations
 
@@ -41,6 +43,8 @@ def main(argv=None):
                     help="neural_lens property (repeatable), e.g. --set fstop=5.4 --set blades=6")
     ap.add_argument("--combined", action="store_true", help="also render all listed ghosts together")
     ap.add_argument("--combined-only", action="store_true", help="only the row with all listed ghosts together")
+    ap.add_argument("--boundary-band", type=float, default=0.0,
+                    help="the learned renders' boundary_band (samples at a classifier's edge traced exactly)")
     ap.add_argument("--attribute", action="store_true",
                     help="also render the two hybrids (exact validity + learned exit rays, learned validity + exact "
                          "exit rays) that split the error between the regressor and the classifier")
@@ -65,7 +69,7 @@ def main(argv=None):
     rows = []
     for g in ([] if a.combined_only else ghosts) + (["all"] if a.combined or a.combined_only else []):
         gl = ghosts if g == "all" else [g]
-        ex, ne = paired_renders(scene, gl, n, seed=1)        # the protocol of `evaluate --flare`
+        ex, ne = paired_renders(scene, gl, n, seed=1, boundary_band=a.boundary_band)   # `evaluate --flare`'s protocol
         rel, mask = flare_error_map(ne, ex)
         if not mask.any():      # the stop blocks this ghost entirely (or it leaves the film): nothing to compare
             rows.append(dict(ghost=g, log2_samples=a.samples, pixels=0,
@@ -97,6 +101,7 @@ def main(argv=None):
                        exact_floor=float(mape_masked(ex, ref)))
             line += (f"; independent vs a 2^{a.reference} exact reference: neural {row['independent']:.4f}, "
                     f"exact (noise floor) {row['exact_floor']:.4f}")
+        row["boundary_band"] = a.boundary_band
         rows.append(row)
         print(f"{a.lens} ghost {g}{' '.join([''] + a.sets)}, 2^{a.samples} samples, paired: MAPE {row['mape']:.4f} over {row['pixels']} px; "
               f"interior {row['interior']:.4f} ({row['interior_pixels']} px), edge {row['edge']:.4f} "
