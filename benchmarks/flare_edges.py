@@ -115,7 +115,7 @@ def main(argv=None):
 def _hybrid_renderer():
     """A :class:`FlareRenderer` whose learned evaluators take one half from the tracer (see ``--attribute``)."""
     import drjit as dr
-    from mi_neurallens.flare.render import FlareRenderer, GhostEvaluator
+    from mi_neurallens.flare.render import FlareRenderer
 
     class Hybrid:
         """A ghost evaluator that keeps one learned ``part`` ("regressor" or "classifier") and takes the
@@ -126,8 +126,8 @@ def _hybrid_renderer():
             self.exact, self.learned, self.part, self.map, self.pid = exact, learned, part, learned.map, learned.pid
 
         def __call__(self, o, d, lam, active):
-            ve, xe, ye, te = self.exact(o, d, lam, active)
-            vn, xn, yn, tn = self.learned(o, d, lam, active)
+            ve, xe, ye, te, _ = self.exact(o, d, lam, active)
+            vn, xn, yn, tn, _ = self.learned(o, d, lam, active)   # the learned half without boundary_band
             if self.part == "regressor":            # the tracer decides validity, the regressor where rays go
                 return ve, xn, yn, tn
             # the classifier decides validity; where the tracer has an exit ray (valid rays), it is used
@@ -140,8 +140,7 @@ def _hybrid_renderer():
 
         def evaluator(self, pid):
             ev = super().evaluator(pid)
-            exact = GhostEvaluator(self.exact_map(pid), self.z_img, self.fresnel)
-            return Hybrid(exact, ev, self.learned) if ev.kind == "neural" else ev
+            return Hybrid(self.exact_evaluator(pid), ev, self.learned) if ev.kind == "neural" else ev
 
     return HybridFlare
 

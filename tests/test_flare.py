@@ -533,3 +533,18 @@ def test_direct_image_gets_one_share_of_the_budget():
     ghosts = sum(v for k, v in by.items() if k != 0)
     assert 0.7 * N < ghosts <= 0.76 * N + 3 * 256
     assert min(v for k, v in by.items() if k != 0) > N // 10
+
+
+def test_flare_edges_attribution_runs_on_the_evaluators_as_they_are(tmp_path):
+    """``benchmarks/flare_edges.py --attribute`` wraps the renderer's evaluators (tracer and learned halves); it
+    must follow their outputs (``(valid, x, y, T, near)``): each half's error is reported."""
+    import importlib.util
+    import json
+    spec = importlib.util.spec_from_file_location("flare_edges", os.path.join(ROOT, "benchmarks", "flare_edges.py"))
+    fe = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(fe)
+    out = tmp_path / "edges.json"
+    fe.main(["wide-22mm", "2560", "--samples", "16", "--attribute", "--boundary-band", "1", "--json", str(out)])
+    row = json.loads(out.read_text())["rows"][0]
+    assert row["pixels"] > 0 and row["boundary_band"] == 1.0
+    assert 0 <= row["regressor"]["mape"] < 1 and 0 <= row["classifier"]["mape"] < 1

@@ -277,7 +277,7 @@ class FlareRenderer:
         self._uses = {}             # (kind, signature) -> calls so far
         self._frozen_ev = None      # the evaluator of the call being recorded
         self._learned_maps = {}     # (map key, mlp) -> the learned map as this renderer evaluates it
-        self._exact_evs = {}        # path id -> the tracer's evaluator (boundary_band's second pass)
+        self._exact_evs = {}        # path id -> the tracer's evaluator (exact_evaluator)
         self._mlp = None            # learned_mlp(), resolved at the first learned map
 
     def _refresh(self):
@@ -696,14 +696,15 @@ class FlareRenderer:
         hits = dr.count(hit)
         if n_near:
             d = {**d, "idx": idx}
-            px, py, val, lam, hit = self._kernel("splat", self._exact_evaluator(ev.pid), light, d)[:5]
+            px, py, val, lam, hit = self._kernel("splat", self.exact_evaluator(ev.pid), light, d)[:5]
             rgb, _ = self._rgb(hit, val, lam)
             block.put(mi.Point2f(px, py), rgb, hit)
             hits = hits + dr.count(hit)
         return hits, n_near
 
-    def _exact_evaluator(self, pid):
-        """The tracer's :class:`GhostEvaluator` of path ``pid`` (one per path and renderer)."""
+    def exact_evaluator(self, pid):
+        """The tracer's :class:`GhostEvaluator` of path ``pid``, one per path and renderer (the pilot with
+        ``pilot_with = "exact"``, ``boundary_band``'s second pass)."""
         ev = self._exact_evs.get(pid)
         if ev is None:
             ev = self._exact_evs[pid] = GhostEvaluator(self.exact_map(pid), self.z_img, self.fresnel)
@@ -731,8 +732,7 @@ class FlareRenderer:
             for pid in ids:
                 t0 = time.perf_counter()
                 ev = self.evaluator(pid)
-                ev_plan = ev if opts.pilot_with == "self" or ev.kind == "exact" else \
-                    GhostEvaluator(self.exact_map(pid), self.z_img, self.fresnel)
+                ev_plan = ev if opts.pilot_with == "self" or ev.kind == "exact" else self.exact_evaluator(pid)
                 pl = self.pilot(light, ev_plan, seed * 1000 + li)
                 st = GhostStats(pid, ghost_surfaces(pid) if pid else (), light.name, ev.kind,
                                 pilot_samples=pl.samples, pilot_hits=pl.hits, cells=len(pl.cells),
