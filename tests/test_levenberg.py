@@ -41,6 +41,30 @@ def test_jacobian_is_autograds():
         np.testing.assert_array_equal(b, b0)
 
 
+
+@pytest.mark.parametrize("dims, lead", [([4, 7, 6, 3], ()), ([4, 16, 16, 16, 6], (2,)), ([3, 300, 1], (1,))])
+def test_normal_equations_are_the_jacobians(dims, lead):
+    """JᵀJ and Jᵀr formed from the hidden layers' columns and the output layer's per-output blocks (what the
+    finish solves each iteration) equal those of the whole scaled Jacobian J[n, o, :] = s[n, o] · ∂z_o/∂θ —
+    unstacked and stacked, with one output, and with more hidden columns than one Gram block
+    (levenberg.GRAM_BLOCK) — and the activations end in the network's outputs."""
+    rng = np.random.default_rng(3)
+    nets = [random_layers(dims, seed=4 + k) for k in range(max(int(np.prod(lead)), 1))]
+    net = FlatMLP(torch, nets[0])
+    theta = torch.stack([net.flatten(lay) for lay in nets]).reshape(lead + (net.P,))
+    X = torch.as_tensor(rng.normal(size=lead + (37, dims[0])))
+    s = torch.as_tensor(rng.uniform(0.2, 2.0, lead + (37, dims[-1])))
+    r = torch.as_tensor(rng.normal(size=lead + (37, dims[-1])))
+    z, J = net.jacobian(theta, X)
+    Js = (J * s[..., None]).reshape(lead + (-1, net.P))
+    want_A = Js.transpose(-1, -2) @ Js
+    want_g = (Js.transpose(-1, -2) @ r.reshape(lead + (-1, 1)))[..., 0]
+    hs = net.activations(theta, X)
+    A, g = net.normal_equations(theta, hs, s, r)
+    np.testing.assert_allclose(hs[-1].numpy(), z.numpy(), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(A.numpy(), want_A.numpy(), rtol=1e-10, atol=1e-10 * float(want_A.abs().max()))
+    np.testing.assert_allclose(g.numpy(), want_g.numpy(), rtol=1e-10, atol=1e-10 * float(want_g.abs().max()))
+
 class SmoothMap:
     """A stand-in map problem: fit f(x) = (sin(x₀ + x₁²), x₂·x₃ + cos(x₀)) over [−1, 1]⁴ from fresh rows,
     validated on a fixed held-out set (RMS error)."""
