@@ -129,9 +129,9 @@ def _hybrid_renderer():
             ve, xe, ye, te, _ = self.exact(o, d, lam, active)
             vn, xn, yn, tn, _ = self.learned(o, d, lam, active)   # the learned half without boundary_band
             if self.part == "regressor":            # the tracer decides validity, the regressor where rays go
-                return ve, xn, yn, tn
+                return ve, xn, yn, tn, None
             # the classifier decides validity; where the tracer has an exit ray (valid rays), it is used
-            return vn, dr.select(ve, xe, xn), dr.select(ve, ye, yn), dr.select(ve, te, tn)
+            return vn, dr.select(ve, xe, xn), dr.select(ve, ye, yn), dr.select(ve, te, tn), None
 
     class HybridFlare(FlareRenderer):
         def __init__(self, scene, sensor, opts, learned):

@@ -500,8 +500,7 @@ class FlareRenderer:
                            mi.Float(0.0), wav if wav is not None else [])
             ok &= ~scene.ray_test(ray, ok)
         zq = dr.zeros(mi.Float, dr.width(qx)) + self.z_in
-        valid, x, y, T, *near = ev((qx, qy, zq), (dx, dy, dz), lam, ok)
-        near = near[0] if near else None
+        valid, x, y, T, near = ev((qx, qy, zq), (dx, dy, dz), lam, ok)
         W, H = self.size
         px = (x * (1.0 / self.setup.sensor_width_mm) + 0.5) * W
         py = (y * (1.0 / self.setup.sensor_height_mm) + 0.5) * H
