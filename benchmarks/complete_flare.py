@@ -11,7 +11,9 @@ renderer (99 % of the ghost energy, at most 32 ghosts) is rendered
 
 * ``exact`` at 2^samples (seed 1): the test budget's noise floor against the reference;
 * ``neural`` at 2^samples (seed 1), every ghost from ``--model`` (it must hold them all);
-* ``auto`` at 2^samples (seed 1) with ``--model``: learned where a map is sharp enough for the film;
+* ``auto`` at 2^samples (seed 1) with ``--model``: learned where a map passes its gates (sharp enough for the
+  film, and a verified flare record within 0.01: with its edges learned, or traced at the record's band), with
+  how many ghosts it learned, learned with their edges traced, and traced;
 * ``auto`` with ``--before`` (e.g. the model as it was before its ghost set was completed: learned where it
   has a map, traced elsewhere), when given;
 
@@ -78,6 +80,14 @@ def main(argv=None):
         img = r.render(seed=seed).total
         return img, time.perf_counter() - t0, r
 
+    def auto_split(r, ids):
+        """How mode auto evaluated the ghosts ``ids``: learned at the render's band, learned with a wider band
+        (their edges traced: FlareRenderer.auto_choice), traced."""
+        bands = [r.auto_choice(g)[0] for g in ids]
+        return dict(learned=sum(b is not None and b <= a.boundary_band for b in bands),
+                    learned_wider_band=sum(b is not None and b > a.boundary_band for b in bands),
+                    traced=sum(b is None for b in bands))
+
     rows = []
     for pos in a.positions.split(","):
         x, y = pos.split(":")
@@ -96,8 +106,9 @@ def main(argv=None):
                 t_ex = min(t_ex, render(scene, 1, n, mode="exact")[1])
                 t_ne = min(t_ne, render(scene, 1, n, mode="neural")[1])
         au, _, _ = render(scene, 1, n, mode="auto")
-        au, t_au, _ = render(scene, 1, n, mode="auto")
-        row["auto"] = dict(mape=float(mape_masked(au, ref)), flux_ratio=flux(au) / flux(ref), seconds=t_au)
+        au, t_au, ra = render(scene, 1, n, mode="auto")
+        row["auto"] = dict(mape=float(mape_masked(au, ref)), flux_ratio=flux(au) / flux(ref), seconds=t_au,
+                           **auto_split(ra, ids))
         pe, _, _ = render(scene, 1, n, mode="exact", pilot_with="exact")
         pn, _, _ = render(scene, 1, n, mode="neural", pilot_with="exact")
         row.update(exact=dict(mape=float(mape_masked(ex, ref)), flux_ratio=flux(ex) / flux(ref), seconds=t_ex),
@@ -113,8 +124,9 @@ def main(argv=None):
             sb = load_scene(os.path.join(ROOT, "scenes", "night_point.xml"), lens=a.lens, sensor_type="neural_lens",
                             sets=[f"model={a.before}"], params=[f"light_x={x}", f"light_y={y}"])
             ab, _, _ = render(sb, 1, n, mode="auto")
-            ab, t_ab, _ = render(sb, 1, n, mode="auto")
-            row["auto_before"] = dict(mape=float(mape_masked(ab, ref)), flux_ratio=flux(ab) / flux(ref), seconds=t_ab)
+            ab, t_ab, rb = render(sb, 1, n, mode="auto")
+            row["auto_before"] = dict(mape=float(mape_masked(ab, ref)), flux_ratio=flux(ab) / flux(ref), seconds=t_ab,
+                                      **auto_split(rb, ids))
         row["mlp"] = rn.learned_mlp()
         row["boundary_band"] = a.boundary_band
         rows.append(row)
@@ -123,14 +135,17 @@ def main(argv=None):
                 f"(flux {e['flux_ratio']:.4f}, {e['seconds']:.2f} s); neural {nn['mape']:.4f} = "
                 f"{nn['mape'] / e['mape']:.2f}x the floor (flux {nn['flux_ratio']:.4f}, {nn['seconds']:.2f} s), "
                 f"paired {nn['paired']:.4f} (flux {nn['paired_flux_ratio']:.4f}); auto {row['auto']['mape']:.4f} "
-                f"(flux {row['auto']['flux_ratio']:.4f}, {row['auto']['seconds']:.2f} s)")
+                f"(flux {row['auto']['flux_ratio']:.4f}, {row['auto']['seconds']:.2f} s; ghosts learned "
+                f"{row['auto']['learned']} + {row['auto']['learned_wider_band']} with their edges traced, traced "
+                f"{row['auto']['traced']})")
         if a.equal_time:
             q = row["neural_equal_time"]
             line += (f"; equal time: neural {q['mape']:.4f} ({q['mape'] / e['mape']:.2f}x exact's) with "
                      f"{q['samples'] / n:.2f}x the samples in {q['seconds']:.2f} s")
         if a.before:
             b = row["auto_before"]
-            line += f"; auto with --before {b['mape']:.4f} (flux {b['flux_ratio']:.4f}, {b['seconds']:.2f} s)"
+            line += (f"; auto with --before {b['mape']:.4f} (flux {b['flux_ratio']:.4f}, {b['seconds']:.2f} s; learned "
+                     f"{b['learned']} + {b['learned_wider_band']}, traced {b['traced']})")
         print(line, flush=True)
     if a.json:
         atomic_write_json(a.json, dict(lens=a.lens, model=os.path.relpath(model, ROOT),

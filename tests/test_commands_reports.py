@@ -3,6 +3,7 @@ markdown files with the numbers the docs quote."""
 from __future__ import annotations
 
 import json
+import os
 
 import pytest
 
@@ -71,6 +72,14 @@ def test_evaluate_flare_write_records_the_verified_error(tmp_path):
     assert all(v <= 0.01 for l2, v in zip(rec["per_light_log2_samples"], rec["per_light"]) if l2 == 14)
     assert json.loads(jp.read_text())["maps"]["forward.2560"]["flare"]["paired_mape"] == rec["paired_mape"]
     assert "flare, paired MAPE" in mp.read_text()
+    # with a band, the record goes beside the learned edges' one (mode auto picks per ghost), for the ghosts named
+    assert main(["evaluate", str(f), "--recorded", "--flare", "--flare-samples", "14", "--flare-max-samples", "14",
+                 "--flare-boundary-band", "1", "--flare-ghosts", "2560", "--write", "--json", str(jp),
+                 "--markdown", str(mp)]) == 0
+    met = load_model(f).map(2560, "forward").metrics
+    assert met["flare"] == rec and met["flare_bands"]["1"]["boundary_band"] == 1.0
+    assert "flare, band 1" in mp.read_text()
+    assert main(["evaluate", str(f), "--recorded", "--flare", "--flare-ghosts", "999"]) == 1
 
 
 def test_accuracy_command_writes_reports(tmp_path):
@@ -106,6 +115,19 @@ def test_train_command_keeps_the_bundled_regressor(tmp_path, capsys):
         np.testing.assert_array_equal(b, b0)
     assert new.training["kept"]["network"] == "regressor" and new.training["classifier_steps"] == 60
     assert new.metrics["regressor"]["position_um_median"] < 3.0
+    # the output file now exists: another --keep run into it must say which model it builds on (an earlier
+    # run's file is never taken silently), while a rerun of the same command resumes from the same base
+    assert main(["train", "wide-22mm", "--paths", "288", "--keep", "regressor", "--out", str(tmp_path),
+                 "--no-progress", "--quiet"] + small) == 1
+    err = capsys.readouterr().err
+    assert "already exists" in err and "--base" in err
+    import argparse
+    from mi_neurallens.commands.train import _keep_base
+    from mi_neurallens.optics.prescription import Lens
+    out = str(tmp_path / "wide-22mm.model.safetensors")
+    again = argparse.Namespace(keep="regressor", paths="192", base=None)
+    assert _keep_base(again, Lens.load("wide-22mm"), out) == os.path.abspath(bundled_model_path("wide-22mm"))
+    assert _keep_base(argparse.Namespace(keep="both", paths="288", base=out), Lens.load("wide-22mm"), out) == out
     # a base model without the selected map: a clear error naming what it has
     assert main(["train", "wide-22mm", "--paths", "999", "--keep", "regressor", "--base",
                  str(tmp_path / "wide-22mm.model.safetensors"), "--out", str(tmp_path / "b"), "--no-progress",

@@ -392,14 +392,55 @@ def test_boundary_band_traces_the_learned_edges_exactly():
     assert 0.01 < st.traced / st.samples < 0.1 and st.as_dict()["traced"] == st.traced
     with pytest.raises(NeuralLensError, match="boundary_band"):
         FlareOptions(boundary_band=-1.0).validate()
-    # auto: a record made with a band says nothing of a render without one
+
+
+def test_auto_renders_a_ghost_with_the_band_its_record_needs():
+    """A map keeps one verified flare record per ``boundary_band`` (``metrics["flare"]`` for its learned edges,
+    ``metrics["flare_bands"]`` beside it).  Mode auto learns a ghost at the render's band where a record of at
+    most that band passes the gate, else at the narrowest wider band whose record passes (its edges traced:
+    what that record measured), else traces it and says why; the render's stats carry the band and the traced
+    share, and ``evaluate``'s table gets a column per band."""
+    from mi_neurallens.flare.verify import flare_records, store_flare_record
+    from mi_neurallens.training.evaluate import markdown_table
+    lens, pid = "canon-rf-24mm-f1.4l-vcm", 18432
     m = nl.neural.model.load_model(os.path.join(ROOT, "lenses", "models", f"{lens}.model.safetensors"))
-    base = {k: v for k, v in m.map(pid, "forward").metrics.items() if k != "flare"}
-    rec = _with_map_change(m, pid, metrics={**base, "flare": {"paired_mape": 0.005, "boundary_band": 1.0}})
+    base = {k: v for k, v in m.map(pid, "forward").metrics.items() if k not in ("flare", "flare_bands")}
+
+    def rec(err, band=0.0):
+        return {"paired_mape": err, "boundary_band": band}
+
+    def records(*recs):
+        met = dict(base)
+        for r in recs:
+            store_flare_record(met, r)
+        return _with_map_change(m, pid, metrics=met)
+
     sc = make_scene(point((0.3, 0.2, 5.0)), lens=lens, w=240, h=160)
-    why = FlareRenderer(sc, 0, FlareOptions(model=rec, ghosts=[pid])).auto_reason(pid)
-    assert why == "its flare error was verified with boundary_band 1, this render uses 0"
-    assert FlareRenderer(sc, 0, FlareOptions(model=rec, ghosts=[pid], boundary_band=1.0)).auto_reason(pid) is None
+
+    def choice(model, **kw):
+        return FlareRenderer(sc, 0, FlareOptions(model=model, ghosts=[pid], **kw)).auto_choice(pid)
+
+    assert choice(records(rec(0.005))) == (0.0, None)
+    assert choice(records(rec(0.05), rec(0.005, 1.0))) == (1.0, None)          # the band it needs
+    assert choice(records(rec(0.005, 1.0))) == (1.0, None)                      # an older file's lone band record
+    assert choice(records(rec(0.05), rec(0.005, 1.0)), boundary_band=2.0) == (2.0, None)  # the render's floor
+    assert choice(records(rec(0.05), rec(0.02, 1.0))) == (None, "verified flare error 0.02 > 0.01 (boundary_band 1)")
+    assert choice(records(rec(0.05), rec(0.02, 1.0)), auto_max_flare_error=0.03) == (1.0, None)
+    assert choice(records(rec(0.05), rec(None, 1.0)))[1].startswith("verified flare error: none")
+    # one record per band: a newer record of a band replaces the older; an older file's banded "flare" moves over
+    met = {"flare": rec(0.02, 1.0)}
+    store_flare_record(met, rec(0.03))
+    store_flare_record(met, rec(0.01, 1.0))
+    store_flare_record(met, rec(0.004, 2.0))
+    assert [r["paired_mape"] for r in flare_records(met)] == [0.03, 0.01, 0.004]
+    assert list(met["flare_bands"]) == ["1", "2"] and met["flare"]["paired_mape"] == 0.03
+    md = markdown_table(None, [("forward.1", {**base, **met})])
+    assert "flare, paired MAPE | flare, band 1 | flare, band 2 |" in md and "| 0.0300 | 0.0100 | 0.0040 |" in md
+    # the render: the ghost learned with its edges traced; the band and the traced share in its stats
+    model = records(rec(0.05), rec(0.005, 1.0))
+    r = render_flare(sc, 0, seed=1, ghosts=[pid], samples=1 << 18, mode="auto", model=model)
+    st = [s for s in r.stats if s.path_id == pid][0]
+    assert st.evaluator == "neural" and st.band == 1.0 and 0.0 < st.traced / st.samples < 0.2, st
 
 
 def test_flare_verification_sees_a_shifted_map(tmp_path):

@@ -9,7 +9,9 @@ throughput errors, checked against the goals of docs/training.md.  Writes JSON a
 ``--flare`` also renders every forward ghost map's flare against the tracer's on the same samples
 (:mod:`mi_neurallens.flare.verify`: paired MAPE, the largest over two light positions; a ghost above the
 0.01 gate is rendered again with 4× the samples, up to ``--flare-max-samples``, until it converges); ``--write``
-records it in the model file, where the flare's mode ``auto`` uses it (``auto_max_flare_error``).
+records it in the model file, where the flare's mode ``auto`` uses it (``auto_max_flare_error``); with
+``--flare-boundary-band B`` the record of that band is kept beside the learned edges' one, and ``auto`` renders a
+ghost whose learned edges miss the gate with its edges traced where that record passes.
 """
 from __future__ import annotations
 
@@ -39,8 +41,12 @@ def add_parser(subparsers):
                         "value: no refinement)")
     p.add_argument("--flare-boundary-band", type=float, default=0.0, metavar="LOGIT",
                    help="verify the learned renders with lens_flare's boundary_band (samples at the classifier's "
-                        "edge traced exactly; default 0: off). A record made with it gates mode auto only in "
-                        "renders with at least that band")
+                        "edge traced exactly; default 0: off). --write keeps its record beside the other bands' "
+                        "(metrics['flare_bands']): mode auto renders a ghost whose learned edges miss the gate "
+                        "with the band whose record passes")
+    p.add_argument("--flare-ghosts", metavar="IDS",
+                   help="verify only these ghost maps (comma list of path ids; default: every ghost map), e.g. the "
+                        "ones a run retrained, or with --flare-boundary-band those whose learned edges miss the gate")
     p.add_argument("--write", action="store_true",
                    help="with --flare: record the verified flare errors in the model file (mode auto reads them)")
     p.set_defaults(func=run)
@@ -99,21 +105,31 @@ def run(args):
 
 def _verify_flare(args, path, model, out):
     """``--flare``: the paired flare error of every forward ghost map, into the report and into the maps'
-    ``metrics["flare"]`` (saved by :func:`_record_flare` with ``--write``)."""
+    metrics (``metrics["flare"]``, or ``metrics["flare_bands"]`` with a band: :func:`store_flare_record`;
+    saved by :func:`_record_flare` with ``--write``)."""
     import mitsuba as mi
-    from ..flare.verify import MAX_SAMPLES_LOG2, verify_model
+    from ..flare.verify import MAX_SAMPLES_LOG2, store_flare_record, verify_model
     from ..render_utils import default_variant
     if not mi.variant():
         mi.set_variant(default_variant())
     # the lens as given (a file of the user's own lens, or a bundled name), for the neural_lens sensor
     top = max(MAX_SAMPLES_LOG2 if args.flare_max_samples is None else args.flare_max_samples, args.flare_samples)
-    res = verify_model(path, args.lens or model.lens_name, samples_log2=args.flare_samples, max_log2=top,
-                       boundary_band=args.flare_boundary_band)
+    ghosts = None
+    if args.flare_ghosts:
+        from ..flare.options import parse_id_list
+        ghosts = parse_id_list(args.flare_ghosts)
+        missing = [g for g in ghosts if not model.has(g, "forward")]
+        if missing:
+            from ..errors import ModelError
+            raise ModelError(f"evaluate --flare-ghosts: {path} has no forward map for {missing}; its ghost maps are "
+                             f"{model.ghost_ids}")
+    res = verify_model(path, args.lens or model.lens_name, ghosts=ghosts, samples_log2=args.flare_samples,
+                       max_log2=top, boundary_band=args.flare_boundary_band)
     for pid, rec in res.items():
         tm = model.map(pid, "forward")
         key = next(k for k, m in model.maps.items() if m is tm)
-        out["maps"][key]["flare"] = rec
-        tm.metrics["flare"] = rec
+        store_flare_record(out["maps"][key], rec)
+        store_flare_record(tm.metrics, rec)
         err = rec["paired_mape"]
         samples = "/".join(f"2^{l2}" for l2 in rec["per_light_log2_samples"])
         falling = top > args.flare_samples and not all(
@@ -127,7 +143,7 @@ def _record_flare(path, model):
     """``--write``: save the model with its maps' verified flare errors (after the reports are written, so a
     file that cannot be written loses nothing)."""
     from ..errors import NeuralLensError
-    n = sum(1 for m in model.maps.values() if "flare" in m.metrics)
+    n = sum(1 for m in model.maps.values() if "flare" in m.metrics or "flare_bands" in m.metrics)
     if not n:
         print(f"{path}: no ghost maps, nothing to record")
         return

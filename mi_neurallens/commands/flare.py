@@ -43,7 +43,8 @@ def add_parser(subparsers):
                         "--flare --write), use the map only if it is at most MAPE (default 0.01)")
     p.add_argument("--boundary-band", type=float, default=0.0, metavar="LOGIT",
                    help="learned ghosts: trace the samples whose classifier logit is within +-LOGIT of its decision "
-                        "(their edges; 1.0 traces about 5%% of a ghost's samples; default 0: off)")
+                        "(their edges; 1.0 traces about 5%% of a ghost's samples; default 0: off). Mode auto "
+                        "also traces a ghost's edges where only its record with a band passes the gate")
     p.add_argument("--mlp", choices=("auto", "fused", "shared", "coopvec"), default="auto",
                    help="how learned ghost maps enter their kernels: fused (weights as literals, a kernel per map), "
                         "shared (every number a kernel input, weights in packed buffers on a CPU: one kernel per "
@@ -126,7 +127,9 @@ def run(args) -> int:
             why = fr.auto_reason(s.path_id) if mode == "auto" and s.evaluator == "exact" and s.path_id else None
             print(f"  ghost {s.path_id:>8} {str(tuple(s.surfaces)):>9} {s.evaluator:6} {s.light:16} "
                   f"samples {s.samples:>9}  reach sensor: before {s.fraction_before:6.3f}  after "
-                  f"{s.fraction_after:6.3f}" + (f"  (traced: {why})" if why else ""), file=sys.stderr)
+                  f"{s.fraction_after:6.3f}" + (f"  (traced: {why})" if why else "")
+                  + (f"  (edges traced, band {s.band:g}: {s.traced / max(s.samples, 1):.1%} of its samples)"
+                     if s.band > 0 else ""), file=sys.stderr)
     if not args.compare:
         r = results[args.mode]
         from ..render_utils import write_exr

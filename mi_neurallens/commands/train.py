@@ -30,8 +30,9 @@ def add_parser(subparsers):
                    help="keep this network of each selected map from --base and train the rest; 'both': train "
                         "only the stop heads (a render-time aperture for an existing model); 'refine': start "
                         "both networks from --base and run only their Levenberg-Marquardt finish (lm_minutes)")
-    p.add_argument("--base", help="model file the --keep networks come from (default: the output model file "
-                                  "when it exists, else the bundled model of the lens)")
+    p.add_argument("--base", help="model file the --keep networks come from (default: the bundled model of the "
+                                  "lens; an existing output file other than it must be named, and a rerun "
+                                  "that resumes takes the base of the run before)")
     p.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
                    help="run the maps as jobs on Ray (the 'cluster' extra): a local instance, or the cluster at "
                         "ADDRESS (e.g. auto, ray://head:10001); one GPU per job when the cluster has GPUs")
@@ -99,9 +100,41 @@ def _report(path):
     print(f"wrote {path}")
 
 
+def _keep_base(args, lens, out) -> str:
+    """The model file ``--keep`` takes its networks from: ``--base``; on a rerun of the same ``--keep`` and
+    ``--paths`` into the same output (resuming an interrupted run), the base that run took (recorded in
+    ``<out>.work/keep_base.json``); else the bundled model of the lens.  An existing output file that is not the
+    bundled model is never taken silently — it may be an earlier run's — so then ``--base`` must say which."""
+    from ..errors import NeuralLensError
+    from ..fileio import atomic_write_text
+    from ..neural.model import bundled_model_path
+    rec_path = os.path.join(out + ".work", "keep_base.json")
+    this = {"keep": args.keep, "paths": args.paths}
+    base = args.base
+    if base is None and os.path.exists(rec_path):
+        with open(rec_path) as f:
+            rec = json.load(f)
+        if {k: rec.get(k) for k in this} == this and os.path.exists(rec.get("base", "")):
+            base = rec["base"]
+            print(f"resuming {out}: --keep {args.keep} takes its networks from {base}, as the run before",
+                  file=sys.stderr)
+    if base is None:
+        bundled = bundled_model_path(lens.name)
+        if os.path.exists(out) and not (os.path.exists(bundled) and os.path.samefile(out, bundled)):
+            import datetime
+            when = datetime.datetime.fromtimestamp(os.path.getmtime(out)).strftime("%Y-%m-%d %H:%M")
+            raise NeuralLensError(
+                f"--keep {args.keep}: {out} already exists (written {when}) and is not the bundled model; say "
+                f"which model the kept networks come from: --base {out} to build on it, --base {bundled} for "
+                f"the bundled one, or a new --out")
+        base = bundled
+    os.makedirs(out + ".work", exist_ok=True)
+    atomic_write_text(rec_path, json.dumps({**this, "base": os.path.abspath(base)}))
+    return base
+
+
 def _train_one(args, lens, cfg, out):
     from ..training.trainer import train_lens
-    from ..neural.model import bundled_model_path
 
     def log(desc, rec):
         if not args.quiet:
@@ -110,7 +143,7 @@ def _train_one(args, lens, cfg, out):
 
     base = None
     if args.keep:
-        base = args.base or (out if os.path.exists(out) else bundled_model_path(lens.name))
+        base = _keep_base(args, lens, out)
         what = {"both": "classifiers and regressors (training stop heads only)",
                 "refine": "classifiers and regressors as the start of their Levenberg-Marquardt finish"}.get(
             args.keep, f"{args.keep}s")

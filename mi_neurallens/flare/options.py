@@ -32,7 +32,9 @@ class FlareOptions:
     #: learned ghosts: a sample whose classifier logit lies within ±this of the decision (0) is traced exactly
     #: instead, in a second, compacted pass (0: off).  A learned ghost's flare error sits on its edges, where the
     #: classifier decides; the margin classifiers' logit is ≈ 40 × the aperture margin there, so 0.4 traces the
-    #: rays within ≈ 0.01 of an aperture edge (docs/flares.md, "Exact edges")
+    #: rays within ≈ 0.01 of an aperture edge (docs/flares.md, "Exact edges").  In mode auto a floor: a ghost whose
+    #: verified records pass the gate only with a wider band is rendered with that band
+    #: (:meth:`~mi_neurallens.flare.render.FlareRenderer.map_band`)
     boundary_band: float = 0.0
     ghosts: list | None = None         #: ghost path ids to render (None: automatic selection)
     exclude_ghosts: list = field(default_factory=list)

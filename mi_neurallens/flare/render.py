@@ -86,6 +86,7 @@ class GhostStats:
     energy: float = 0.0               #: pilot estimate of the luminance flux on the film (pixel units · pixels)
     seconds: float = 0.0
     traced: int = 0                   #: of ``samples``, traced exactly near a learned map's edges (boundary_band)
+    band: float = 0.0                 #: the learned map's boundary_band in this render (0: its edges learned)
 
     @property
     def fraction_before(self):
@@ -100,7 +101,7 @@ class GhostStats:
                 "evaluator": self.evaluator, "samples": self.samples, "hits": self.hits,
                 "fraction_before": self.fraction_before, "fraction_after": self.fraction_after,
                 "cells": self.cells, "cells_total": self.cells_total, "energy": self.energy,
-                "seconds": self.seconds, "traced": self.traced}
+                "seconds": self.seconds, "traced": self.traced, "band": self.band}
 
 
 @dataclass
@@ -355,62 +356,82 @@ class FlareRenderer:
                                  f"restrict 'ghosts', or train it (`mi-neurallens train {self.lens.name} "
                                  f"--paths {pid} --out DIR`, then training/merge_maps.py: docs/training.md)")
             tmap = self._learned(m.map(pid, "forward"), strict=True)
-        elif self.auto_learns(pid):
-            tmap = self._learned(m.map(pid, "forward"), strict=False) or self.exact_map(pid)
-        else:
-            tmap = self.exact_map(pid)
+        else:                              # auto: the learned map where its gates let it in, at its band
+            band, _ = self.auto_choice(pid)
+            tmap = None if band is None else self._learned(m.map(pid, "forward"), strict=False)
+            if tmap is None:
+                tmap = self.exact_map(pid)
+            return GhostEvaluator(tmap, self.z_img, self.fresnel, band or 0.0)
         return GhostEvaluator(tmap, self.z_img, self.fresnel, self.opts.boundary_band)
 
     def auto_learns(self, pid) -> bool:
-        """Whether mode ``auto`` evaluates ghost ``pid`` with its learned map: the model has one, the lens is
-        as trained, the map passes :meth:`map_reason`'s gates for this film and the iris applies to it
-        (:meth:`auto_reason` says why not)."""
-        return self.opts.mode == "auto" and self.auto_reason(pid) is None
+        """Whether mode ``auto`` evaluates ghost ``pid`` with its learned map (:meth:`auto_choice`)."""
+        return self.opts.mode == "auto" and self.auto_choice(pid)[0] is not None
 
     def auto_reason(self, pid) -> str | None:
         """Why mode ``auto`` traces ghost ``pid`` (a short phrase for messages), or None where it learns it."""
+        return self.auto_choice(pid)[1]
+
+    def auto_choice(self, pid) -> tuple:
+        """How mode ``auto`` evaluates ghost ``pid``: ``(band, None)`` with its learned map and that
+        ``boundary_band``, or ``(None, why)`` with the tracer — no model or no map for it, coatings other than
+        the trained lens's, a map that fails :meth:`map_band`'s gates for this film, or an iris it cannot apply."""
         m = self.model
         if pid == 0:
-            return "the direct image is traced"
+            return None, "the direct image is traced"
         if m is None:
-            return "no neural model"
+            return None, "no neural model"
         if self.lens_modified:
-            return "the coatings differ from the trained lens"
+            return None, "the coatings differ from the trained lens"
         if not m.has(pid, "forward"):
-            return "the model has no map for it"
+            return None, "the model has no map for it"
         tm = m.map(pid, "forward")
-        why = self.map_reason(tm)
+        band, why = self.map_band(tm)
         if why is None and self.iris is not None and not (tm.stop_head is not None and self._iris_ok):
-            why = ("its map has no stop head for the iris" if tm.stop_head is None else
-                   "the iris reaches beyond the one its map was trained with")
-        return why
+            return None, ("its map has no stop head for the iris" if tm.stop_head is None else
+                          "the iris reaches beyond the one its map was trained with")
+        return band, why
 
     def map_reason(self, tm) -> str | None:
-        """Why mode ``auto`` may not use the learned map ``tm``, or None where it may: its held-out median
-        exit-position error (the model file's ``metrics``; none recorded: no) must be at most
-        ``auto_max_error_px`` pixels of this film, and its verified flare error
-        (``metrics["flare"]["paired_mape"]``, :mod:`~mi_neurallens.flare.verify`), where recorded, at most
-        ``auto_max_flare_error`` — measured with at most this render's ``boundary_band`` (a record of the map
-        with exact edges says nothing of it without them)."""
+        """Why mode ``auto`` may not use the learned map ``tm``, or None where it may (:meth:`map_band`)."""
+        return self.map_band(tm)[1]
+
+    def map_band(self, tm) -> tuple:
+        """Whether mode ``auto`` may use the learned map ``tm``, and with which ``boundary_band``: ``(band,
+        None)`` where it may, ``(None, why)`` where not.  Its held-out median exit-position error (the model
+        file's ``metrics``; none recorded: no) must be at most ``auto_max_error_px`` pixels of this film.  Where
+        the map records verified flare errors (:func:`~mi_neurallens.flare.verify.flare_records`: its learned
+        edges', and with the edges traced at a band), one of them must be at most ``auto_max_flare_error``: a
+        record measured with at most this render's ``boundary_band`` lets the map in at that band; else the
+        narrowest wider band whose record passes is the one this ghost is rendered with (its edges traced,
+        what the record measured), so a ghost whose learned edges miss the gate is still learned where the
+        tracer at its edges brings it within.  No record: this render's band."""
+        from .verify import flare_records, record_band
         err_um = (tm.metrics.get("regressor") or {}).get("position_um_median")
         lim_um = self.opts.auto_max_error_px * 1000.0 * self.setup.sensor_width_mm / self.size[0]
         if err_um is None:
-            return "no recorded held-out accuracy"
+            return None, "no recorded held-out accuracy"
         if err_um > lim_um:
-            return f"position error {err_um:.3g} µm > {self.opts.auto_max_error_px:g} px = {lim_um:.3g} µm"
-        flare = tm.metrics.get("flare")
-        if flare is None:
-            return None
-        band = float(flare.get("boundary_band", 0.0))
-        if band > self.opts.boundary_band:
-            return (f"its flare error was verified with boundary_band {band:g}, this render uses "
-                    f"{self.opts.boundary_band:g}")
-        err = flare.get("paired_mape")
-        if err is None:
-            return "verified flare error: none (the ghost reached no pixel)"
-        if err > self.opts.auto_max_flare_error:
-            return f"verified flare error {err:.3g} > {self.opts.auto_max_flare_error:g}"
-        return None
+            return None, f"position error {err_um:.3g} µm > {self.opts.auto_max_error_px:g} px = {lim_um:.3g} µm"
+        recs = flare_records(tm.metrics)
+        own = self.opts.boundary_band
+        if not recs:
+            return own, None
+        lim = self.opts.auto_max_flare_error
+
+        def passes(r):
+            return r.get("paired_mape") is not None and r["paired_mape"] <= lim
+
+        if any(passes(r) for r in recs if record_band(r) <= own):
+            return own, None
+        wider = [r for r in recs if record_band(r) > own and passes(r)]
+        if wider:
+            return record_band(wider[0]), None
+        r = recs[-1]                           # the widest band measured: the best the map can do
+        at = f" (boundary_band {record_band(r):g})" if record_band(r) > 0 else ""
+        if r.get("paired_mape") is None:
+            return None, f"verified flare error: none (the ghost reached no pixel){at}"
+        return None, f"verified flare error {r['paired_mape']:.3g} > {lim:g}{at}"
 
     def learned_mlp(self, ids=None) -> str:
         """How this render's learned maps enter their kernels (:class:`~mi_neurallens.neural.model.NeuralMap`'s
@@ -736,7 +757,7 @@ class FlareRenderer:
                 st = GhostStats(pid, ghost_surfaces(pid) if pid else (), light.name, ev.kind,
                                 pilot_samples=pl.samples, pilot_hits=pl.hits, cells=len(pl.cells),
                                 cells_total=int(round(math.pi * pl.radius ** 2 / pl.cell_size ** 2)),
-                                energy=pl.energy, seconds=time.perf_counter() - t0)
+                                energy=pl.energy, seconds=time.perf_counter() - t0, band=ev.band)
                 stats.append(st)
                 if pl.hits > 0:
                     plan.append((pid, ev, pl, st))

@@ -19,7 +19,9 @@ the film.  This module measures that directly, the protocol of ``benchmarks/flar
 
 :func:`verify_model` measures every forward ghost map of a model at a few light positions and keeps the
 largest error; ``mi-neurallens evaluate MODEL --flare --write`` records it in the model file
-(``metrics["flare"]`` of each map), where the flare's mode ``auto`` reads it (``auto_max_flare_error``).
+(``metrics["flare"]`` of each map, or with ``--flare-boundary-band B`` ``metrics["flare_bands"]["B"]``:
+:func:`store_flare_record`), where the flare's mode ``auto`` reads it (``auto_max_flare_error``) and, ghost by
+ghost, uses the learned map with the narrowest band whose record passes, or the tracer.
 """
 from __future__ import annotations
 
@@ -37,6 +39,38 @@ SAMPLES_LOG2 = 24
 MAX_SAMPLES_LOG2 = 26
 #: converged: 4× the samples lowered the paired error by less than this fraction (pure noise would halve it)
 CONVERGED_DROP = 0.1
+
+
+def record_band(rec) -> float:
+    """The ``boundary_band`` a verified flare record was measured with (0: the learned edges)."""
+    return float(rec.get("boundary_band", 0.0))
+
+
+def flare_records(metrics) -> list:
+    """A map's verified flare records (:func:`verify_model`), ascending by the ``boundary_band`` they were
+    measured with: ``metrics["flare"]``, the learned edges' record (band 0; in files written before bands were
+    kept apart, the one record of whatever band), and ``metrics["flare_bands"]``, the records measured with a
+    band > 0, keyed by the band (``"1"``)."""
+    recs = [] if metrics.get("flare") is None else [metrics["flare"]]
+    recs += list((metrics.get("flare_bands") or {}).values())
+    return sorted(recs, key=record_band)
+
+
+def store_flare_record(metrics, rec):
+    """Keep ``rec`` in a map's ``metrics`` beside its records of other bands (:func:`flare_records`): band 0
+    replaces ``metrics["flare"]``, a band > 0 the record of that band in ``metrics["flare_bands"]``, so one map
+    can say both how its learned edges do and how it does with its edges traced, and mode ``auto`` picks per
+    ghost (:meth:`~mi_neurallens.flare.render.FlareRenderer.auto_choice`)."""
+    band = record_band(rec)
+    if band == 0.0:
+        metrics["flare"] = rec
+        return
+    bands = dict(metrics.get("flare_bands") or {})
+    old = metrics.get("flare")
+    if old is not None and record_band(old) > 0.0:     # an older file's only record, measured with a band
+        bands[f"{record_band(old):g}"] = metrics.pop("flare")
+    bands[f"{band:g}"] = rec
+    metrics["flare_bands"] = dict(sorted(bands.items(), key=lambda kv: float(kv[0])))
 
 
 def refine_paired(error_at, log2_from: int, log2_max: int, above: float, drop: float = CONVERGED_DROP) -> dict:

@@ -42,7 +42,8 @@ sensor must be ``realistic_lens`` or ``neural_lens``.
    - |string|
    - ``auto``: a ghost's learned map where the sensor (or ``model``) has one that is accurate enough for this
      film (``auto_max_error``) and, where its verified flare error is recorded, within
-     ``auto_max_flare_error``; the tracer otherwise; ``exact``: the tracer for every path; ``neural``:
+     ``auto_max_flare_error`` (with its edges traced, at the ``boundary_band`` of the record that passes,
+     where only such a record passes); the tracer otherwise; ``exact``: the tracer for every path; ``neural``:
      learned maps only (an error names a missing ghost); or a baseline for comparisons: ``abcd``,
      ``taylor3``, ``taylor5``, ``fitted`` (docs/baselines.md).  (Default: ``auto``)
 
@@ -67,7 +68,9 @@ sensor must be ``realistic_lens`` or ``neural_lens``.
      instead, in a second pass over just those samples.  A learned ghost's flare error sits on its edges,
      where the classifier decides (its logit is about 40 × the aperture margin there), so 1.0 traces the rays
      within ≈ 0.025 of an aperture edge: 4–5 % of a ghost's samples on the RF 24 mm, its three worst ghosts'
-     paired errors 0.030–0.060 → 0.006–0.017 (docs/flares.md, "Exact edges").  0: off.  (Default: 0)
+     paired errors 0.030–0.060 → 0.006–0.017 (docs/flares.md, "Exact edges").  0: off.  In ``auto`` this is
+     a floor: a ghost whose map is verified within ``auto_max_flare_error`` only with a wider band is rendered
+     with that band.  (Default: 0)
 
  * - model
    - |string|

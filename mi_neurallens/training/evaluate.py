@@ -152,22 +152,22 @@ def meets_goals(m: dict) -> dict:
 
 
 def markdown_table(model, rows) -> str:
-    """The held-out metrics of ``rows`` ((key, metrics) pairs) as a markdown table; a "flare" column (the
-    verified paired flare MAPE, :mod:`mi_neurallens.flare.verify`) when any row has one."""
-    flare = any("flare" in m for _, m in rows)
+    """The held-out metrics of ``rows`` ((key, metrics) pairs) as a markdown table; a "flare" column per
+    ``boundary_band`` a verified paired flare MAPE was recorded with (:func:`~mi_neurallens.flare.verify.
+    flare_records`), when any row has one."""
+    from ..flare.verify import flare_records, record_band
+    bands = sorted({record_band(r) for _, m in rows for r in flare_records(m)})
     hdr = ("| map | path | pos µm med | pos µm p99 | dir ″ med | dir ″ p99 | T rel med | misclass | "
            "false-valid | false-blocked | wrong: boundary dist med | stop µm med | stop µm p99 |"
-           + (" flare, paired MAPE |" if flare else "") + "\n"
-           "|---|---|---|---|---|---|---|---|---|---|---|---|---|" + ("---|" if flare else "") + "\n")
+           + "".join(" flare, paired MAPE |" if b == 0 else f" flare, band {b:g} |" for b in bands) + "\n"
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|" + "---|" * len(bands) + "\n")
     lines = []
     for key, m in rows:
         r, c, st = m["regressor"], m["classifier"], m.get("stop")
         bd = c.get("wrong_boundary_distance_median")
         stop = (f"{st['stop_um_median']:.3g} | {st['stop_um_p99']:.3g}" if st else "— | —")
-        fl = ""
-        if flare:
-            e = (m.get("flare") or {}).get("paired_mape")
-            fl = f" {'—' if e is None else f'{e:.4f}'} |"
+        got = {record_band(x): x.get("paired_mape") for x in flare_records(m)}
+        fl = "".join(f" {'—' if got.get(b) is None else f'{got[b]:.4f}'} |" for b in bands)
         lines.append(f"| {key} | {m.get('describe', '')} | {r['position_um_median']:.3g} | {r['position_um_p99']:.3g} | "
                      f"{r['direction_arcsec_median']:.3g} | {r['direction_arcsec_p99']:.3g} | "
                      f"{100 * r['throughput_rel_median']:.3g}% | {100 * c['misclassification']:.3g}% | "
