@@ -392,10 +392,6 @@ class FlareRenderer:
                           "the iris reaches beyond the one its map was trained with")
         return band, why
 
-    def map_reason(self, tm) -> str | None:
-        """Why mode ``auto`` may not use the learned map ``tm``, or None where it may (:meth:`map_band`)."""
-        return self.map_band(tm)[1]
-
     def map_band(self, tm) -> tuple:
         """Whether mode ``auto`` may use the learned map ``tm``, and with which ``boundary_band``: ``(band,
         None)`` where it may, ``(None, why)`` where not.  Its held-out median exit-position error (the model
