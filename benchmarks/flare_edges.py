@@ -121,6 +121,7 @@ def _hybrid_renderer():
         """A ghost evaluator that keeps one learned ``part`` ("regressor" or "classifier") and takes the
         other from the tracer, on the same rays."""
         kind = "neural"
+        band = 0.0                                  # no boundary_band: both halves are whole (GhostStats.band)
 
         def __init__(self, exact, learned, part):
             self.exact, self.learned, self.part, self.map, self.pid = exact, learned, part, learned.map, learned.pid
