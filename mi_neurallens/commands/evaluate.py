@@ -114,15 +114,8 @@ def _verify_flare(args, path, model, out):
         mi.set_variant(default_variant())
     # the lens as given (a file of the user's own lens, or a bundled name), for the neural_lens sensor
     top = max(MAX_SAMPLES_LOG2 if args.flare_max_samples is None else args.flare_max_samples, args.flare_samples)
-    ghosts = None
-    if args.flare_ghosts:
-        from ..flare.options import parse_id_list
-        ghosts = parse_id_list(args.flare_ghosts)
-        missing = [g for g in ghosts if not model.has(g, "forward")]
-        if missing:
-            from ..errors import ModelError
-            raise ModelError(f"evaluate --flare-ghosts: {path} has no forward map for {missing}; its ghost maps are "
-                             f"{model.ghost_ids}")
+    from ..flare.options import parse_id_list
+    ghosts = parse_id_list(args.flare_ghosts) if args.flare_ghosts else None
     res = verify_model(path, args.lens or model.lens_name, ghosts=ghosts, samples_log2=args.flare_samples,
                        max_log2=top, boundary_band=args.flare_boundary_band)
     for pid, rec in res.items():

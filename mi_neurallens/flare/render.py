@@ -338,6 +338,7 @@ class FlareRenderer:
         map, or a baseline."""
         mode = self.opts.mode
         m = self.model
+        band = self.opts.boundary_band
         if mode == "exact" or pid == 0 and mode == "auto":
             tmap = self.exact_map(pid)
         elif mode in BASELINE_MODES:
@@ -359,10 +360,9 @@ class FlareRenderer:
         else:                              # auto: the learned map where its gates let it in, at its band
             band, _ = self.auto_choice(pid)
             tmap = None if band is None else self._learned(m.map(pid, "forward"), strict=False)
-            if tmap is None:
+            if tmap is None:                          # the tracer (which ignores the band)
                 tmap = self.exact_map(pid)
-            return GhostEvaluator(tmap, self.z_img, self.fresnel, band or 0.0)
-        return GhostEvaluator(tmap, self.z_img, self.fresnel, self.opts.boundary_band)
+        return GhostEvaluator(tmap, self.z_img, self.fresnel, band or 0.0)
 
     def auto_learns(self, pid) -> bool:
         """Whether mode ``auto`` evaluates ghost ``pid`` with its learned map (:meth:`auto_choice`)."""

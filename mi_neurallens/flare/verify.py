@@ -137,8 +137,8 @@ def paired_flare_error(scene, pid, samples=1 << SAMPLES_LOG2, seed=1, boundary_b
 
 def verify_model(model_path, lens=None, *, ghosts=None, lights=LIGHTS, samples_log2=SAMPLES_LOG2,
                  max_log2=MAX_SAMPLES_LOG2, refine_above=None, film=FILM, boundary_band=0.0, log=print) -> dict:
-    """Every forward ghost map (or those of ``ghosts``) of the model at ``model_path`` against the tracer:
-    {path_id: record}, the record ``metrics["flare"]`` keeps — ``paired_mape`` the largest over ``lights``
+    """Every forward ghost map (or those of ``ghosts``, each of which it must have: else a ModelError) of the
+    model at ``model_path`` against the tracer: {path_id: record}, the record ``metrics["flare"]`` keeps — ``paired_mape`` the largest over ``lights``
     (None if the ghost reached no pixel at any of them), the per-light values, flux ratios and sample counts
     (log2), whether each converged, and the protocol (film, lights).  Each light starts at 2^``samples_log2``
     samples and a ghost above ``refine_above`` (default: the flare's ``auto_max_flare_error``, 0.01) is refined
@@ -152,7 +152,12 @@ def verify_model(model_path, lens=None, *, ghosts=None, lights=LIGHTS, samples_l
     from ..neural.model import load_model
     model = load_model(model_path)
     lens = lens or model.lens_name
-    ids = [pid for pid in (model.ghost_ids if ghosts is None else ghosts) if model.has(pid, "forward")]
+    ids = model.ghost_ids if ghosts is None else [int(g) for g in ghosts]
+    missing = [pid for pid in ids if not model.has(pid, "forward")]
+    if missing:
+        from ..errors import ModelError
+        raise ModelError(f"{model_path} has no forward map for {missing} to verify; its ghost maps are "
+                         f"{model.ghost_ids}")
     per = {pid: [] for pid in ids}
     for light in lights:
         scene = verification_scene(lens, model_path, light, film)
