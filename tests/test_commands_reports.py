@@ -101,20 +101,32 @@ def test_train_command_keeps_the_bundled_regressor(tmp_path, capsys):
     pytest.importorskip("torch")
     import numpy as np
     from mi_neurallens.neural.model import bundled_model_path, load_model
+    old_288_flare = load_model(bundled_model_path("wide-22mm")).maps["forward.288"].metrics["flare"]
     assert main(["train", "wide-22mm", "--base", "x.safetensors"]) == 1          # --base needs --keep
     assert "--keep" in capsys.readouterr().err
     small = ["--set", "heldout=5000", "--set", "forward_classifier.max_steps=60",
              "--set", "forward_classifier.pool=60000", "--set", "forward_classifier.batch=2048",
-             "--set", "forward_classifier.eval_every=30"]
+             "--set", "forward_classifier.eval_every=30",
+             "--set", "verify_flare_samples=20", "--set", "verify_flare_max_samples=20"]
     assert main(["train", "wide-22mm", "--paths", "192", "--keep", "regressor", "--out", str(tmp_path),
                  "--no-progress", "--quiet"] + small) == 0
-    new = load_model(str(tmp_path / "wide-22mm.model.safetensors")).maps["forward.192"]
+    model = load_model(str(tmp_path / "wide-22mm.model.safetensors"))
+    new = model.maps["forward.192"]
     old = load_model(bundled_model_path("wide-22mm")).maps["forward.192"]
     for (W, b), (W0, b0) in zip(new.regressor, old.regressor):
         np.testing.assert_array_equal(W, W0)
         np.testing.assert_array_equal(b, b0)
     assert new.training["kept"]["network"] == "regressor" and new.training["classifier_steps"] == 60
     assert new.metrics["regressor"]["position_um_median"] < 3.0
+    # the run ended by verifying the flare of the ghost it trained (a classifier of 60 steps: its learned edges
+    # miss the gate, so its record with the edges traced was measured too); the maps it carried over keep theirs
+    from mi_neurallens.flare.verify import flare_records
+    recs = flare_records(new.metrics)
+    assert [r["boundary_band"] for r in recs] == [0.0, 1.0] and recs[0]["paired_mape"] > 0.01
+    assert all(r["log2_samples"] == 20 and r["film"] == [240, 160] for r in recs)
+    assert recs[1]["paired_mape"] < recs[0]["paired_mape"]
+    assert model.maps["forward.288"].metrics["flare"] == old_288_flare
+    assert model.extra["training_time"]["flare_verification_seconds"] > 0
     # the output file now exists: another --keep run into it must say which model it builds on (an earlier
     # run's file is never taken silently), while a rerun of the same command resumes from the same base
     assert main(["train", "wide-22mm", "--paths", "288", "--keep", "regressor", "--out", str(tmp_path),

@@ -5,6 +5,9 @@ ranks the ghosts, trains every selected map (classifier, regressor and stop head
 the maps of one direction together, each network stopping at its goals) with checkpoints in
 ``<out>.work/`` (rerun the same command to resume after an interruption) and writes one model file
 ``<out>/<lens>.model.safetensors`` (atomically, after each direction's maps) with the held-out metrics.
+Last, each ghost map trained is rendered against the tracer and its verified flare error kept in the file
+(the learned edges', and with the edges traced for the ghosts those miss 0.01), which the flare's mode
+``auto`` reads to learn or trace each ghost (``--no-verify``: later, with ``mi-neurallens evaluate --flare``).
 ``--ray [ADDRESS]`` runs the maps of one or more lenses as jobs on Ray (training/distributed.py).
 """
 from __future__ import annotations
@@ -37,6 +40,10 @@ def add_parser(subparsers):
                    help="run the maps as jobs on Ray (the 'cluster' extra): a local instance, or the cluster at "
                         "ADDRESS (e.g. auto, ray://head:10001); one GPU per job when the cluster has GPUs")
     p.add_argument("--jobs", type=int, default=4, help="with --ray: forward-map jobs per lens (default 4)")
+    p.add_argument("--no-verify", action="store_true",
+                   help="skip the flare verification that ends a run (each ghost map trained rendered against the "
+                        "tracer, its record kept in the model file for the flare's mode auto; the verify_flare "
+                        "settings); `mi-neurallens evaluate MODEL --flare --write` does it later")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--quiet", action="store_true", help="no per-evaluation log lines")
     p.set_defaults(func=run)
@@ -71,6 +78,8 @@ def run(args):
     for lens in lenses:
         cfg_path = args.config or default_config_path(lens.name)
         cfg = load_config(cfg_path, lens=lens.name, overrides=_overrides(args.sets))
+        if args.no_verify:
+            cfg.verify_flare = False
         out_dir = args.out or os.path.dirname(bundled_model_path(lens.name))
         outs.append(os.path.join(out_dir, f"{lens.name}.model.safetensors"))
         cfgs.append(cfg)

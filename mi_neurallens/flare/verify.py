@@ -25,6 +25,8 @@ ghost, uses the learned map with the narrowest band whose record passes, or the 
 """
 from __future__ import annotations
 
+import time
+
 #: light positions (m; x, y at z = 5 m in front of the lens): the night scene's (10° / 5° off axis) and one
 #: near the axis, where the ghosts overlap most and the maps' errors showed most (docs/results.md)
 LIGHTS = ((0.9, 0.45), (0.15, 0.1))
@@ -159,16 +161,20 @@ def verify_model(model_path, lens=None, *, ghosts=None, lights=LIGHTS, samples_l
         raise ModelError(f"{model_path} has no forward map for {missing} to verify; its ghost maps are "
                          f"{model.ghost_ids}")
     per = {pid: [] for pid in ids}
+    t0, done, total = time.perf_counter(), 0, len(lights) * len(ids)
     for light in lights:
         scene = verification_scene(lens, model_path, light, film)
         for k, pid in enumerate(ids):
             r = refine_paired(lambda l2: paired_flare_error(scene, pid, 1 << l2, boundary_band=boundary_band),
                               samples_log2, max_log2, refine_above)
             per[pid].append(r)
+            done += 1
             if log:
                 m = " → ".join("no pixel" if v is None else f"{v:.4f} (2^{l2})" for l2, v in r["sequence"])
+                left = (time.perf_counter() - t0) * (total - done) / done
                 log(f"light {light}: ghost {pid} ({k + 1}/{len(ids)}) paired MAPE {m}"
-                    + ("" if r["converged"] or r["paired_mape"] is None else ", still falling"))
+                    + ("" if r["converged"] or r["paired_mape"] is None else ", still falling")
+                    + (f"; about {_duration(left)} left" if done < total else ""))
     out = {}
     for pid, rs in per.items():
         vals = [r["paired_mape"] for r in rs if r["paired_mape"] is not None]
@@ -184,4 +190,48 @@ def verify_model(model_path, lens=None, *, ghosts=None, lights=LIGHTS, samples_l
                     "protocol": "paired (same samples, pilot_with=exact), mask > 1 % of the exact ghost's peak; "
                                 f"refined with 4x the samples above {refine_above:g} until it falls by less than "
                                 f"{CONVERGED_DROP:g}"}
+    return out
+
+
+def _duration(seconds: float) -> str:
+    return f"{seconds:.0f} s" if seconds < 90 else f"{seconds / 60:.1f} min"
+
+
+def record_flare_errors(model_path, lens=None, *, ghosts=None, bands=(0.0, 1.0), samples_log2=SAMPLES_LOG2,
+                        max_log2=SAMPLES_LOG2, gate=None, log=print) -> dict:
+    """Verify the ghost maps ``ghosts`` (default: all) of the model file ``model_path`` and keep the records in it,
+    where mode ``auto`` reads them (:meth:`~mi_neurallens.flare.render.FlareRenderer.auto_choice`): every ghost
+    at ``bands[0]``, then each further band only for the ghosts whose records so far all miss ``gate`` (default:
+    the flare's ``auto_max_flare_error``) — so a ghost ends with the record of the narrowest band it passes at,
+    or with every band's when none passes (``auto`` then traces it).  What ``mi-neurallens evaluate MODEL --flare
+    --write`` (and ``--flare-boundary-band 1``) do, in one call; ``mi-neurallens train`` ends with it.
+    ``samples_log2`` / ``max_log2``: :func:`verify_model`'s.  The file is rewritten (atomically) after each band,
+    so an interruption keeps the bands done.  Returns {band: {path_id: record}}."""
+    import mitsuba as mi
+    from .options import FlareOptions
+    from ..neural.model import load_model
+    from ..render_utils import default_variant
+    if not mi.variant():
+        mi.set_variant(default_variant())
+    gate = FlareOptions.auto_max_flare_error if gate is None else float(gate)
+    todo = list(load_model(model_path).ghost_ids if ghosts is None else (int(g) for g in ghosts))
+    out = {}
+    for band in bands:
+        if not todo:
+            break
+        if log:
+            log(f"verifying the flare of {len(todo)} ghost map(s) against the tracer"
+                + (f" with their edges traced (boundary_band {band:g})" if band else " (their learned edges)")
+                + f": 2^{samples_log2} samples a render, {len(LIGHTS)} light positions")
+        res = verify_model(model_path, lens, ghosts=todo, samples_log2=samples_log2, max_log2=max_log2,
+                           refine_above=gate, boundary_band=band, log=log)
+        model = load_model(model_path)
+        for pid, rec in res.items():
+            store_flare_record(model.map(pid, "forward").metrics, rec)
+        model.save(model_path)
+        out[float(band)] = res
+        todo = [pid for pid in todo if res[pid]["paired_mape"] is not None and res[pid]["paired_mape"] > gate]
+        if log:
+            passed = sum(1 for r in res.values() if r["paired_mape"] is not None and r["paired_mape"] <= gate)
+            log(f"{passed} of {len(res)} within {gate:g}" + (f"; {len(todo)} above it" if todo else ""))
     return out

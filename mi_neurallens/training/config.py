@@ -164,12 +164,25 @@ class TrainConfig:
     forward_regressor: dict = field(default_factory=lambda: dict(FORWARD_REGRESSOR))
     forward_classifier: dict = field(default_factory=lambda: dict(FORWARD_CLASSIFIER))
     forward_stop: dict = field(default_factory=lambda: dict(FORWARD_STOP))
+    # after training: each ghost map trained verified against the tracer (flare.verify.record_flare_errors) and the
+    # record kept in the model file, where the flare's mode auto reads it to choose, ghost by ghost, its learned map
+    # (at the narrowest boundary band that passes) or the tracer.  Not part of what a map is trained with (digest)
+    verify_flare: bool = True
+    verify_flare_bands: list = field(default_factory=lambda: [0.0, 1.0])  # band 0 (the learned edges) for every
+                                        # ghost, each further band only for the ghosts the bands before leave above
+                                        # the gate (auto_max_flare_error, 0.01)
+    verify_flare_samples: int = 24      # log2 samples of each render pair, per light position
+    verify_flare_max_samples: int = 24  # a ghost above the gate is rendered again with 4× the samples up to this
+                                        # (26: the converged protocol of `evaluate --flare`, ≈ 3× the time)
 
     def to_dict(self) -> dict:
         return asdict(self)
 
     def digest(self) -> str:
-        return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()[:12]
+        """What a map was trained with, as 12 hex digits (the ``verify_flare*`` settings, which change no map, left
+        out): a resumed run keeps the maps of an earlier one whose digest is its own."""
+        d = {k: v for k, v in self.to_dict().items() if not k.startswith("verify_flare")}
+        return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:12]
 
     def net(self, kind: str, direction: str) -> NetConfig:
         """The network settings of ``kind`` (``regressor``, ``classifier`` or ``stop``) for maps in

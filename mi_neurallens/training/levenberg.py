@@ -57,6 +57,30 @@ class RowFeed:
         return {k: (None if v is None else v[i:i + self.rows]) for k, v in self.buf.items()}
 
 
+def widen(layers, width: int, rng) -> list:
+    """The tanh MLP ``layers`` ([(W (out, in), b), …], the last the output layer) with every hidden layer
+    ``width`` units wide, computing exactly the same function: each new unit takes random inputs (N(0, 1/fan-in),
+    the usual initialisation) and feeds nothing yet — its outgoing weights, and the old units' weights from it,
+    are zero.  What the finish then starts from when a map's network is too small for its goals: the optimum it
+    reached, with room (the Jacobian of the zero outgoing weights is the new units' activations, so the first
+    damped step already uses them).  Layers at least ``width`` wide are kept as they are."""
+    out, prev_old, prev_new = [], None, None
+    for i, (W, b) in enumerate(layers):
+        W, b = np.asarray(W, np.float64), np.asarray(b, np.float64)
+        last = i == len(layers) - 1
+        n_out = W.shape[0] if last else max(W.shape[0], int(width))
+        n_in = W.shape[1] if prev_new is None else prev_new
+        W2 = np.zeros((n_out, n_in))
+        W2[:W.shape[0], :W.shape[1]] = W
+        if n_out > W.shape[0]:                 # the new units: random inputs from every unit before
+            W2[W.shape[0]:, :] = rng.normal(0.0, 1.0 / math.sqrt(n_in), (n_out - W.shape[0], n_in))
+        b2 = np.zeros(n_out)
+        b2[:len(b)] = b
+        out.append((W2, b2))
+        prev_old, prev_new = W.shape[0], n_out
+    return out
+
+
 def n_params(layers) -> int:
     """Weights and biases of ``layers`` ([(W (out, in), b (out,))])."""
     return int(sum(np.size(W) + np.size(b) for W, b in layers))

@@ -727,6 +727,24 @@ def _kept(base, network: str) -> dict:
     return out
 
 
+def _widened(kept: dict, nc: NetConfig, base, log) -> dict:
+    """A ``refine`` run's start: the network ``kept`` (:func:`_kept`) as it is, or, where ``nc`` asks for the same
+    number of hidden layers but wider ones (``--set forward_regressor.width=32`` on a 3×16 map), widened to
+    ``nc.width`` without changing what it computes (:func:`~mi_neurallens.training.levenberg.widen`), so the
+    finish continues from the optimum it had with room to go lower.  Any other architecture in ``nc`` is ignored:
+    refining keeps the base's."""
+    from .levenberg import widen
+    hidden = [W.shape[0] for W, _ in kept["layers"][:-1]]
+    if len(hidden) != nc.hidden or all(h >= nc.width for h in hidden):
+        return kept
+    rng = np.random.default_rng([int(base.path_id), int(nc.width)])
+    layers = widen(kept["layers"], nc.width, rng)
+    if log:
+        log(f"{base.key} widened", {"from": "x".join(map(str, hidden)), "to": f"{nc.hidden}x{nc.width}"})
+    return {**kept, "layers": layers, "config": {**kept.get("config", {}), "width": int(nc.width),
+                                                  "widened_from": hidden}}
+
+
 def _carry_history(result: dict, kept: dict) -> None:
     """A refined network's record: its configuration, activation and Adam history from the map it started
     from (``kept``, :func:`_kept`), then the Levenberg–Marquardt validations; samples and seconds add up."""
@@ -765,7 +783,7 @@ def _train_networks(train, problems, nc: NetConfig, net: str, ck, keys, cfg: Tra
     kw = dict(threads=cfg.threads, device=cfg.device, progress=progress, log=log)
     if refine_from is None:
         return train_sized(train, problems, nc, ck, net, **kw)
-    kept = [_kept(b, net) for b in refine_from]
+    kept = [_widened(_kept(b, net), nc, b, log) for b in refine_from]
     out = train(problems, _refining(nc, net, direction, refine_from), ckpt=ck(f"{net}-refine", keys),
                 start=kept, **kw)
     for r, k in zip(out, kept):
@@ -1030,7 +1048,12 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
 
     ``keep`` ("regressor", "classifier" or "both"): keep that network (both: train only the stop
     heads) of each selected map from the same map of the model file ``base_path`` (see
-    :func:`train_map`); the base model's maps that are not selected are carried over unchanged."""
+    :func:`train_map`); the base model's maps that are not selected are carried over unchanged.
+
+    Then, with ``cfg.verify_flare``, every selected ghost map without a verified flare record is rendered against
+    the tracer and its record kept in the file (:func:`~mi_neurallens.flare.verify.record_flare_errors`; the
+    ``verify_flare*`` settings): the model leaves training ready for the flare's mode ``auto``, which learns a
+    ghost only where its record passes."""
     from ..neural.model import NeuralLensModel, load_model
     from . import plan
     from ..transport.planning import select_ghosts
@@ -1132,4 +1155,34 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
             model.maps = {k: model.maps[k] for k in order if k in model.maps}
         model.save(out_path)
     model.save(out_path)
+    if cfg.verify_flare:
+        from ..flare.verify import flare_records, record_flare_errors
+        wanted = {f"{d}.{pid}" for pid, d, *_ in todo}
+        ghosts = [tm.path_id for k, tm in model.maps.items()
+                  if k in wanted and tm.direction == "forward" and tm.path_id != 0 and not flare_records(tm.metrics)]
+        if ghosts:
+            t_v = time.perf_counter()
+            record_flare_errors(out_path, _lens_spec(lens, workdir), ghosts=ghosts, bands=cfg.verify_flare_bands,
+                                samples_log2=cfg.verify_flare_samples,
+                                max_log2=max(cfg.verify_flare_max_samples, cfg.verify_flare_samples), log=say)
+            model = load_model(out_path, lens)
+            model.extra.setdefault("training_time", {})["flare_verification_seconds"] = time.perf_counter() - t_v
+            model.save(out_path)
+            say(f"verified the flares of {len(ghosts)} ghost map(s) in {minutes_text((time.perf_counter() - t_v) / 60)}; "
+                f"{minutes_text((time.perf_counter() - t_run) / 60)} since the start")
     return model
+
+
+def _lens_spec(lens, workdir: str) -> str:
+    """What the verification's ``neural_lens`` sensor loads as ``lens``: the lens as trained, written to
+    ``<workdir>/lens.json`` (a user's file, an imported Zemax design or a bundled lens alike), or its bundled name
+    where the written file would not read back as the same lens."""
+    from ..optics.prescription import Lens
+    path = os.path.join(workdir, "lens.json")
+    try:
+        lens.save(path)
+        if Lens.load(path).fingerprint() == lens.fingerprint():
+            return path
+    except Exception:                   # a lens the project format cannot hold: its name must do
+        pass
+    return lens.name
