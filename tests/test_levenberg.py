@@ -326,6 +326,28 @@ def test_trainer_finishes_small_networks_and_refines_a_model(tmp_path):
         train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, None, progress=False, keep="refine", base=adam)
 
 
+def test_widening_keeps_the_function_and_lets_the_finish_go_lower():
+    """``widen`` (what ``--keep refine`` does to a map configured wider than it is): the widened network computes
+    the same outputs to rounding, and the finish continues from there below where the narrow network had
+    stalled."""
+    from mi_neurallens.training.levenberg import widen
+    nc = types.SimpleNamespace(lm_rows=1024, lm_eval_every=10, stop_at_goals=True, patience=100)
+    narrow = SmoothMap()
+    small = polish(torch, narrow, random_layers([4, 3, 3, 2], seed=5), nc, seconds=1e9, max_iterations=120)
+    stalled = min(h["rms"] for h in narrow.state["history"])
+    wide = widen(small, 12, np.random.default_rng(0))
+    assert [W.shape for W, _ in wide] == [(12, 4), (12, 12), (2, 12)] and n_params(wide) > 3 * n_params(small)
+    a, b = FlatMLP(torch, small), FlatMLP(torch, wide)
+    X = narrow.Xv.double()
+    np.testing.assert_allclose(b.forward(b.flatten(wide), X).numpy(), a.forward(a.flatten(small), X).numpy(),
+                               rtol=0, atol=1e-12)
+    assert widen(wide, 8, np.random.default_rng(0))[1][0].shape == (12, 12)        # never narrower
+    again = SmoothMap()
+    polish(torch, again, wide, nc, seconds=1e9, max_iterations=40)
+    assert again.state["history"][0]["rms"] == pytest.approx(stalled, rel=1e-3)    # it starts where it stalled
+    assert min(h["rms"] for h in again.state["history"]) < 0.5 * stalled, (stalled, again.state["history"])
+
+
 def test_row_feed_hands_out_each_fresh_row_once_in_chunks():
     """The finish's rows come ROW_CHUNK iterations at a time from one ``fresh_rows`` call, in order, each row
     once; a chunk that does not divide evenly is not reused past its end."""

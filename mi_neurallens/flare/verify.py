@@ -198,15 +198,19 @@ def _duration(seconds: float) -> str:
 
 
 def record_flare_errors(model_path, lens=None, *, ghosts=None, bands=(0.0, 1.0), samples_log2=SAMPLES_LOG2,
-                        max_log2=SAMPLES_LOG2, gate=None, log=print) -> dict:
+                        max_log2=MAX_SAMPLES_LOG2, gate=None, log=print) -> dict:
     """Verify the ghost maps ``ghosts`` (default: all) of the model file ``model_path`` and keep the records in it,
     where mode ``auto`` reads them (:meth:`~mi_neurallens.flare.render.FlareRenderer.auto_choice`): every ghost
     at ``bands[0]``, then each further band only for the ghosts whose records so far all miss ``gate`` (default:
     the flare's ``auto_max_flare_error``) — so a ghost ends with the record of the narrowest band it passes at,
     or with every band's when none passes (``auto`` then traces it).  What ``mi-neurallens evaluate MODEL --flare
     --write`` (and ``--flare-boundary-band 1``) do, in one call; ``mi-neurallens train`` ends with it.
-    ``samples_log2`` / ``max_log2``: :func:`verify_model`'s.  The file is rewritten (atomically) after each band,
-    so an interruption keeps the bands done.  Returns {band: {path_id: record}}."""
+
+    Every band renders 2^``samples_log2`` samples; only the last band refines a ghost above the gate, up to
+    2^``max_log2`` (:func:`verify_model`), since a ghost an earlier band leaves above it is measured at the next
+    band anyway, and noise only ever raises the paired error: so a ghost is learned at a wider band, or traced,
+    where converged records would let it in narrower — never the other way.  The file is rewritten (atomically)
+    after each band, so an interruption keeps the bands done.  Returns {band: {path_id: record}}."""
     import mitsuba as mi
     from .options import FlareOptions
     from ..neural.model import load_model
@@ -219,12 +223,15 @@ def record_flare_errors(model_path, lens=None, *, ghosts=None, bands=(0.0, 1.0),
     for band in bands:
         if not todo:
             break
+        last = band == bands[-1]
         if log:
             log(f"verifying the flare of {len(todo)} ghost map(s) against the tracer"
                 + (f" with their edges traced (boundary_band {band:g})" if band else " (their learned edges)")
-                + f": 2^{samples_log2} samples a render, {len(LIGHTS)} light positions")
-        res = verify_model(model_path, lens, ghosts=todo, samples_log2=samples_log2, max_log2=max_log2,
-                           refine_above=gate, boundary_band=band, log=log)
+                + f": 2^{samples_log2} samples a render"
+                + (f" (up to 2^{max_log2} for a ghost above {gate:g})" if last and max_log2 > samples_log2 else "")
+                + f", {len(LIGHTS)} light positions")
+        res = verify_model(model_path, lens, ghosts=todo, samples_log2=samples_log2,
+                           max_log2=max_log2 if last else samples_log2, refine_above=gate, boundary_band=band, log=log)
         model = load_model(model_path)
         for pid, rec in res.items():
             store_flare_record(model.map(pid, "forward").metrics, rec)

@@ -172,8 +172,9 @@ class TrainConfig:
                                         # ghost, each further band only for the ghosts the bands before leave above
                                         # the gate (auto_max_flare_error, 0.01)
     verify_flare_samples: int = 24      # log2 samples of each render pair, per light position
-    verify_flare_max_samples: int = 24  # a ghost above the gate is rendered again with 4× the samples up to this
-                                        # (26: the converged protocol of `evaluate --flare`, ≈ 3× the time)
+    verify_flare_max_samples: int = 26  # at the last band a ghost above the gate is rendered again with 4× the
+                                        # samples up to this (the protocol of `evaluate --flare`); earlier bands
+                                        # are not refined: a ghost they leave above the gate goes to the next
 
     def to_dict(self) -> dict:
         return asdict(self)

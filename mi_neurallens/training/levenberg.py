@@ -64,7 +64,7 @@ def widen(layers, width: int, rng) -> list:
     are zero.  What the finish then starts from when a map's network is too small for its goals: the optimum it
     reached, with room (the Jacobian of the zero outgoing weights is the new units' activations, so the first
     damped step already uses them).  Layers at least ``width`` wide are kept as they are."""
-    out, prev_old, prev_new = [], None, None
+    out, prev_new = [], None
     for i, (W, b) in enumerate(layers):
         W, b = np.asarray(W, np.float64), np.asarray(b, np.float64)
         last = i == len(layers) - 1
@@ -77,7 +77,7 @@ def widen(layers, width: int, rng) -> list:
         b2 = np.zeros(n_out)
         b2[:len(b)] = b
         out.append((W2, b2))
-        prev_old, prev_new = W.shape[0], n_out
+        prev_new = n_out
     return out
 
 
