@@ -318,6 +318,15 @@ def test_trainer_finishes_small_networks_and_refines_a_model(tmp_path):
     for (W, b), (W0, b0) in zip(ref.stop_head.layers, adam.stop_head.layers):
         np.testing.assert_array_equal(W, W0)
         np.testing.assert_array_equal(b, b0)
+    # refine with a wider regressor configured: the map's 2×16 network is widened (the same function) and finished
+    wide_cfg = load_config(overrides={**over, "regressor": dict(over["regressor"], width=24, **fin),
+                                      "classifier": dict(over["classifier"], **fin)})
+    wid = train_map(lens, 0, "backward", z_rear, z_front, dom, wide_cfg, str(tmp_path / "w"), progress=False,
+                    eval_n=20000, keep="refine", base=adam)
+    assert [W.shape for W, _ in wid.regressor] == [(24, 4), (24, 24), (5, 24)]
+    assert [W.shape for W, _ in wid.classifier] == [W.shape for W, _ in adam.classifier]
+    assert wid.training["regressor"]["widened_from"] == [16, 16] and wid.training["regressor"]["width"] == 24
+    assert wid.metrics["regressor"]["position_um_median"] < 0.3 * ra["position_um_median"]
     # a rerun takes the finished networks from their checkpoints
     again = train_map(lens, 0, "backward", z_rear, z_front, dom, cfg_lm, str(tmp_path), progress=False, evaluate=False,
                       keep="refine", base=adam)
