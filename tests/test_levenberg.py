@@ -327,6 +327,19 @@ def test_trainer_finishes_small_networks_and_refines_a_model(tmp_path):
     assert [W.shape for W, _ in wid.classifier] == [W.shape for W, _ in adam.classifier]
     assert wid.training["regressor"]["widened_from"] == [16, 16] and wid.training["regressor"]["width"] == 24
     assert wid.metrics["regressor"]["position_um_median"] < 0.3 * ra["position_um_median"]
+    # refine-stop: only the stop head's finish, from its own weights widened to the configured width; the
+    # classifier and regressor are the base's, bit for bit
+    stop_cfg = load_config(overrides={**over, "stop": dict(over["stop"], width=24, lm_minutes=10.0, lm_iterations=30)})
+    rs = train_map(lens, 0, "backward", z_rear, z_front, dom, stop_cfg, None, progress=False, keep="refine-stop",
+                   base=adam)
+    assert [W.shape[0] for W, _ in rs.stop_head.layers] == [24, 24, rs.stop_head.layers[-1][0].shape[0]]
+    assert rs.stop_head.training["widened_from"] == [16, 16] and rs.stop_head.training["lm"]["iterations"] > 0
+    assert rs.metrics["stop"]["stop_um_median"] < adam.metrics["stop"]["stop_um_median"]
+    for (W, b), (W0, b0) in zip(rs.regressor + rs.classifier, adam.regressor + adam.classifier):
+        np.testing.assert_array_equal(W, W0)
+        np.testing.assert_array_equal(b, b0)
+    with pytest.raises(NeuralLensError, match="lm_minutes is 0"):
+        train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, None, progress=False, keep="refine-stop", base=adam)
     # a rerun takes the finished networks from their checkpoints
     again = train_map(lens, 0, "backward", z_rear, z_front, dom, cfg_lm, str(tmp_path), progress=False, evaluate=False,
                       keep="refine", base=adam)

@@ -29,10 +29,12 @@ def add_parser(subparsers):
                    help="override a config value, e.g. --set seed=3 --set regressor.max_steps=2000, --set flare_resolution=1024 "
                         "(looser flare-map goals), --set 'forward_regressor.sizes=[\"3x16\",\"5x32\"]' (the smallest "
                         "network that meets them) (JSON values)")
-    p.add_argument("--keep", choices=("regressor", "classifier", "both", "refine"),
+    p.add_argument("--keep", choices=("regressor", "classifier", "both", "refine", "refine-stop"),
                    help="keep this network of each selected map from --base and train the rest; 'both': train "
                         "only the stop heads (a render-time aperture for an existing model); 'refine': start "
-                        "both networks from --base and run only their Levenberg-Marquardt finish (lm_minutes)")
+                        "both networks from --base and run only their Levenberg-Marquardt finish (lm_minutes), "
+                        "each widened first where the config's width is larger; 'refine-stop': the same for the "
+                        "stop heads alone")
     p.add_argument("--base", help="model file the --keep networks come from (default: the bundled model of the "
                                   "lens; an existing output file other than it must be named, and a rerun "
                                   "that resumes takes the base of the run before)")
@@ -154,6 +156,7 @@ def _train_one(args, lens, cfg, out):
     if args.keep:
         base = _keep_base(args, lens, out)
         what = {"both": "classifiers and regressors (training stop heads only)",
+                "refine-stop": "classifiers and regressors, and their stop heads as the start of the finish",
                 "refine": "classifiers and regressors as the start of their Levenberg-Marquardt finish"}.get(
             args.keep, f"{args.keep}s")
         print(f"keeping the {what} of {base}", file=sys.stderr)

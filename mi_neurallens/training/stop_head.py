@@ -24,6 +24,7 @@ from .config import NetConfig
 from .data import PathSampler, RegressorStream
 from .evaluate import heldout_valid, stop_errors
 from .stacked import Problem
+from .levenberg import widen
 from .trainer import _torch, fit_output_transform, pick_device, polish_results
 
 
@@ -151,10 +152,18 @@ def train_stop_head(lens, tm, nc: NetConfig, *, seed: int, fresnel: bool = True,
 
 def train_stop_heads(lens, tms, nc: NetConfig, *, seeds, fresnel: bool = True, mcmc_threshold: float = 0.02,
                      n_val: int = 20_000, threads: int = 2, device: str = "auto", progress: bool = True,
-                     log=None, streams=None):
+                     log=None, streams=None, start=None):
     """The stop heads of the maps ``tms`` (all crossing the stop plane the same number of times, on one
     domain), trained as one stack (:func:`~mi_neurallens.training.stacked.train_stack`); a list of
-    :class:`~mi_neurallens.neural.model.StopHead` in the order of ``tms``."""
+    :class:`~mi_neurallens.neural.model.StopHead` in the order of ``tms``.
+
+    ``start``: one :class:`~mi_neurallens.neural.model.StopHead` per map to refine instead — no Adam, only the
+    Levenberg–Marquardt finish (``nc.lm_minutes``, which must be > 0) from its weights and output transform, its
+    hidden layers first widened to ``nc.width`` where that is wider and the layer count is ``nc.hidden``
+    (:func:`~mi_neurallens.training.levenberg.widen`: the same function, with room)."""
+    if start is not None and nc.lm_minutes <= 0:
+        raise NeuralLensError("refining stop heads runs only the Levenberg–Marquardt finish, and its lm_minutes is "
+                              "0: give it time, e.g. --set forward_stop.lm_minutes=1.5")
     from ..neural.model import StopHead
     from .stacked import pool_rows, train_stack
     torch = _torch(threads)
@@ -179,10 +188,18 @@ def train_stop_heads(lens, tms, nc: NetConfig, *, seeds, fresnel: bool = True, m
         _, x0, y0 = stream.sample(pool_rows(nc, len(tms), 4 * (4 + 2 * k)))
         s0 = y0[:, 5:]
         xn0 = (x0 - center) / scale_in
-        tr = fit_output_transform(xn0, s0, "linear", odd_columns(x0[:, 2], s_max, k))
+        if start is None:
+            tr = fit_output_transform(xn0, s0, "linear", odd_columns(x0[:, 2], s_max, k))
+        else:
+            if start[j].crossings != k:
+                raise NeuralLensError(f"map {tm.key}: the stop head to refine has {start[j].crossings} crossings, "
+                                      f"the path {k}")
+            tr = tuple(np.asarray(v, np.float64) for v in (start[j].skip, start[j].out_shift, start[j].out_scale))
         transforms.append(tr)
         state = {"step": 0, "best_val": math.inf, "best_step": 0, "history": [], "evals_since_best": 0,
                  "seconds": 0.0, "samples": 0}
+        if start is not None:
+            state.update(step=int(start[j].training.get("steps", 0)), refined=True)
         fits.append(StopFit(torch, dev, None, stream, (xv, yv[:, 5:]), (x0, s0), center=center, scale_in=scale_in,
                             s_max=s_max, k=k, transform=tr, state=state,
                             nc=nc, log=log, desc=f"{tm.key} stop head"))
@@ -190,8 +207,21 @@ def train_stop_heads(lens, tms, nc: NetConfig, *, seeds, fresnel: bool = True, m
         raise NeuralLensError(f"train_stop_heads: one stack needs one crossing count, got {sorted(ks)}")
     k = ks.pop()
     keys = [tm.key for tm in tms]
-    res = train_stack(torch, dev, fits, nc, seeds=seeds, n_in=4, n_out=2 * k, keys=keys, progress=progress,
-                      desc=f"stop heads ×{len(tms)}" if len(tms) > 1 else f"{keys[0]} stop head", log=log)
+    if start is None:
+        res = train_stack(torch, dev, fits, nc, seeds=seeds, n_in=4, n_out=2 * k, keys=keys, progress=progress,
+                          desc=f"stop heads ×{len(tms)}" if len(tms) > 1 else f"{keys[0]} stop head", log=log)
+    else:
+        res = []
+        for tm, head, f in zip(tms, start, fits):
+            layers = [(np.asarray(W, np.float64), np.asarray(b, np.float64)) for W, b in head.layers]
+            hidden = [W.shape[0] for W, _ in layers[:-1]]
+            if len(hidden) == nc.hidden and any(h < nc.width for h in hidden):
+                layers = widen(layers, nc.width, np.random.default_rng([int(tm.path_id), int(nc.width), 7]))
+                f.state["widened_from"] = hidden
+                if log:
+                    log(f"{tm.key} stop head widened", {"from": "x".join(map(str, hidden)),
+                                                        "to": f"{nc.hidden}x{nc.width}"})
+            res.append({"layers": layers, "state": f.state})
     polish_results(torch, fits, res, nc, keys, log=log, progress=progress)
     out = []
     for r, (skip, shift, oscale), seed in zip(res, transforms, seeds):
@@ -201,6 +231,10 @@ def train_stop_heads(lens, tms, nc: NetConfig, *, seeds, fresnel: bool = True, m
                     "wall_seconds": time.perf_counter() - t0, "stacked_with": len(tms), "history": st["history"]}
         if st.get("lm"):
             training["lm"] = st["lm"]
+        if start is not None:
+            training["refined_from"] = {k_: start[len(out)].training.get(k_) for k_ in ("steps", "seconds", "config")}
+            if st.get("widened_from"):
+                training["widened_from"] = st["widened_from"]
         out.append(StopHead(crossings=k, layers=r["layers"], skip=skip, out_scale=oscale, out_shift=shift,
                             activation=nc.activation, odd_y=True, training=training))
     return out

@@ -681,9 +681,10 @@ def calibrate_classifier(lens, tm, n: int = 200_000, seed: int = 0, fresnel: boo
 
 # ----------------------------------------------------------------------------- one map
 #: what :func:`train_map` can keep from an earlier map instead of training it: one network, or
-#: ``"both"`` (train only the stop head), or ``"refine"`` (start both networks from it and run only the
-#: Levenberg–Marquardt finish, ``lm_minutes`` per network)
-NETWORKS = ("regressor", "classifier", "both", "refine")
+#: ``"both"`` (train only the stop head), ``"refine"`` (start both networks from it and run only the
+#: Levenberg–Marquardt finish, ``lm_minutes`` per network), or ``"refine-stop"`` (keep both networks and run only
+#: the finish of its stop head, from the base's)
+NETWORKS = ("regressor", "classifier", "both", "refine", "refine-stop")
 
 
 def _check_keep(keep: str | None, base, path_id: int, direction: str, z_in: float, z_out: float, domain: Domain):
@@ -840,8 +841,9 @@ def train_map(lens, path_id: int, direction: str, z_in: float, z_out: float, dom
     without paying for (or changing) its regressor.  The kept network's training record is carried over
     under ``training["kept"]``."""
     _check_keep(keep, base, path_id, direction, z_in, z_out, domain)
-    if keep == "both":
-        return _add_stop_heads(lens, [base], cfg, [map_seed(cfg, path_id, direction)], progress, log)[0]
+    if keep in ("both", "refine-stop"):
+        return _add_stop_heads(lens, [base], cfg, [map_seed(cfg, path_id, direction)], progress, log,
+                               refine=keep == "refine-stop")[0]
     return train_maps(lens, [(path_id, direction, z_in, z_out, domain)], cfg, workdir, progress=progress, log=log,
                       evaluate=evaluate, eval_n=eval_n, keep=keep, bases=None if base is None else [base])[0]
 
@@ -863,8 +865,9 @@ def train_maps(lens, specs, cfg: TrainConfig, workdir: str | None = None, progre
     direction = dirs.pop()
     for j, (p, d, zi, zo, dom) in enumerate(specs):
         _check_keep(keep, None if bases is None else bases[j], p, d, zi, zo, dom)
-    if keep == "both":
-        return _add_stop_heads(lens, bases, cfg, [map_seed(cfg, p, d) for p, d, *_ in specs], progress, log)
+    if keep in ("both", "refine-stop"):
+        return _add_stop_heads(lens, bases, cfg, [map_seed(cfg, p, d) for p, d, *_ in specs], progress, log,
+                               refine=keep == "refine-stop")
     keys = [f"{d}.{p}" for p, d, *_ in specs]
     seeds = [map_seed(cfg, p, d) for p, d, *_ in specs]
     rc, cc = cfg.net("regressor", direction), cfg.net("classifier", direction)
@@ -943,10 +946,11 @@ def train_maps(lens, specs, cfg: TrainConfig, workdir: str | None = None, progre
     return tms
 
 
-def _stop_heads_of(lens, tms, cfg: TrainConfig, seeds, progress: bool, log, bases=None) -> list:
+def _stop_heads_of(lens, tms, cfg: TrainConfig, seeds, progress: bool, log, bases=None, refine: bool = False) -> list:
     """The stop heads of ``tms`` trained with ``cfg.stop`` — one stack per stop-crossing count; None for a
     map whose path never crosses the stop plane, or all None when ``stop.max_minutes = 0``.  With
-    ``bases``, a stop head the base map has is kept."""
+    ``bases``, a stop head the base map has is kept.  ``refine``: each map's own stop head (``tms[j].stop_head``)
+    is the start of only the finish (:func:`~mi_neurallens.training.stop_head.train_stop_heads`' ``start``)."""
     from ..transport.exact import ExactMap
     out = [None] * len(tms)
     if not tms:
@@ -964,21 +968,27 @@ def _stop_heads_of(lens, tms, cfg: TrainConfig, seeds, progress: bool, log, base
     for k, idx in groups.items():
         heads = train_stop_heads(lens, [tms[j] for j in idx], nc, seeds=[seeds[j] + 17 for j in idx],
                                  fresnel=cfg.fresnel, mcmc_threshold=cfg.mcmc_threshold, threads=cfg.threads,
-                                 device=cfg.device, progress=progress, log=log)
+                                 device=cfg.device, progress=progress, log=log,
+                                 start=[tms[j].stop_head for j in idx] if refine else None)
         for j, h in zip(idx, heads):
             out[j] = h
     return out
 
 
-def _add_stop_heads(lens, bases, cfg: TrainConfig, seeds, progress: bool, log) -> list:
+def _add_stop_heads(lens, bases, cfg: TrainConfig, seeds, progress: bool, log, refine: bool = False) -> list:
     """``keep = "both"``: ``bases`` with new stop heads, trained together as in a whole run (one stack per
     stop-crossing count, :func:`_stop_heads_of`), each with its held-out stop metrics; the classifiers,
-    regressors and their metrics are unchanged."""
+    regressors and their metrics are unchanged.  ``refine`` (``keep = "refine-stop"``): each base's stop head
+    through the finish again instead, widened first where the config's ``stop`` width asks."""
     import dataclasses
     from .evaluate import heldout_valid, stop_errors
     if bases and cfg.net("stop", bases[0].direction).max_minutes <= 0:
         raise NeuralLensError("--keep both trains only stop heads, and stop.max_minutes = 0 asks for none")
-    heads = _stop_heads_of(lens, bases, cfg, seeds, progress, log)
+    if refine:
+        bare = [b.key for b in bases if b.stop_head is None]
+        if bare:
+            raise NeuralLensError(f"--keep refine-stop: {bare} have no stop head to refine; --keep both trains one")
+    heads = _stop_heads_of(lens, bases, cfg, seeds, progress, log, refine=refine)
     out = []
     for base, head, seed in zip(bases, heads, seeds):
         if head is None:
