@@ -24,13 +24,9 @@ sys.path.insert(0, ROOT)
 
 
 def auto_band(metrics, gate=0.01):
-    """The narrowest band whose record passes the gate (``FlareRenderer.map_band`` at ``boundary_band = 0``), or
-    None: traced."""
-    from mi_neurallens.flare.verify import flare_records, record_band
-    for r in flare_records(metrics):
-        if r.get("paired_mape") is not None and r["paired_mape"] <= gate:
-            return record_band(r)
-    return None
+    """The band ``auto`` renders the ghost with at ``boundary_band = 0`` from these records, or None: traced."""
+    from mi_neurallens.flare.verify import flare_records, passing_band
+    return passing_band(flare_records(metrics), 0.0, gate)
 
 
 def main(argv=None):

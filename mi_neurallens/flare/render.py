@@ -402,7 +402,7 @@ class FlareRenderer:
         narrowest wider band whose record passes is the one this ghost is rendered with (its edges traced,
         what the record measured), so a ghost whose learned edges miss the gate is still learned where the
         tracer at its edges brings it within.  No record: this render's band."""
-        from .verify import flare_records, record_band
+        from .verify import flare_records, passing_band, record_band
         err_um = (tm.metrics.get("regressor") or {}).get("position_um_median")
         lim_um = self.opts.auto_max_error_px * 1000.0 * self.setup.sensor_width_mm / self.size[0]
         if err_um is None:
@@ -414,15 +414,9 @@ class FlareRenderer:
         if not recs:
             return own, None
         lim = self.opts.auto_max_flare_error
-
-        def passes(r):
-            return r.get("paired_mape") is not None and r["paired_mape"] <= lim
-
-        if any(passes(r) for r in recs if record_band(r) <= own):
-            return own, None
-        wider = [r for r in recs if record_band(r) > own and passes(r)]
-        if wider:
-            return record_band(wider[0]), None
+        band = passing_band(recs, own, lim)
+        if band is not None:
+            return band, None
         r = recs[-1]                           # the widest band measured: the best the map can do
         at = f" (boundary_band {record_band(r):g})" if record_band(r) > 0 else ""
         if r.get("paired_mape") is None:

@@ -58,6 +58,18 @@ def flare_records(metrics) -> list:
     return sorted(recs, key=record_band)
 
 
+def passing_band(records, band: float, gate: float):
+    """The ``boundary_band`` mode ``auto`` renders a ghost with, from its verified ``records`` (:func:`flare_records`)
+    and the render's own ``band``: ``band`` where a record measured within it passes ``gate`` (its paired MAPE at
+    most the gate), else the narrowest wider band whose record passes, else None (no record passes: traced)."""
+    def passes(r):
+        return r.get("paired_mape") is not None and r["paired_mape"] <= gate
+    if any(passes(r) for r in records if record_band(r) <= band):
+        return band
+    wider = [record_band(r) for r in records if record_band(r) > band and passes(r)]
+    return min(wider) if wider else None
+
+
 def store_flare_record(metrics, rec):
     """Keep ``rec`` in a map's ``metrics`` beside its records of other bands (:func:`flare_records`): band 0
     replaces ``metrics["flare"]``, a band > 0 the record of that band in ``metrics["flare_bands"]``, so one map

@@ -81,6 +81,17 @@ def widen(layers, width: int, rng) -> list:
     return out
 
 
+def widen_as_configured(layers, hidden: int, width: int, seed) -> tuple:
+    """What ``refine`` starts from (regressors, classifiers, stop heads alike): ``(layers widened to width,
+    the hidden widths before)`` where ``layers`` has ``hidden`` hidden layers and one of them is narrower than
+    ``width`` (:func:`widen`, random inputs from ``numpy.random.default_rng(seed)``), else ``(layers, None)``:
+    any other architecture asked for is not the one refining keeps."""
+    before = [np.shape(W)[0] for W, _ in layers[:-1]]
+    if len(before) != int(hidden) or all(h >= int(width) for h in before):
+        return layers, None
+    return widen(layers, width, np.random.default_rng(seed)), before
+
+
 def n_params(layers) -> int:
     """Weights and biases of ``layers`` ([(W (out, in), b (out,))])."""
     return int(sum(np.size(W) + np.size(b) for W, b in layers))

@@ -24,7 +24,7 @@ from .config import NetConfig
 from .data import PathSampler, RegressorStream
 from .evaluate import heldout_valid, stop_errors
 from .stacked import Problem
-from .levenberg import widen
+from .levenberg import widen_as_configured
 from .trainer import _torch, fit_output_transform, pick_device, polish_results
 
 
@@ -214,9 +214,8 @@ def train_stop_heads(lens, tms, nc: NetConfig, *, seeds, fresnel: bool = True, m
         res = []
         for tm, head, f in zip(tms, start, fits):
             layers = [(np.asarray(W, np.float64), np.asarray(b, np.float64)) for W, b in head.layers]
-            hidden = [W.shape[0] for W, _ in layers[:-1]]
-            if len(hidden) == nc.hidden and any(h < nc.width for h in hidden):
-                layers = widen(layers, nc.width, np.random.default_rng([int(tm.path_id), int(nc.width), 7]))
+            layers, hidden = widen_as_configured(layers, nc.hidden, nc.width, [int(tm.path_id), int(nc.width), 7])
+            if hidden is not None:
                 f.state["widened_from"] = hidden
                 if log:
                     log(f"{tm.key} stop head widened", {"from": "x".join(map(str, hidden)),

@@ -734,12 +734,10 @@ def _widened(kept: dict, nc: NetConfig, base, log) -> dict:
     ``nc.width`` without changing what it computes (:func:`~mi_neurallens.training.levenberg.widen`), so the
     finish continues from the optimum it had with room to go lower.  Any other architecture in ``nc`` is ignored:
     refining keeps the base's."""
-    from .levenberg import widen
-    hidden = [W.shape[0] for W, _ in kept["layers"][:-1]]
-    if len(hidden) != nc.hidden or all(h >= nc.width for h in hidden):
+    from .levenberg import widen_as_configured
+    layers, hidden = widen_as_configured(kept["layers"], nc.hidden, nc.width, [int(base.path_id), int(nc.width)])
+    if hidden is None:
         return kept
-    rng = np.random.default_rng([int(base.path_id), int(nc.width)])
-    layers = widen(kept["layers"], nc.width, rng)
     if log:
         log(f"{base.key} widened", {"from": "x".join(map(str, hidden)), "to": f"{nc.hidden}x{nc.width}"})
     return {**kept, "layers": layers, "config": {**kept.get("config", {}), "width": int(nc.width),
