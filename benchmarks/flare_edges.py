@@ -45,6 +45,9 @@ def main(argv=None):
     ap.add_argument("--combined-only", action="store_true", help="only the row with all listed ghosts together")
     ap.add_argument("--boundary-band", type=float, default=0.0,
                     help="the learned renders' boundary_band (samples at a classifier's edge traced exactly)")
+    ap.add_argument("--iris-band", type=float, default=None,
+                    help="the learned renders' iris_band (samples at the iris's edge traced exactly; default: "
+                         "--boundary-band)")
     ap.add_argument("--attribute", action="store_true",
                     help="also render the two hybrids (exact validity + learned exit rays, learned validity + exact "
                          "exit rays) that split the error between the regressor and the classifier")
@@ -69,7 +72,8 @@ def main(argv=None):
     rows = []
     for g in ([] if a.combined_only else ghosts) + (["all"] if a.combined or a.combined_only else []):
         gl = ghosts if g == "all" else [g]
-        ex, ne = paired_renders(scene, gl, n, seed=1, boundary_band=a.boundary_band)   # `evaluate --flare`'s protocol
+        ex, ne = paired_renders(scene, gl, n, seed=1, boundary_band=a.boundary_band,
+                                iris_band=a.iris_band)   # `evaluate --flare`'s protocol
         rel, mask = flare_error_map(ne, ex)
         if not mask.any():      # the stop blocks this ghost entirely (or it leaves the film): nothing to compare
             rows.append(dict(ghost=g, log2_samples=a.samples, pixels=0,
@@ -102,6 +106,7 @@ def main(argv=None):
             line += (f"; independent vs a 2^{a.reference} exact reference: neural {row['independent']:.4f}, "
                     f"exact (noise floor) {row['exact_floor']:.4f}")
         row["boundary_band"] = a.boundary_band
+        row["iris_band"] = a.boundary_band if a.iris_band is None else a.iris_band
         rows.append(row)
         print(f"{a.lens} ghost {g}{' '.join([''] + a.sets)}, 2^{a.samples} samples, paired: MAPE {row['mape']:.4f} over {row['pixels']} px; "
               f"interior {row['interior']:.4f} ({row['interior_pixels']} px), edge {row['edge']:.4f} "

@@ -80,6 +80,18 @@ def test_evaluate_flare_write_records_the_verified_error(tmp_path):
     assert met["flare"] == rec and met["flare_bands"]["1"]["boundary_band"] == 1.0
     assert "flare, band 1" in mp.read_text()
     assert main(["evaluate", str(f), "--recorded", "--flare", "--flare-ghosts", "999"]) == 1
+    # --flare-cost times the ghost against the tracer where a record lets auto learn it: kept with --write only
+    before = f.read_bytes()
+    assert main(["evaluate", str(f), "--recorded", "--flare-cost", "--flare-cost-samples", "14", "--json", str(jp),
+                 "--markdown", str(mp)]) == 0
+    assert f.read_bytes() == before
+    assert main(["evaluate", str(f), "--recorded", "--flare-cost", "--flare-cost-samples", "14", "--write",
+                 "--json", str(jp), "--markdown", str(mp)]) == 0
+    met = load_model(f).map(2560, "forward").metrics
+    passes = any(r["paired_mape"] <= 0.01 for r in (met["flare"], met["flare_bands"]["1"]))
+    assert ("flare_cost" in met) == passes and met["flare"] == rec
+    if passes:
+        assert met["flare_cost"]["samples_log2"] == 14 and met["flare_cost"]["exact_us"] > 0
 
 
 def test_accuracy_command_writes_reports(tmp_path):
@@ -107,7 +119,8 @@ def test_train_command_keeps_the_bundled_regressor(tmp_path, capsys):
     small = ["--set", "heldout=5000", "--set", "forward_classifier.max_steps=60",
              "--set", "forward_classifier.pool=60000", "--set", "forward_classifier.batch=2048",
              "--set", "forward_classifier.eval_every=30",
-             "--set", "verify_flare_samples=20", "--set", "verify_flare_max_samples=20"]
+             "--set", "verify_flare_samples=20", "--set", "verify_flare_max_samples=20",
+             "--set", "verify_flare_cost_samples=16"]
     assert main(["train", "wide-22mm", "--paths", "192", "--keep", "regressor", "--out", str(tmp_path),
                  "--no-progress", "--quiet"] + small) == 0
     model = load_model(str(tmp_path / "wide-22mm.model.safetensors"))
@@ -125,6 +138,11 @@ def test_train_command_keeps_the_bundled_regressor(tmp_path, capsys):
     assert [r["boundary_band"] for r in recs] == [0.0, 1.0] and recs[0]["paired_mape"] > 0.01
     assert all(r["log2_samples"] == 20 and r["film"] == [240, 160] for r in recs)
     assert recs[1]["paired_mape"] < recs[0]["paired_mape"]
+    # then timed against tracing it, where a record lets auto learn it (the cost auto_max_cost reads)
+    passes = any(r["paired_mape"] is not None and r["paired_mape"] <= 0.01 for r in recs)
+    assert ("flare_cost" in new.metrics) == passes
+    if passes:
+        assert new.metrics["flare_cost"]["exact_us"] > 0 and new.metrics["flare_cost"]["samples_log2"] == 16
     assert model.maps["forward.288"].metrics["flare"] == old_288_flare
     assert model.extra["training_time"]["flare_verification_seconds"] > 0
     # the output file now exists: another --keep run into it must say which model it builds on (an earlier

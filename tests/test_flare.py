@@ -1,6 +1,7 @@
 """The lens_flare integrator: radiometry, energy, symmetry, options and errors."""
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 
@@ -589,3 +590,87 @@ def test_flare_edges_attribution_runs_on_the_evaluators_as_they_are(tmp_path):
     row = json.loads(out.read_text())["rows"][0]
     assert row["pixels"] > 0 and row["boundary_band"] == 1.0
     assert 0 <= row["regressor"]["mape"] < 1 and 0 <= row["classifier"]["mape"] < 1
+
+
+def test_iris_band_traces_the_iris_edges_exactly():
+    """``iris_band``: a learned ghost rendered through another iris than the trained one tests the iris on its
+    predicted stop-plane crossings; a sample whose crossing lies within iris_band × 3 × its stop head's p99 error of
+    the iris's edge is traced instead.  On the 22 mm lens at 4× its widest f-number with 6 blades, ghost 66048's
+    error is that polygon's edge (0.033 paired at 2^24): with the band it falls below half (a quarter at 2^24), tracing a few
+    per cent of its samples.  ``auto`` traces the iris's edge by default (its records were measured wide open),
+    ``neural`` with ``boundary_band``."""
+    from mi_neurallens.commands.render import load_scene
+    from mi_neurallens.flare.render import iris_band_mm
+    from mi_neurallens.flare.verify import paired_renders
+    from mi_neurallens.metrics import flare_error_map
+    pid = 66048
+    scene = load_scene(os.path.join(ROOT, "scenes", "night_point.xml"), variant=mi.variant(), lens="wide-22mm",
+                       sensor_type="neural_lens", sets=["model=wide-22mm", "fstop=10.74", "blades=6"])
+    err, imgs = {}, {}
+    for band in (0.0, 1.0):
+        ex, imgs[band] = paired_renders(scene, [pid], 1 << 22, iris_band=band)
+        rel, mask = flare_error_map(imgs[band], ex)
+        err[band] = float(rel[mask].mean())
+    assert err[0.0] > 0.025 and err[1.0] < err[0.0] / 2, err       # 0.037 → 0.014 (0.033 → 0.009 at 2^24)
+    r = render_flare(scene, 0, seed=1, ghosts=[pid], samples=1 << 20, mode="neural", pilot_with="exact", iris_band=1.0)
+    st = [s for s in r.stats if s.path_id == pid][0]
+    assert 0.005 < st.traced / st.samples < 0.15, st
+    # the band's width: 3 × the stop head's p99 crossing error, only where an iris is tested at render time
+    fr = FlareRenderer(scene, 0, FlareOptions(ghosts=[pid], mode="neural"))
+    tm = fr.evaluator(pid).map
+    p99 = tm.metrics["stop"]["stop_um_p99"]
+    assert iris_band_mm(tm, 1.0) == pytest.approx(3e-3 * p99) and iris_band_mm(tm, 0.0) == 0.0
+    assert iris_band_mm(dataclasses.replace(tm, iris=None), 1.0) == 0.0
+    assert fr.iris_band(0.0) == 0.0 and fr.iris_band(1.0) == 1.0
+    assert FlareRenderer(scene, 0, FlareOptions(ghosts=[pid])).iris_band(0.0) == 1.0          # auto
+    assert FlareRenderer(scene, 0, FlareOptions(ghosts=[pid], iris_band=0.0)).iris_band(0.0) == 0.0
+    with pytest.raises(NeuralLensError, match="iris_band"):
+        FlareOptions(iris_band=-1.0).validate()
+
+
+def test_auto_learns_a_ghost_only_where_it_costs_less_than_tracing_it(tmp_path):
+    """Where the model file records what a learned ghost costs against tracing it (``metrics["flare_cost"]``,
+    measured on a backend), mode auto learns the ghost only if its cost per sample, at the band it would render it
+    with, is at most ``auto_max_cost`` × the tracer's; a cost measured on another backend or at another band does
+    not decide.  :func:`record_flare_costs` times real renders and keeps them in the file, for the ghosts auto may
+    learn (a ghost no record lets in is skipped)."""
+    import shutil
+    from mi_neurallens.flare.verify import learned_cost_ratio, record_flare_costs, variant_backend
+    m, why = _model_with_ghost()
+    if m is None:
+        pytest.skip(why)
+    pid = 2560
+    base = {k: v for k, v in m.map(pid, "forward").metrics.items() if k not in ("flare", "flare_bands", "flare_cost")}
+    scene = make_scene(point((0.3, 0.2, 5.0)), w=240, h=160)
+
+    def choice(learned, band="0", backend=None, err=0.005, **kw):
+        met = {**base, "flare": {"paired_mape": err},
+               "flare_cost": {"exact_us": 0.2, "learned_us": {band: learned}, "backend": backend or variant_backend()}}
+        model = _with_map_change(m, pid, metrics=met)
+        return FlareRenderer(scene, 0, FlareOptions(model=model, ghosts=[pid], **kw)).auto_choice(pid)
+
+    assert choice(0.1) == (0.0, None)                                   # half the tracer's cost: learned
+    assert choice(0.3) == (None, f"learned, it costs 1.50× tracing it, above auto_max_cost 1 (measured on "
+                                 f"{variant_backend()})")
+    assert choice(0.3, auto_max_cost=2.0) == (0.0, None)
+    assert choice(0.3, auto_max_cost=float("inf")) == (0.0, None)
+    assert choice(0.3, backend="elsewhere") == (0.0, None)              # measured on another backend: not known here
+    assert choice(0.3, band="1") == (0.0, None)                         # measured at another band
+    assert choice(0.1, err=0.05)[0] is None                             # cheap but not accurate: traced
+    with pytest.raises(NeuralLensError, match="auto_max_cost"):
+        FlareOptions(auto_max_cost=0.0).validate()
+    # measured: a copy of the model, one ghost auto may learn and one whose record fails the gate
+    path = tmp_path / "m.model.safetensors"
+    shutil.copy(MODEL, path)
+    bad = next(g for g in m.ghost_ids if g != pid)
+    mm = nl.neural.model.load_model(path)
+    mm.map(pid, "forward").metrics["flare"] = {"paired_mape": 0.005}
+    mm.map(bad, "forward").metrics.update(flare={"paired_mape": 0.05}, flare_bands={})
+    mm.save(path)
+    out = record_flare_costs(path, "wide-22mm", ghosts=[pid, bad], samples_log2=16, log=None)
+    assert set(out) == {pid}
+    c = nl.neural.model.load_model(path).map(pid, "forward").metrics["flare_cost"]
+    assert c["exact_us"] > 0 and c["learned_us"]["0"] > 0 and c["backend"] == variant_backend()
+    assert learned_cost_ratio(nl.neural.model.load_model(path).map(pid, "forward").metrics, 0.0) == pytest.approx(
+        c["learned_us"]["0"] / c["exact_us"])
+    assert "flare_cost" not in nl.neural.model.load_model(path).map(bad, "forward").metrics

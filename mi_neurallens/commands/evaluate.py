@@ -11,7 +11,9 @@ throughput errors, checked against the goals of docs/training.md.  Writes JSON a
 0.01 gate is rendered again with 4× the samples, up to ``--flare-max-samples``, until it converges); ``--write``
 records it in the model file, where the flare's mode ``auto`` uses it (``auto_max_flare_error``); with
 ``--flare-boundary-band B`` the record of that band is kept beside the learned edges' one, and ``auto`` renders a
-ghost whose learned edges miss the gate with its edges traced where that record passes.
+ghost whose learned edges miss the gate with its edges traced where that record passes.  ``--flare-cost`` times each
+ghost map ``auto`` may learn against tracing the ghost (this variant's backend); with ``--write`` the costs are kept,
+and ``auto`` learns a ghost only where that is faster (``auto_max_cost``).
 """
 from __future__ import annotations
 
@@ -47,8 +49,15 @@ def add_parser(subparsers):
     p.add_argument("--flare-ghosts", metavar="IDS",
                    help="verify only these ghost maps (comma list of path ids; default: every ghost map), e.g. the "
                         "ones a run retrained, or with --flare-boundary-band those whose learned edges miss the gate")
+    p.add_argument("--flare-cost", action="store_true",
+                   help="measure what each ghost map auto may learn costs against tracing the ghost (µs per sample, on "
+                        "this variant's backend; run it on a quiet machine); with --write keep it in the model file, "
+                        "where mode auto learns a ghost only if it is cheaper than tracing it (auto_max_cost)")
+    p.add_argument("--flare-cost-samples", type=int, default=22, metavar="LOG2",
+                   help="log2 samples of each timed render of --flare-cost (default 22)")
     p.add_argument("--write", action="store_true",
-                   help="with --flare: record the verified flare errors in the model file (mode auto reads them)")
+                   help="with --flare / --flare-cost: record the verified flare errors / the costs in the model file "
+                        "(mode auto reads them)")
     p.set_defaults(func=run)
     return p
 
@@ -59,9 +68,10 @@ def run(args):
     from ..trace.paths import ghost_surfaces, resolve_path
     from ..training.evaluate import GOALS, evaluate_map, markdown_table, meets_goals
     from ..fileio import atomic_write_text
-    if args.write and not args.flare:
+    if args.write and not (args.flare or args.flare_cost):
         from ..errors import NeuralLensError
-        raise NeuralLensError("evaluate: --write records the verified flare errors; add --flare")
+        raise NeuralLensError("evaluate: --write records the verified flare errors or the ghosts' costs; add --flare "
+                              "or --flare-cost")
     path = args.model if os.path.exists(args.model) else bundled_model_path(args.model)
     probe = load_model(path)
     lens = Lens.load(args.lens or probe.lens_name)
@@ -100,7 +110,29 @@ def run(args):
     print(f"wrote {jp} and {mp}")
     if args.flare and args.write:
         _record_flare(path, model)
+    if args.flare_cost:
+        _flare_cost(args, path, model)
     return 0
+
+
+def _flare_cost(args, path, model):
+    """``--flare-cost``: what each ghost map that mode ``auto`` may learn costs against tracing the ghost
+    (:func:`~mi_neurallens.flare.verify.record_flare_costs`), printed, and kept in the model file with ``--write``
+    (after the verified errors, which ``--flare --write`` saved first)."""
+    import shutil
+    import tempfile
+    from ..flare.options import parse_id_list
+    from ..flare.verify import record_flare_costs
+    ghosts = parse_id_list(args.flare_ghosts) if args.flare_ghosts else None
+    if args.write:
+        record_flare_costs(path, args.lens or model.lens_name, ghosts=ghosts, samples_log2=args.flare_cost_samples)
+        print(f"recorded the ghosts' costs in {path}")
+        return
+    with tempfile.TemporaryDirectory() as tmp:          # measure on a copy: the model file stays as it is
+        copy = os.path.join(tmp, os.path.basename(path))
+        shutil.copy(path, copy)
+        record_flare_costs(copy, args.lens or model.lens_name, ghosts=ghosts, samples_log2=args.flare_cost_samples)
+    print("(not recorded: add --write to keep the costs in the model file)")
 
 
 def _verify_flare(args, path, model, out):

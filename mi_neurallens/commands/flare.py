@@ -45,6 +45,14 @@ def add_parser(subparsers):
                    help="learned ghosts: trace the samples whose classifier logit is within +-LOGIT of its decision "
                         "(their edges; 1.0 traces about 5%% of a ghost's samples; default 0: off). Mode auto "
                         "also traces a ghost's edges where only its record with a band passes the gate")
+    p.add_argument("--iris-band", type=float, default=None, metavar="B",
+                   help="learned ghosts through another iris than the trained one (stopped down, --blades): trace the "
+                        "samples whose predicted stop-plane crossing lies within B x 3 x the stop head's p99 error of "
+                        "the iris's edge (default: --boundary-band, at least 1 in mode auto; 0: off)")
+    p.add_argument("--auto-max-cost", type=float, default=1.0, metavar="RATIO",
+                   help="mode auto: where the model records what a learned ghost costs against tracing it on this "
+                        "backend (evaluate --flare-cost --write; train measures it), learn it only if that is at "
+                        "most RATIO (default 1: only where it is faster; inf: accuracy alone decides)")
     p.add_argument("--mlp", choices=("auto", "fused", "shared", "coopvec"), default="auto",
                    help="how learned ghost maps enter their kernels: fused (weights as literals, a kernel per map), "
                         "shared (every number a kernel input, weights in packed buffers on a CPU: one kernel per "
@@ -106,7 +114,8 @@ def run(args) -> int:
     kw = dict(samples=int(n), ghosts=parse_id_list(args.ghosts) or None, exclude_ghosts=parse_id_list(args.exclude),
               max_ghosts=args.max_ghosts, coating=args.coating, blades=args.blades, model=model,
               auto_max_error_px=args.auto_max_error, auto_max_flare_error=args.auto_max_flare_error, mlp=args.mlp,
-              freeze=args.freeze, boundary_band=args.boundary_band)
+              freeze=args.freeze, boundary_band=args.boundary_band, iris_band=args.iris_band,
+              auto_max_cost=args.auto_max_cost)
     out = args.output or os.path.splitext(os.path.basename(args.scene))[0] + "_flare.png"
     base = os.path.splitext(out)[0]
     report = {"scene": args.scene, "samples_per_light": int(n), "film": [W, H]}

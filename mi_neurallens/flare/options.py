@@ -29,6 +29,11 @@ class FlareOptions:
     #: mode auto: and, where the model records a verified flare error for the map (``metrics["flare"]``,
     #: :mod:`mi_neurallens.flare.verify`), only if that paired MAPE is at most this (0.01: issue 17's per-ghost goal)
     auto_max_flare_error: float = 0.01
+    #: mode auto: and, where the model records what the map costs against tracing its ghost on this backend
+    #: (``metrics["flare_cost"]``, :func:`~mi_neurallens.flare.verify.record_flare_costs`), only if its cost per sample
+    #: (at the band it would be rendered with) is at most this × the tracer's: so ``auto`` learns a ghost only where
+    #: that is faster.  ``inf``: accuracy alone decides
+    auto_max_cost: float = 1.0
     #: learned ghosts: a sample whose classifier logit lies within ±this of the decision (0) is traced exactly
     #: instead, in a second, compacted pass (0: off).  A learned ghost's flare error sits on its edges, where the
     #: classifier decides; the margin classifiers' logit is ≈ 40 × the aperture margin there, so 0.4 traces the
@@ -36,6 +41,13 @@ class FlareOptions:
     #: verified records pass the gate only with a wider band is rendered with that band
     #: (:meth:`~mi_neurallens.flare.render.FlareRenderer.map_band`)
     boundary_band: float = 0.0
+    #: learned ghosts rendered through an iris other than the trained one (stopped down, or bladed: the iris is
+    #: tested on the maps' predicted stop-plane crossings): a sample whose predicted crossing lies within
+    #: ``iris_band`` × 3 × its stop head's held-out p99 crossing error of the iris's edge is traced exactly
+    #: instead, like the classifier's undecided ones (:func:`~mi_neurallens.flare.render.iris_band_mm`).
+    #: None: ``boundary_band`` in mode neural; in mode auto at least 1 (the verified records were measured at
+    #: the trained iris); 0: off
+    iris_band: float | None = None
     ghosts: list | None = None         #: ghost path ids to render (None: automatic selection)
     exclude_ghosts: list = field(default_factory=list)
     max_ghosts: int = 32               #: cap of the automatic selection
@@ -93,6 +105,12 @@ class FlareOptions:
             raise FlareError(f"lens_flare: 'auto_max_error' must be >= 0 (pixels), got {self.auto_max_error_px}")
         if not self.boundary_band >= 0:
             raise FlareError(f"lens_flare: 'boundary_band' must be >= 0 (a classifier logit), got {self.boundary_band}")
+        if self.iris_band is not None and not self.iris_band >= 0:
+            raise FlareError(f"lens_flare: 'iris_band' must be >= 0 (a multiple of the stop heads' p99 error, "
+                             f"times 3), got {self.iris_band}")
+        if not self.auto_max_cost > 0:
+            raise FlareError(f"lens_flare: 'auto_max_cost' must be > 0 (learned / traced cost per sample; inf: off), "
+                             f"got {self.auto_max_cost}")
         if not self.auto_max_flare_error >= 0:
             raise FlareError(f"lens_flare: 'auto_max_flare_error' must be >= 0, got {self.auto_max_flare_error}")
         if self.mlp not in ("auto",) + MLP_MODES:

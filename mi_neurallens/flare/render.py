@@ -84,7 +84,8 @@ class GhostStats:
     cells: int = 0
     cells_total: int = 0
     energy: float = 0.0               #: pilot estimate of the luminance flux on the film (pixel units · pixels)
-    seconds: float = 0.0
+    seconds: float = 0.0               #: pilot and main pass, wall clock
+    splat_seconds: float = 0.0         #: the main pass alone (the tracer's second pass included), wall clock
     traced: int = 0                   #: of ``samples``, traced exactly near a learned map's edges (boundary_band)
     band: float = 0.0                 #: the learned map's boundary_band in this render (0: its edges learned)
 
@@ -101,7 +102,8 @@ class GhostStats:
                 "evaluator": self.evaluator, "samples": self.samples, "hits": self.hits,
                 "fraction_before": self.fraction_before, "fraction_after": self.fraction_after,
                 "cells": self.cells, "cells_total": self.cells_total, "energy": self.energy,
-                "seconds": self.seconds, "traced": self.traced, "band": self.band}
+                "seconds": self.seconds, "splat_seconds": self.splat_seconds, "traced": self.traced,
+                "band": self.band}
 
 
 @dataclass
@@ -127,23 +129,64 @@ class FlareResult:
 
 
 # ------------------------------------------------------------------------------------ evaluators
+#: a learned ghost rendered through an iris other than the one it was trained with tests its predicted stop-plane
+#: crossings against that iris (:mod:`mi_neurallens.trace.iris`); with an iris band b > 0, a sample whose predicted
+#: crossing lies within b × this × the stop head's held-out p99 crossing error (``metrics["stop"]``) of the iris's
+#: edge is traced instead, as the classifier's undecided samples are (docs/flares.md, "Exact edges")
+IRIS_BAND_P99 = 3.0
+#: the p99 crossing error assumed (µm) for a stop head without recorded metrics: the aperture issue's goal
+IRIS_BAND_DEFAULT_P99_UM = 20.0
+
+
+def iris_band_mm(tmap, band: float) -> float:
+    """Half-width (mm, stop plane) of the band around the iris's edge whose samples a learned map with iris band
+    ``band`` leaves to the tracer: 0 without a band or without an iris tested at render time
+    (:data:`IRIS_BAND_P99`)."""
+    if not band > 0.0 or getattr(tmap, "iris", None) is None:
+        return 0.0
+    p99 = ((getattr(tmap, "metrics", None) or {}).get("stop") or {}).get("stop_um_p99")
+    return float(band) * IRIS_BAND_P99 * float(p99 if p99 is not None else IRIS_BAND_DEFAULT_P99_UM) * 1e-3
+
+
 class GhostEvaluator:
     """One path's transport map (exact, learned or a baseline), from the flare's input plane, continued
     straight to the sensor plane ``z_sensor``: ``(o, d, lam, active)`` → ``(valid, x, y, T, near)`` on the
     sensor (lens space, mm).  ``fresnel = False``: T = 1.  ``band`` > 0 (a learned map with a classifier):
-    ``near`` marks the samples whose classifier logit is within ±``band`` of its decision, which this map
-    leaves out (``valid`` is false there) for the tracer to take (:meth:`FlareRenderer.splat`); otherwise
-    ``near`` is None."""
+    ``near`` marks the samples whose classifier logit is within ±``band`` of its decision; ``iris_band`` > 0
+    (default: ``band``; a learned map with an iris tested at render time): also those whose predicted stop-plane
+    crossing lies within :func:`iris_band_mm` of the iris's edge.  The map leaves ``near`` out (``valid`` is
+    false there) for the tracer to take (:meth:`FlareRenderer.splat`); without a band ``near`` is None."""
 
-    def __init__(self, tmap, z_sensor, fresnel=True, band=0.0):
+    def __init__(self, tmap, z_sensor, fresnel=True, band=0.0, iris_band=None):
         self.map, self.z, self.fresnel = tmap, float(z_sensor), fresnel
         #: ``exact`` for the tracer, ``neural`` for every other map (the learned ones and the baselines)
         self.kind = "exact" if tmap.method == "exact" else "neural"
         self.band = float(band) if self.kind == "neural" and getattr(tmap, "use_classifier", False) else 0.0
+        ib = band if iris_band is None else iris_band
+        #: the iris band's half-width (mm; 0: the iris's edge is learned)
+        self.iris_mm = iris_band_mm(tmap, ib) if self.kind == "neural" else 0.0
+        self._iris_vars = {}
 
     @property
     def pid(self) -> int:
         return self.map.path_id
+
+    @property
+    def shared_numbers(self) -> bool:
+        """Whether the map's numbers are kernel inputs (``mlp`` shared or coopvec): then so is the iris band."""
+        tm = self.map
+        return hasattr(tm, "kernel_signature") and tm.kernel_signature() is not None
+
+    def _iris_width(self, float_t):
+        """The iris band's half-width as the kernel reads it: an opaque variable (a kernel input, one per float
+        type, created before any recording) where the map's numbers are inputs, else a literal."""
+        if not self.shared_numbers:
+            return self.iris_mm
+        import drjit as dr
+        v = self._iris_vars.get(float_t)
+        if v is None:
+            v = self._iris_vars[float_t] = dr.opaque(float_t, self.iris_mm)
+        return v
 
     def freeze_key(self, float_t):
         """``(signature, inputs)`` for the renderer's frozen kernels: a learned map whose numbers are kernel
@@ -153,8 +196,9 @@ class GhostEvaluator:
         tm = self.map
         sig = tm.kernel_signature() if hasattr(tm, "kernel_signature") else None
         if sig is None:
-            return ("map", tm.method, tm.key, self.z, self.fresnel, self.band), []
-        return (sig, self.z, self.fresnel, self.band), tm.kernel_inputs(float_t)
+            return ("map", tm.method, tm.key, self.z, self.fresnel, self.band, self.iris_mm), []
+        extra = [self._iris_width(float_t)] if self.iris_mm > 0.0 else []
+        return (sig, self.z, self.fresnel, self.band, self.iris_mm > 0.0), tm.kernel_inputs(float_t) + extra
 
     def __call__(self, o, d, lam, active):
         import drjit as dr
@@ -167,6 +211,14 @@ class GhostEvaluator:
         near = None
         if self.band > 0.0 and res.logit is not None:
             near = active & (dr.abs(res.logit) < self.band)
+        if self.iris_mm > 0.0 and res.stop:
+            # the iris decides only where the classifier lets the ray through (or has not decided)
+            cand = active if res.logit is None else active & (res.logit > -self.band)
+            w = self._iris_width(type(x))
+            for sx, sy in res.stop:
+                at = cand & (dr.abs(self.map.iris.edge_distance_dr(sx, sy)) < w)
+                near = at if near is None else near | at
+        if near is not None:
             valid &= ~near
         return valid, x, y, T, near
 
@@ -362,7 +414,16 @@ class FlareRenderer:
             tmap = None if band is None else self._learned(m.map(pid, "forward"), strict=False)
             if tmap is None:                          # the tracer (which ignores the band)
                 tmap = self.exact_map(pid)
-        return GhostEvaluator(tmap, self.z_img, self.fresnel, band or 0.0)
+        return GhostEvaluator(tmap, self.z_img, self.fresnel, band or 0.0, self.iris_band(band or 0.0))
+
+    def iris_band(self, band: float) -> float:
+        """The iris band of this render's learned ghosts (:class:`GhostEvaluator`), given their ``band``:
+        ``opts.iris_band``, else ``band`` in mode neural and at least 1 in mode auto (whose records were measured
+        at the trained iris, so the edge of any other is traced).  Matters only where an iris is tested at render
+        time."""
+        if self.opts.iris_band is not None:
+            return float(self.opts.iris_band)
+        return max(band, 1.0) if self.opts.mode == "auto" else band
 
     def auto_learns(self, pid) -> bool:
         """Whether mode ``auto`` evaluates ghost ``pid`` with its learned map (:meth:`auto_choice`)."""
@@ -402,7 +463,7 @@ class FlareRenderer:
         narrowest wider band whose record passes is the one this ghost is rendered with (its edges traced,
         what the record measured), so a ghost whose learned edges miss the gate is still learned where the
         tracer at its edges brings it within.  No record: this render's band."""
-        from .verify import flare_records, passing_band, record_band
+        from .verify import flare_records, learned_cost_ratio, passing_band, record_band, variant_backend
         err_um = (tm.metrics.get("regressor") or {}).get("position_um_median")
         lim_um = self.opts.auto_max_error_px * 1000.0 * self.setup.sensor_width_mm / self.size[0]
         if err_um is None:
@@ -416,6 +477,11 @@ class FlareRenderer:
         lim = self.opts.auto_max_flare_error
         band = passing_band(recs, own, lim)
         if band is not None:
+            ratio = learned_cost_ratio(tm.metrics, band)
+            if ratio is not None and ratio > self.opts.auto_max_cost:
+                return None, (f"learned, it costs {ratio:.2f}× tracing it"
+                              + (f" (boundary_band {band:g})" if band else "") + f", above auto_max_cost "
+                              f"{self.opts.auto_max_cost:g} (measured on {variant_backend()})")
             return band, None
         r = recs[-1]                           # the widest band measured: the best the map can do
         at = f" (boundary_band {record_band(r):g})" if record_band(r) > 0 else ""
@@ -773,7 +839,8 @@ class FlareRenderer:
                                            pl.cell_size, pl.radius, seed=seed * 7919 + li)
                 dr.eval(blk.tensor())
                 st.samples, st.hits = n, int(nh[0] if hasattr(nh, "__len__") else nh)
-                st.seconds += time.perf_counter() - t0
+                st.splat_seconds = time.perf_counter() - t0
+                st.seconds += st.splat_seconds
         ghosts = {}
         if per_ghost:
             acc = None

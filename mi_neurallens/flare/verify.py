@@ -87,6 +87,112 @@ def store_flare_record(metrics, rec):
     metrics["flare_bands"] = dict(sorted(bands.items(), key=lambda kv: float(kv[0])))
 
 
+#: samples (log2) of a cost measurement's render (:func:`measure_flare_cost`), all on the one ghost
+COST_SAMPLES_LOG2 = 22
+#: timed renders of each evaluator in a cost measurement (the fastest is kept), after one small render that traces and
+#: compiles its kernels
+COST_RENDERS = 2
+
+
+def variant_backend() -> str:
+    """``"cuda"`` or ``"llvm"``: the Dr.Jit backend of the current Mitsuba variant, which a cost was measured on."""
+    import mitsuba as mi
+    return "cuda" if "cuda" in (mi.variant() or "") else "llvm"
+
+
+def learned_cost_ratio(metrics, band: float):
+    """A learned ghost's measured cost per sample at ``band``, divided by the tracer's on the same ghost
+    (``metrics["flare_cost"]``, :func:`measure_flare_cost`), or None: not measured at that band, or measured on
+    another backend than the current variant's (the ratio differs between CPU and GPU)."""
+    c = metrics.get("flare_cost") or {}
+    lu = (c.get("learned_us") or {}).get(f"{float(band):g}")
+    if lu is None or not c.get("exact_us") or c.get("backend") != variant_backend():
+        return None
+    return float(lu) / float(c["exact_us"])
+
+
+def measure_flare_cost(scene, pid, bands=(0.0,), samples_log2=COST_SAMPLES_LOG2) -> dict:
+    """What ghost ``pid`` of ``scene`` (:func:`verification_scene`) costs per sample, traced and with its learned map
+    at each of ``bands`` (``boundary_band``, the samples it leaves to the tracer included): µs per sample of the main
+    pass (the pilot is excluded; its cost per sample is alike), the fastest of :data:`COST_RENDERS` renders of
+    2^``samples_log2`` samples (each traces its kernels, as a render does; a smaller render compiled them before),
+    learned maps as a full flare render evaluates them (``mlp = "shared"``).
+    Returns the ``metrics["flare_cost"]`` record: ``exact_us``, ``learned_us`` {band: µs}, ``backend``,
+    ``samples_log2``."""
+    from .options import FlareOptions
+    from .render import FlareRenderer
+
+    def us_per_sample(**kw):
+        opts = dict(ghosts=[pid], pilot_with="exact", freeze=False, **kw)
+        r = FlareRenderer(scene, 0, FlareOptions(samples=1 << 16, **opts))
+        r.render(seed=0)                  # traces and compiles the kernels (Dr.Jit keeps them)
+        r = FlareRenderer(scene, 0, FlareOptions(samples=1 << samples_log2, **opts))
+        best = float("inf")
+        for k in range(COST_RENDERS):
+            st = [s for s in r.render(seed=k + 1).stats if s.path_id == pid and s.samples]
+            if st:
+                best = min(best, 1e6 * sum(s.splat_seconds for s in st) / sum(s.samples for s in st))
+        return None if best == float("inf") else best
+
+    return {"exact_us": us_per_sample(mode="exact"),
+            "learned_us": {f"{float(b):g}": us_per_sample(mode="neural", mlp="shared", boundary_band=float(b))
+                           for b in bands},
+            "backend": variant_backend(), "samples_log2": int(samples_log2),
+            "protocol": f"µs per sample of the main pass (kernels traced, compiled before), the fastest of {COST_RENDERS} "
+                        f"renders of 2^{samples_log2} samples on the ghost alone, at the verification scene's first light"}
+
+
+def record_flare_costs(model_path, lens=None, *, ghosts=None, samples_log2=COST_SAMPLES_LOG2, gate=None,
+                       log=print) -> dict:
+    """Measure what each ghost map ``ghosts`` (default: all) of the model file ``model_path`` costs against tracing
+    the ghost (:func:`measure_flare_cost`) and keep it in the model file (``metrics["flare_cost"]``), where mode
+    ``auto`` reads it (``auto_max_cost``: a ghost whose learned map costs more than tracing it is traced).  Measured at
+    the bands ``auto`` may render the ghost with: those of its verified records that pass ``gate`` (default: the
+    flare's ``auto_max_flare_error``; none recorded: band 0); a ghost no record passes is traced by ``auto`` anyway
+    and is skipped.  On the current variant's backend; run it on a quiet machine (it times renders).  What
+    ``mi-neurallens evaluate MODEL --flare-cost --write`` does; ``mi-neurallens train`` ends with it.
+    Returns {path_id: record}."""
+    import mitsuba as mi
+    from .options import FlareOptions
+    from ..neural.model import load_model
+    from ..render_utils import default_variant
+    if not mi.variant():
+        mi.set_variant(default_variant())
+    gate = FlareOptions.auto_max_flare_error if gate is None else float(gate)
+    model = load_model(model_path)
+    ids = model.ghost_ids if ghosts is None else [int(g) for g in ghosts]
+    missing = [pid for pid in ids if not model.has(pid, "forward")]
+    if missing:
+        from ..errors import ModelError
+        raise ModelError(f"{model_path} has no forward map for {missing} to measure; its ghost maps are "
+                         f"{model.ghost_ids}")
+    plan = {}
+    for pid in ids:
+        recs = flare_records(model.map(pid, "forward").metrics)
+        bands = sorted({record_band(r) for r in recs if r.get("paired_mape") is not None and r["paired_mape"] <= gate})
+        if bands or not recs:
+            plan[pid] = bands or [0.0]
+    if log:
+        log(f"measuring the cost of {len(plan)} ghost map(s) against tracing them ({variant_backend()}, 2^{samples_log2} "
+            f"samples a render, {COST_RENDERS} renders each)" + (f"; {len(ids) - len(plan)} skipped (traced by auto: "
+                                                                  "no record within the gate)" if len(plan) < len(ids) else ""))
+    scene = verification_scene(lens or model.lens_name, model_path, LIGHTS[0], FILM)
+    out, t0 = {}, time.perf_counter()
+    for k, (pid, bands) in enumerate(plan.items()):
+        out[pid] = c = measure_flare_cost(scene, pid, bands, samples_log2)
+        if log:
+            ratios = ", ".join(f"band {b}: {v / c['exact_us']:.2f}×" for b, v in c["learned_us"].items()
+                               if v is not None and c["exact_us"])
+            left = (time.perf_counter() - t0) * (len(plan) - k - 1) / (k + 1)
+            log(f"ghost {pid} ({k + 1}/{len(plan)}): traced {c['exact_us'] or float('nan'):.3g} µs a sample; "
+                f"learned / traced {ratios or 'n/a'}" + (f"; about {_duration(left)} left" if k + 1 < len(plan) else ""))
+    model = load_model(model_path)
+    for pid, c in out.items():
+        model.map(pid, "forward").metrics["flare_cost"] = c
+    model.save(model_path)
+    return out
+
+
 def refine_paired(error_at, log2_from: int, log2_max: int, above: float, drop: float = CONVERGED_DROP) -> dict:
     """The paired error of one ghost at one light, refined where it decides: ``error_at(log2)`` → a
     :func:`paired_flare_error` record at 2^log2 samples; starting at ``log2_from``, 4× the samples (log2 + 2) while
@@ -126,13 +232,13 @@ def verification_scene(lens, model, light=LIGHTS[0], film=FILM):
     })
 
 
-def paired_renders(scene, ghosts, samples, seed=1, sensor=0, boundary_band=0.0):
-    """(exact, learned) flare images (H×W×3 numpy) of ``ghosts`` on the same samples; ``boundary_band``: the
-    learned render's (:class:`~mi_neurallens.flare.options.FlareOptions`)."""
+def paired_renders(scene, ghosts, samples, seed=1, sensor=0, boundary_band=0.0, iris_band=None):
+    """(exact, learned) flare images (H×W×3 numpy) of ``ghosts`` on the same samples; ``boundary_band``,
+    ``iris_band``: the learned render's (:class:`~mi_neurallens.flare.options.FlareOptions`)."""
     from .render import render_flare
     ex = render_flare(scene, sensor, seed=seed, ghosts=list(ghosts), samples=samples, mode="exact").total
     ne = render_flare(scene, sensor, seed=seed, ghosts=list(ghosts), samples=samples, mode="neural",
-                      pilot_with="exact", boundary_band=boundary_band).total
+                      pilot_with="exact", boundary_band=boundary_band, iris_band=iris_band).total
     return ex, ne
 
 

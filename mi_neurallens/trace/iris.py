@@ -68,6 +68,20 @@ class Iris:
             m = mk if m is None else dr.minimum(m, mk)
         return m
 
+    def edge_distance_dr(self, x, y):
+        """Signed distance (mm) of the stop-plane point (x, y) from the iris's edge, positive inside: R − ρ for a
+        circle, min over blades of R − p (p the distance along a blade's normal; near a corner, the distance to
+        the nearer blade's line) for a polygon; ≥ 0 exactly where :meth:`contains_dr`."""
+        import drjit as dr
+        r = self.radius_mm
+        if not self.blades:
+            return r - dr.sqrt(dr.fma(x, x, y * y))
+        m = None
+        for c, s in self.normals():
+            mk = r - dr.fma(x, c, y * s)
+            m = mk if m is None else dr.minimum(m, mk)
+        return m
+
     def contains_np(self, x, y):
         """numpy twin of :meth:`contains_dr` for plots and tests (same rule)."""
         import numpy as np

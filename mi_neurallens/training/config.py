@@ -175,6 +175,10 @@ class TrainConfig:
     verify_flare_max_samples: int = 26  # at the last band a ghost above the gate is rendered again with 4× the
                                         # samples up to this (the protocol of `evaluate --flare`); earlier bands
                                         # are not refined: a ghost they leave above the gate goes to the next
+    verify_flare_cost: bool = True      # then each ghost map auto may learn is timed against tracing the ghost
+                                        # (flare.verify.record_flare_costs, this machine's backend): auto learns a
+                                        # ghost only where that is faster (auto_max_cost)
+    verify_flare_cost_samples: int = 22  # log2 samples of each timed render
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -1060,8 +1060,9 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
 
     Then, with ``cfg.verify_flare``, every selected ghost map without a verified flare record is rendered against
     the tracer and its record kept in the file (:func:`~mi_neurallens.flare.verify.record_flare_errors`; the
-    ``verify_flare*`` settings): the model leaves training ready for the flare's mode ``auto``, which learns a
-    ghost only where its record passes."""
+    ``verify_flare*`` settings), and with ``cfg.verify_flare_cost`` timed against tracing its ghost
+    (:func:`~mi_neurallens.flare.verify.record_flare_costs`): the model leaves training ready for the flare's mode
+    ``auto``, which learns a ghost only where its record passes and the map is the faster."""
     from ..neural.model import NeuralLensModel, load_model
     from . import plan
     from ..transport.planning import select_ghosts
@@ -1164,7 +1165,7 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
         model.save(out_path)
     model.save(out_path)
     if cfg.verify_flare:
-        from ..flare.verify import flare_records, record_flare_errors
+        from ..flare.verify import flare_records, record_flare_costs, record_flare_errors
         wanted = {f"{d}.{pid}" for pid, d, *_ in todo}
         ghosts = [tm.path_id for k, tm in model.maps.items()
                   if k in wanted and tm.direction == "forward" and tm.path_id != 0 and not flare_records(tm.metrics)]
@@ -1174,6 +1175,9 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
                 record_flare_errors(out_path, _lens_spec(lens, workdir), ghosts=ghosts, bands=cfg.verify_flare_bands,
                                     samples_log2=cfg.verify_flare_samples,
                                     max_log2=max(cfg.verify_flare_max_samples, cfg.verify_flare_samples), log=say)
+                if cfg.verify_flare_cost:
+                    record_flare_costs(out_path, _lens_spec(lens, workdir), ghosts=ghosts,
+                                       samples_log2=cfg.verify_flare_cost_samples, log=say)
             except Exception as e:          # the maps are saved: say how to verify them later, do not lose the run
                 print(f"{lens.name}: the flare verification stopped ({type(e).__name__}: {e}); {out_path} holds the "
                       f"trained maps without it (mode auto then gates its ghosts by their held-out accuracy alone): "
