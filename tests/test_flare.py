@@ -344,7 +344,7 @@ def test_auto_reads_the_verified_flare_error_where_the_model_records_one():
     if m is None:
         pytest.skip(why)
     pid = 2560
-    base = {k: v for k, v in m.map(pid, "forward").metrics.items() if k != "flare"}
+    base = {k: v for k, v in m.map(pid, "forward").metrics.items() if k not in ("flare", "flare_cost")}
 
     def kind(model, **kw):
         scene = make_scene(point((0.3, 0.2, 5.0)), w=240, h=160)
@@ -405,7 +405,7 @@ def test_auto_renders_a_ghost_with_the_band_its_record_needs():
     from mi_neurallens.training.evaluate import markdown_table
     lens, pid = "canon-rf-24mm-f1.4l-vcm", 18432
     m = nl.neural.model.load_model(os.path.join(ROOT, "lenses", "models", f"{lens}.model.safetensors"))
-    base = {k: v for k, v in m.map(pid, "forward").metrics.items() if k not in ("flare", "flare_bands")}
+    base = {k: v for k, v in m.map(pid, "forward").metrics.items() if k not in ("flare", "flare_bands", "flare_cost")}
 
     def rec(err, band=0.0):
         return {"paired_mape": err, "boundary_band": band}
@@ -519,8 +519,9 @@ def test_learned_ghosts_share_one_kernel_per_architecture_from_several_maps_on()
     assert len(ids) > SHARED_FROM > 1
     scene = make_scene(point((0.3, 0.2, 5.0)), w=240, h=160)
 
-    def renderer(ghosts, **kw):       # auto learns every map here: the verified-flare gate is left open
-        return FlareRenderer(scene, 0, FlareOptions(model=m, ghosts=ghosts, auto_max_flare_error=1.0, **kw))
+    def renderer(ghosts, **kw):       # auto learns every map here: the verified-flare and cost gates are left open
+        return FlareRenderer(scene, 0, FlareOptions(model=m, ghosts=ghosts, auto_max_flare_error=1.0,
+                                                    auto_max_cost=float("inf"), **kw))
 
     assert renderer(ids[:SHARED_FROM]).learned_mlp() == "shared"
     assert renderer(ids[:SHARED_FROM - 1]).learned_mlp() == "fused"
@@ -664,6 +665,8 @@ def test_auto_learns_a_ghost_only_where_it_costs_less_than_tracing_it(tmp_path):
     shutil.copy(MODEL, path)
     bad = next(g for g in m.ghost_ids if g != pid)
     mm = nl.neural.model.load_model(path)
+    for g in (pid, bad):
+        mm.map(g, "forward").metrics.pop("flare_cost", None)        # the bundled model's, measured when shipped
     mm.map(pid, "forward").metrics["flare"] = {"paired_mape": 0.005}
     mm.map(bad, "forward").metrics.update(flare={"paired_mape": 0.05}, flare_bands={})
     mm.save(path)

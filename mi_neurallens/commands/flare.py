@@ -70,6 +70,8 @@ def add_parser(subparsers):
     p.add_argument("--blades", type=int)
     p.add_argument("--resolution", help="film size WxH")
     add_variant_argument(p)
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                   help="set a property of the scene's lens sensor (repeatable), e.g. --set fstop=10.74")
     p.add_argument("-D", dest="params", action="append", default=[], metavar="NAME=VALUE")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops")
@@ -93,7 +95,8 @@ def run(args) -> int:
     from ..flare.options import FlareOptions, parse_id_list
     from ..flare.render import FlareRenderer
     res = _resolution(args.resolution) if args.resolution else None
-    scene = load_scene(args.scene, variant=args.variant, lens=args.lens, resolution=res, params=args.params)
+    scene = load_scene(args.scene, variant=args.variant, lens=args.lens, resolution=res, params=args.params,
+                       sets=args.sets)
     sensor = scene.sensors()[0]
     W, H = (int(v) for v in sensor.film().crop_size())
     n = args.samples or (args.spp * W * H if args.spp else 1 << 22)
@@ -137,8 +140,9 @@ def run(args) -> int:
             print(f"  ghost {s.path_id:>8} {str(tuple(s.surfaces)):>9} {s.evaluator:6} {s.light:16} "
                   f"samples {s.samples:>9}  reach sensor: before {s.fraction_before:6.3f}  after "
                   f"{s.fraction_after:6.3f}" + (f"  (traced: {why})" if why else "")
-                  + (f"  (edges traced, band {s.band:g}: {s.traced / max(s.samples, 1):.1%} of its samples)"
-                     if s.band > 0 else ""), file=sys.stderr)
+                  + (f"  (edges traced" + (f", band {s.band:g}" if s.band > 0 else ", the iris's")
+                     + f": {s.traced / max(s.samples, 1):.1%} of its samples)" if s.band > 0 or s.traced else ""),
+                  file=sys.stderr)
     if not args.compare:
         r = results[args.mode]
         from ..render_utils import write_exr

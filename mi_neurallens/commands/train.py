@@ -6,8 +6,9 @@ the maps of one direction together, each network stopping at its goals) with che
 ``<out>.work/`` (rerun the same command to resume after an interruption) and writes one model file
 ``<out>/<lens>.model.safetensors`` (atomically, after each direction's maps) with the held-out metrics.
 Last, each ghost map trained is rendered against the tracer and its verified flare error kept in the file
-(the learned edges', and with the edges traced for the ghosts those miss 0.01), which the flare's mode
-``auto`` reads to learn or trace each ghost (``--no-verify``: later, with ``mi-neurallens evaluate --flare``).
+(the learned edges', and with the edges traced for the ghosts those miss 0.01), then timed against tracing the
+ghost, which the flare's mode ``auto`` reads to learn or trace each ghost (``--no-verify``: later, with
+``mi-neurallens evaluate --flare --write`` and ``--flare-cost --write``).
 ``--ray [ADDRESS]`` runs the maps of one or more lenses as jobs on Ray (training/distributed.py).
 """
 from __future__ import annotations
@@ -44,8 +45,9 @@ def add_parser(subparsers):
     p.add_argument("--jobs", type=int, default=4, help="with --ray: forward-map jobs per lens (default 4)")
     p.add_argument("--no-verify", action="store_true",
                    help="skip the flare verification that ends a run (each ghost map trained rendered against the "
-                        "tracer, its record kept in the model file for the flare's mode auto; the verify_flare "
-                        "settings); `mi-neurallens evaluate MODEL --flare --write` does it later")
+                        "tracer, its record kept in the model file for the flare's mode auto, then timed against "
+                        "tracing it; the verify_flare settings); `mi-neurallens evaluate MODEL --flare --write` and "
+                        "`--flare-cost --write` do it later")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--quiet", action="store_true", help="no per-evaluation log lines")
     p.set_defaults(func=run)

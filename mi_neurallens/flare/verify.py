@@ -89,8 +89,8 @@ def store_flare_record(metrics, rec):
 
 #: samples (log2) of a cost measurement's render (:func:`measure_flare_cost`), all on the one ghost
 COST_SAMPLES_LOG2 = 22
-#: timed renders of each evaluator in a cost measurement (the fastest is kept), after one small render that traces and
-#: compiles its kernels
+#: timed renders of each evaluator in a cost measurement (the fastest is kept), after two small renders: the first
+#: traces and compiles its kernels, the second records them (``dr.freeze``), so the timed ones replay them
 COST_RENDERS = 2
 
 
@@ -114,22 +114,21 @@ def learned_cost_ratio(metrics, band: float):
 def measure_flare_cost(scene, pid, bands=(0.0,), samples_log2=COST_SAMPLES_LOG2) -> dict:
     """What ghost ``pid`` of ``scene`` (:func:`verification_scene`) costs per sample, traced and with its learned map
     at each of ``bands`` (``boundary_band``, the samples it leaves to the tracer included): µs per sample of the main
-    pass (the pilot is excluded; its cost per sample is alike), the fastest of :data:`COST_RENDERS` renders of
-    2^``samples_log2`` samples (each traces its kernels, as a render does; a smaller render compiled them before),
-    learned maps as a full flare render evaluates them (``mlp = "shared"``).
-    Returns the ``metrics["flare_cost"]`` record: ``exact_us``, ``learned_us`` {band: µs}, ``backend``,
-    ``samples_log2``."""
+    pass, the fastest of :data:`COST_RENDERS` renders of 2^``samples_log2`` samples that replay their recorded
+    kernels (``dr.freeze``; what a renderer's later renders do) — the cost per sample without a render's fixed
+    cost of tracing its kernels in Python (docs/flares.md, "Frozen kernels").  The pilot is excluded (its cost per
+    sample is alike); learned maps as a full flare render evaluates them (``mlp = "shared"``).  Returns the
+    ``metrics["flare_cost"]`` record: ``exact_us``, ``learned_us`` {band: µs}, ``backend``, ``samples_log2``."""
     from .options import FlareOptions
     from .render import FlareRenderer
 
     def us_per_sample(**kw):
-        opts = dict(ghosts=[pid], pilot_with="exact", freeze=False, **kw)
-        r = FlareRenderer(scene, 0, FlareOptions(samples=1 << 16, **opts))
-        r.render(seed=0)                  # traces and compiles the kernels (Dr.Jit keeps them)
-        r = FlareRenderer(scene, 0, FlareOptions(samples=1 << samples_log2, **opts))
+        r = FlareRenderer(scene, 0, FlareOptions(ghosts=[pid], pilot_with="exact", **kw))
+        for k in range(2):                # traces and compiles, then records: the kernels a later render replays
+            r.render(seed=k, samples=1 << 16)
         best = float("inf")
         for k in range(COST_RENDERS):
-            st = [s for s in r.render(seed=k + 1).stats if s.path_id == pid and s.samples]
+            st = [s for s in r.render(seed=k + 2, samples=1 << samples_log2).stats if s.path_id == pid and s.samples]
             if st:
                 best = min(best, 1e6 * sum(s.splat_seconds for s in st) / sum(s.samples for s in st))
         return None if best == float("inf") else best
@@ -138,8 +137,8 @@ def measure_flare_cost(scene, pid, bands=(0.0,), samples_log2=COST_SAMPLES_LOG2)
             "learned_us": {f"{float(b):g}": us_per_sample(mode="neural", mlp="shared", boundary_band=float(b))
                            for b in bands},
             "backend": variant_backend(), "samples_log2": int(samples_log2),
-            "protocol": f"µs per sample of the main pass (kernels traced, compiled before), the fastest of {COST_RENDERS} "
-                        f"renders of 2^{samples_log2} samples on the ghost alone, at the verification scene's first light"}
+            "protocol": f"µs per sample of the main pass, the fastest of {COST_RENDERS} renders of 2^{samples_log2} samples "
+                        "replaying their frozen kernels, the ghost alone, at the verification scene's first light"}
 
 
 def record_flare_costs(model_path, lens=None, *, ghosts=None, samples_log2=COST_SAMPLES_LOG2, gate=None,

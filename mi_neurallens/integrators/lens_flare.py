@@ -43,7 +43,8 @@ sensor must be ``realistic_lens`` or ``neural_lens``.
    - ``auto``: a ghost's learned map where the sensor (or ``model``) has one that is accurate enough for this
      film (``auto_max_error``) and, where its verified flare error is recorded, within
      ``auto_max_flare_error`` (with its edges traced, at the ``boundary_band`` of the record that passes,
-     where only such a record passes); the tracer otherwise; ``exact``: the tracer for every path; ``neural``:
+     where only such a record passes) and, where its cost against tracing is recorded, not slower than the tracer
+     (``auto_max_cost``); the tracer otherwise; ``exact``: the tracer for every path; ``neural``:
      learned maps only (an error names a missing ghost); or a baseline for comparisons: ``abcd``,
      ``taylor3``, ``taylor5``, ``fitted`` (docs/baselines.md).  (Default: ``auto``)
 
