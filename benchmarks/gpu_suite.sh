@@ -22,6 +22,9 @@
 #   throughput  the stacked trainer's samples/s on the GPU (training_throughput.py)
 #   train   a whole new lens with the defaults on the GPU: dgauss-50mm, transmit maps and the ghosts of the
 #           default selection (issue 17: <= 10 min), then its held-out evaluation
+#   costs   every bundled model's ghost maps timed against tracing them on this backend (evaluate --flare-cost
+#           --write on copies, $RES/models): lens_flare's auto_max_cost then decides on the GPU too; copy each
+#           model's metrics["flare_cost"]["cuda"] into the bundled one (the llvm records stay)
 #   ghosts  every ghost of the default selection for $GHOST_LENSES (default: the three paper lenses; one
 #           lens per call if they do not fit), recipe as in training/<lens>.toml; each model comes back in
 #           results.tar.gz, to be merged into the bundled one with training/merge_maps.py
@@ -60,11 +63,12 @@ if [ -n "${GPU_SUITE_QUICK:-}" ]; then
     TRAIN="--paths backward-transmit --set regressor.max_steps=200 --set classifier.max_steps=200 --set stop.max_steps=200 --set regressor.lm_iterations=5 --set classifier.lm_iterations=5 --set stop.lm_iterations=5"
     GHOST_LENSES="${GHOST_LENSES:-wide-22mm}"
     GHOST_ARGS="--set max_ghosts=1 --set forward_regressor.max_steps=200 --set forward_classifier.max_steps=200 --set forward_stop.max_steps=200 --set forward_regressor.lm_iterations=5 --set forward_classifier.lm_iterations=5 --set forward_stop.lm_iterations=5"
-    EVAL_N=2000; THROUGHPUT="--steps 20 --maps 1,4"
+    EVAL_N=2000; THROUGHPUT="--steps 20 --maps 1,4"; COST=14; COST_LENSES="${COST_LENSES:-wide-22mm}"
 else
     RAYS=24; FILM=1280x960; SPP=64; FLARE="--ghosts 8 --samples $((1 << 24)) --ref-samples $((1 << 27))"
     COMPLETE="--samples 24 --reference 28"; EQUAL="--res 640x480 --spp 4,16,64 --reference-spp 1024 --repeats 2"
     FIRST=22; FROZEN=16,20,24; TRAIN="--paths transmit,ghosts"; EVAL_N=100000; THROUGHPUT="--steps 300 --maps 1,16"
+    COST=22; COST_LENSES="${COST_LENSES:-$(echo $ALL_LENSES | tr , ' ')}"
 fi
 status=0
 
@@ -175,6 +179,19 @@ stage_train() {
     py 300 -m mi_neurallens evaluate "$RES/train/dgauss-50mm.model.safetensors" -n $EVAL_N --seed 4242 \
         2>&1 | tee -a "$RES/train.log" || rc=1
     rm -rf "$RES/train/"*.work
+    return $rc
+}
+
+stage_costs() {
+    local rc=0
+    mkdir -p "$RES/models"
+    for lens in $COST_LENSES; do
+        cp "lenses/models/$lens.model.safetensors" "$RES/models/" || { rc=1; continue; }
+        py 300 -m mi_neurallens evaluate "$RES/models/$lens.model.safetensors" --recorded --flare-cost --write \
+            --flare-cost-samples $COST --json "$RES/models/$lens.eval.json" --markdown "$RES/models/$lens.eval.md" \
+            2>&1 | tee "$RES/costs_$lens.log"
+        [ "${PIPESTATUS[0]}" -eq 0 ] || rc=1
+    done
     return $rc
 }
 

@@ -646,7 +646,7 @@ def test_auto_learns_a_ghost_only_where_it_costs_less_than_tracing_it(tmp_path):
 
     def choice(learned, band="0", backend=None, err=0.005, **kw):
         met = {**base, "flare": {"paired_mape": err},
-               "flare_cost": {"exact_us": 0.2, "learned_us": {band: learned}, "backend": backend or variant_backend()}}
+               "flare_cost": {backend or variant_backend(): {"exact_us": 0.2, "learned_us": {band: learned}}}}
         model = _with_map_change(m, pid, metrics=met)
         return FlareRenderer(scene, 0, FlareOptions(model=model, ghosts=[pid], **kw)).auto_choice(pid)
 
@@ -672,8 +672,15 @@ def test_auto_learns_a_ghost_only_where_it_costs_less_than_tracing_it(tmp_path):
     mm.save(path)
     out = record_flare_costs(path, "wide-22mm", ghosts=[pid, bad], samples_log2=16, log=None)
     assert set(out) == {pid}
-    c = nl.neural.model.load_model(path).map(pid, "forward").metrics["flare_cost"]
+    c = nl.neural.model.load_model(path).map(pid, "forward").metrics["flare_cost"][variant_backend()]
     assert c["exact_us"] > 0 and c["learned_us"]["0"] > 0 and c["backend"] == variant_backend()
     assert learned_cost_ratio(nl.neural.model.load_model(path).map(pid, "forward").metrics, 0.0) == pytest.approx(
         c["learned_us"]["0"] / c["exact_us"])
+    # a measurement on another backend is kept beside this one, not replaced by it
+    mm = nl.neural.model.load_model(path)
+    mm.map(pid, "forward").metrics["flare_cost"]["elsewhere"] = {"exact_us": 1.0, "learned_us": {"0": 9.0}}
+    mm.save(path)
+    record_flare_costs(path, "wide-22mm", ghosts=[pid], samples_log2=16, log=None)
+    assert set(nl.neural.model.load_model(path).map(pid, "forward").metrics["flare_cost"]) == {"elsewhere",
+                                                                                                variant_backend()}
     assert "flare_cost" not in nl.neural.model.load_model(path).map(bad, "forward").metrics

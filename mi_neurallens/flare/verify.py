@@ -100,13 +100,18 @@ def variant_backend() -> str:
     return "cuda" if "cuda" in (mi.variant() or "") else "llvm"
 
 
+def flare_costs(metrics) -> dict:
+    """A map's measured costs (:func:`measure_flare_cost`), one record per backend: ``metrics["flare_cost"]`` is
+    ``{"llvm": record, "cuda": record}`` (the ratio differs between CPU and GPU, so neither replaces the other)."""
+    return dict(metrics.get("flare_cost") or {})
+
+
 def learned_cost_ratio(metrics, band: float):
-    """A learned ghost's measured cost per sample at ``band``, divided by the tracer's on the same ghost
-    (``metrics["flare_cost"]``, :func:`measure_flare_cost`), or None: not measured at that band, or measured on
-    another backend than the current variant's (the ratio differs between CPU and GPU)."""
-    c = metrics.get("flare_cost") or {}
+    """A learned ghost's measured cost per sample at ``band``, divided by the tracer's on the same ghost, on the
+    current variant's backend (:func:`flare_costs`), or None: not measured there, or not at that band."""
+    c = flare_costs(metrics).get(variant_backend()) or {}
     lu = (c.get("learned_us") or {}).get(f"{float(band):g}")
-    if lu is None or not c.get("exact_us") or c.get("backend") != variant_backend():
+    if lu is None or not c.get("exact_us"):
         return None
     return float(lu) / float(c["exact_us"])
 
@@ -118,7 +123,8 @@ def measure_flare_cost(scene, pid, bands=(0.0,), samples_log2=COST_SAMPLES_LOG2)
     kernels (``dr.freeze``; what a renderer's later renders do) — the cost per sample without a render's fixed
     cost of tracing its kernels in Python (docs/flares.md, "Frozen kernels").  The pilot is excluded (its cost per
     sample is alike); learned maps as a full flare render evaluates them (``mlp = "shared"``).  Returns the
-    ``metrics["flare_cost"]`` record: ``exact_us``, ``learned_us`` {band: µs}, ``backend``, ``samples_log2``."""
+    record ``metrics["flare_cost"][backend]`` keeps (:func:`flare_costs`): ``exact_us``, ``learned_us`` {band: µs},
+    ``backend``, ``samples_log2``."""
     from .options import FlareOptions
     from .render import FlareRenderer
 
@@ -144,7 +150,8 @@ def measure_flare_cost(scene, pid, bands=(0.0,), samples_log2=COST_SAMPLES_LOG2)
 def record_flare_costs(model_path, lens=None, *, ghosts=None, samples_log2=COST_SAMPLES_LOG2, gate=None,
                        log=print) -> dict:
     """Measure what each ghost map ``ghosts`` (default: all) of the model file ``model_path`` costs against tracing
-    the ghost (:func:`measure_flare_cost`) and keep it in the model file (``metrics["flare_cost"]``), where mode
+    the ghost (:func:`measure_flare_cost`) and keep it in the model file (``metrics["flare_cost"]``, beside the
+    records of other backends: :func:`flare_costs`), where mode
     ``auto`` reads it (``auto_max_cost``: a ghost whose learned map costs more than tracing it is traced).  Measured at
     the bands ``auto`` may render the ghost with: those of its verified records that pass ``gate`` (default: the
     flare's ``auto_max_flare_error``; none recorded: band 0); a ghost no record passes is traced by ``auto`` anyway
@@ -187,7 +194,8 @@ def record_flare_costs(model_path, lens=None, *, ghosts=None, samples_log2=COST_
                 f"learned / traced {ratios or 'n/a'}" + (f"; about {_duration(left)} left" if k + 1 < len(plan) else ""))
     model = load_model(model_path)
     for pid, c in out.items():
-        model.map(pid, "forward").metrics["flare_cost"] = c
+        met = model.map(pid, "forward").metrics
+        met["flare_cost"] = {**flare_costs(met), c["backend"]: c}
     model.save(model_path)
     return out
 
