@@ -684,3 +684,28 @@ def test_auto_learns_a_ghost_only_where_it_costs_less_than_tracing_it(tmp_path):
     assert set(nl.neural.model.load_model(path).map(pid, "forward").metrics["flare_cost"]) == {"elsewhere",
                                                                                                 variant_backend()}
     assert "flare_cost" not in nl.neural.model.load_model(path).map(bad, "forward").metrics
+
+
+def test_a_resumed_verification_keeps_the_bands_it_measured(tmp_path):
+    """``verification_done``: a map's verification is complete once a record passes the gate or every band has
+    its record.  ``record_flare_errors(keep_measured=True)`` (how a resumed ``train`` goes on) keeps a band's record
+    the file already holds and measures only the bands still missing."""
+    from mi_neurallens.flare.verify import record_flare_errors, verification_done
+    from mi_neurallens.neural.model import load_model
+    band1 = {"paired_mape": 0.02, "boundary_band": 1.0}
+    assert verification_done({"flare": {"paired_mape": 0.005}}, [0.0, 1.0], 0.01)
+    assert not verification_done({"flare": {"paired_mape": 0.05}}, [0.0, 1.0], 0.01)
+    assert verification_done({"flare": {"paired_mape": 0.05}, "flare_bands": {"1": band1}}, [0.0, 1.0], 0.01)
+    assert verification_done({"flare_bands": {"1": {**band1, "paired_mape": 0.005}}}, [0.0, 1.0], 0.01)
+    assert not verification_done({}, [0.0, 1.0], 0.01)
+    m = load_model(MODEL)
+    m.maps = {k: v for k, v in m.maps.items() if k in ("backward.0", "forward.2560")}
+    met = m.maps["forward.2560"].metrics
+    met.pop("flare_bands", None)
+    met["flare"] = {"paired_mape": 0.5, "boundary_band": 0.0, "marker": 1}     # a failing band 0, measured before
+    f = tmp_path / "one-ghost.model.safetensors"
+    m.save(f)
+    out = record_flare_errors(f, "wide-22mm", ghosts=[2560], samples_log2=12, max_log2=12, keep_measured=True, log=None)
+    assert out[0.0][2560]["marker"] == 1 and 2560 in out[1.0]
+    met = load_model(f).map(2560, "forward").metrics
+    assert met["flare"]["marker"] == 1 and met["flare_bands"]["1"]["log2_samples"] == 12

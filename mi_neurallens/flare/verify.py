@@ -70,6 +70,15 @@ def passing_band(records, band: float, gate: float):
     return min(wider) if wider else None
 
 
+def verification_done(metrics, bands, gate: float) -> bool:
+    """Whether a map's flare verification (:func:`record_flare_errors` over ``bands``) is complete: a record passes
+    ``gate``, or every band has its record (none passes: ``auto`` traces the ghost)."""
+    recs = flare_records(metrics)
+    if passing_band(recs, max(float(b) for b in bands), gate) is not None:
+        return True
+    return {float(b) for b in bands} <= {record_band(r) for r in recs}
+
+
 def store_flare_record(metrics, rec):
     """Keep ``rec`` in a map's ``metrics`` beside its records of other bands (:func:`flare_records`): band 0
     replaces ``metrics["flare"]``, a band > 0 the record of that band in ``metrics["flare_bands"]``, so one map
@@ -95,9 +104,11 @@ COST_RENDERS = 2
 
 
 def variant_backend() -> str:
-    """``"cuda"`` or ``"llvm"``: the Dr.Jit backend of the current Mitsuba variant, which a cost was measured on."""
+    """``"cuda"`` or ``"llvm"``: the Dr.Jit backend of the current Mitsuba variant (none set: the one
+    :func:`~mi_neurallens.render_utils.default_variant` would set), which a cost is measured on."""
     import mitsuba as mi
-    return "cuda" if "cuda" in (mi.variant() or "") else "llvm"
+    from ..render_utils import default_variant
+    return "cuda" if "cuda" in (mi.variant() or default_variant()) else "llvm"
 
 
 def flare_costs(metrics) -> dict:
@@ -323,7 +334,7 @@ def _duration(seconds: float) -> str:
 
 
 def record_flare_errors(model_path, lens=None, *, ghosts=None, bands=(0.0, 1.0), samples_log2=SAMPLES_LOG2,
-                        max_log2=MAX_SAMPLES_LOG2, gate=None, log=print) -> dict:
+                        max_log2=MAX_SAMPLES_LOG2, gate=None, keep_measured=False, log=print) -> dict:
     """Verify the ghost maps ``ghosts`` (default: all) of the model file ``model_path`` and keep the records in it,
     where mode ``auto`` reads them (:meth:`~mi_neurallens.flare.render.FlareRenderer.auto_choice`): every ghost
     at ``bands[0]``, then each further band only for the ghosts whose records so far all miss ``gate`` (default:
@@ -335,7 +346,9 @@ def record_flare_errors(model_path, lens=None, *, ghosts=None, bands=(0.0, 1.0),
     2^``max_log2`` (:func:`verify_model`), since a ghost an earlier band leaves above it is measured at the next
     band anyway, and noise only ever raises the paired error: so a ghost is learned at a wider band, or traced,
     where converged records would let it in narrower — never the other way.  The file is rewritten (atomically)
-    after each band, so an interruption keeps the bands done.  Returns {band: {path_id: record}}."""
+    after each band, so an interruption keeps the bands done; ``keep_measured``: a ghost's record of a band that the
+    file already holds is kept, not measured again (how a resumed ``train`` goes on).  Returns
+    {band: {path_id: record}}."""
     import mitsuba as mi
     from .options import FlareOptions
     from ..neural.model import load_model
@@ -349,18 +362,33 @@ def record_flare_errors(model_path, lens=None, *, ghosts=None, bands=(0.0, 1.0),
         if not todo:
             break
         last = band == bands[-1]
+        have = {}
+        if keep_measured:
+            model = load_model(model_path)
+            for pid in todo:
+                rec = [r for r in flare_records(model.map(pid, "forward").metrics) if record_band(r) == float(band)]
+                if rec:
+                    have[pid] = rec[0]
+        run = [pid for pid in todo if pid not in have]
+        if log and have:
+            log(f"{len(have)} ghost map(s) already verified at boundary_band {band:g}: kept")
+        if not run:
+            out[float(band)] = have
+            todo = [pid for pid in todo if have[pid].get("paired_mape") is not None and have[pid]["paired_mape"] > gate]
+            continue
         if log:
-            log(f"verifying the flare of {len(todo)} ghost map(s) against the tracer"
+            log(f"verifying the flare of {len(run)} ghost map(s) against the tracer"
                 + (f" with their edges traced (boundary_band {band:g})" if band else " (their learned edges)")
                 + f": 2^{samples_log2} samples a render"
                 + (f" (up to 2^{max_log2} for a ghost above {gate:g})" if last and max_log2 > samples_log2 else "")
                 + f", {len(LIGHTS)} light positions")
-        res = verify_model(model_path, lens, ghosts=todo, samples_log2=samples_log2,
+        res = verify_model(model_path, lens, ghosts=run, samples_log2=samples_log2,
                            max_log2=max_log2 if last else samples_log2, refine_above=gate, boundary_band=band, log=log)
         model = load_model(model_path)
         for pid, rec in res.items():
             store_flare_record(model.map(pid, "forward").metrics, rec)
         model.save(model_path)
+        res = {**have, **res}
         out[float(band)] = res
         todo = [pid for pid in todo if res[pid]["paired_mape"] is not None and res[pid]["paired_mape"] > gate]
         if log:

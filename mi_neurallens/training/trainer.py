@@ -1165,29 +1165,42 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
         model.save(out_path)
     model.save(out_path)
     if cfg.verify_flare:
-        from ..flare.verify import flare_records, record_flare_costs, record_flare_errors
+        from ..flare.options import FlareOptions
+        from ..flare.verify import (flare_costs, record_flare_costs, record_flare_errors, variant_backend,
+                                    verification_done)
         wanted = {f"{d}.{pid}" for pid, d, *_ in todo}
-        ghosts = [tm.path_id for k, tm in model.maps.items()
-                  if k in wanted and tm.direction == "forward" and tm.path_id != 0 and not flare_records(tm.metrics)]
-        if ghosts:
-            t_v = time.perf_counter()
-            try:
+        trained = [tm.path_id for k, tm in model.maps.items()
+                   if k in wanted and tm.direction == "forward" and tm.path_id != 0]
+        gate = FlareOptions.auto_max_flare_error
+        # a resumed run goes on where the last one stopped: ghosts whose verification is complete are skipped, and a
+        # ghost's band already measured is kept; then the ghosts not yet timed on this backend are timed
+        ghosts = [pid for pid in trained
+                  if not verification_done(model.map(pid, "forward").metrics, cfg.verify_flare_bands, gate)]
+        t_v = time.perf_counter()
+        try:
+            if ghosts:
                 record_flare_errors(out_path, _lens_spec(lens, workdir), ghosts=ghosts, bands=cfg.verify_flare_bands,
-                                    samples_log2=cfg.verify_flare_samples,
+                                    samples_log2=cfg.verify_flare_samples, keep_measured=True,
                                     max_log2=max(cfg.verify_flare_max_samples, cfg.verify_flare_samples), log=say)
-                if cfg.verify_flare_cost:
-                    record_flare_costs(out_path, _lens_spec(lens, workdir), ghosts=ghosts,
+            timed = []
+            if cfg.verify_flare_cost:
+                model = load_model(out_path, lens)
+                timed = [pid for pid in trained if variant_backend() not in flare_costs(model.map(pid, "forward").metrics)]
+                if timed:
+                    record_flare_costs(out_path, _lens_spec(lens, workdir), ghosts=timed,
                                        samples_log2=cfg.verify_flare_cost_samples, log=say)
-            except Exception as e:          # the maps are saved: say how to verify them later, do not lose the run
-                print(f"{lens.name}: the flare verification stopped ({type(e).__name__}: {e}); {out_path} holds the "
-                      f"trained maps without it (mode auto then gates its ghosts by their held-out accuracy alone): "
-                      f"`mi-neurallens evaluate {out_path} --lens <its lens file> --flare --write` verifies them",
-                      file=sys.stderr, flush=True)
-                return load_model(out_path, lens)
+        except Exception as e:          # the maps are saved: say how to verify them later, do not lose the run
+            print(f"{lens.name}: the flare verification stopped ({type(e).__name__}: {e}); {out_path} holds the "
+                  f"trained maps without it (mode auto then gates its ghosts by their held-out accuracy alone): "
+                  f"`mi-neurallens evaluate {out_path} --lens <its lens file> --flare --write` verifies them",
+                  file=sys.stderr, flush=True)
+            return load_model(out_path, lens)
+        if ghosts or timed:
             model = load_model(out_path, lens)
             model.extra.setdefault("training_time", {})["flare_verification_seconds"] = time.perf_counter() - t_v
             model.save(out_path)
-            say(f"verified the flares of {len(ghosts)} ghost map(s) in {minutes_text((time.perf_counter() - t_v) / 60)}; "
+            say(f"verified the flares of {len(ghosts)} ghost map(s) and timed {len(timed)} in "
+                f"{minutes_text((time.perf_counter() - t_v) / 60)}; "
                 f"{minutes_text((time.perf_counter() - t_run) / 60)} since the start")
     return model
 
