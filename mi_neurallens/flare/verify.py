@@ -117,6 +117,16 @@ def flare_costs(metrics) -> dict:
     return dict(metrics.get("flare_cost") or {})
 
 
+def cost_bands(metrics, gate: float) -> list:
+    """The bands a map's cost is measured at (:func:`record_flare_costs`): those of its verified records that pass
+    ``gate``, the bands ``auto`` may render it with; ``[0.0]`` without records; ``[]`` where none passes (``auto``
+    traces the ghost, so its cost does not matter)."""
+    recs = flare_records(metrics)
+    if not recs:
+        return [0.0]
+    return sorted({record_band(r) for r in recs if r.get("paired_mape") is not None and r["paired_mape"] <= gate})
+
+
 def learned_cost_ratio(metrics, band: float):
     """A learned ghost's measured cost per sample at ``band``, divided by the tracer's on the same ghost, on the
     current variant's backend (:func:`flare_costs`), or None: not measured there, or not at that band."""
@@ -183,12 +193,8 @@ def record_flare_costs(model_path, lens=None, *, ghosts=None, samples_log2=COST_
         from ..errors import ModelError
         raise ModelError(f"{model_path} has no forward map for {missing} to measure; its ghost maps are "
                          f"{model.ghost_ids}")
-    plan = {}
-    for pid in ids:
-        recs = flare_records(model.map(pid, "forward").metrics)
-        bands = sorted({record_band(r) for r in recs if r.get("paired_mape") is not None and r["paired_mape"] <= gate})
-        if bands or not recs:
-            plan[pid] = bands or [0.0]
+    plan = {pid: cost_bands(model.map(pid, "forward").metrics, gate) for pid in ids}
+    plan = {pid: bands for pid, bands in plan.items() if bands}
     if log:
         log(f"measuring the cost of {len(plan)} ghost map(s) against tracing them ({variant_backend()}, 2^{samples_log2} "
             f"samples a render, {COST_RENDERS} renders each)" + (f"; {len(ids) - len(plan)} skipped (traced by auto: "

@@ -1166,8 +1166,8 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
     model.save(out_path)
     if cfg.verify_flare:
         from ..flare.options import FlareOptions
-        from ..flare.verify import (flare_costs, record_flare_costs, record_flare_errors, variant_backend,
-                                    verification_done)
+        from ..flare.verify import (cost_bands, flare_costs, record_flare_costs, record_flare_errors,
+                                    variant_backend, verification_done)
         wanted = {f"{d}.{pid}" for pid, d, *_ in todo}
         trained = [tm.path_id for k, tm in model.maps.items()
                    if k in wanted and tm.direction == "forward" and tm.path_id != 0]
@@ -1185,7 +1185,8 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
             timed = []
             if cfg.verify_flare_cost:
                 model = load_model(out_path, lens)
-                timed = [pid for pid in trained if variant_backend() not in flare_costs(model.map(pid, "forward").metrics)]
+                timed = [pid for pid in trained if variant_backend() not in flare_costs(model.map(pid, "forward").metrics)
+                         and cost_bands(model.map(pid, "forward").metrics, gate)]
                 if timed:
                     record_flare_costs(out_path, _lens_spec(lens, workdir), ghosts=timed,
                                        samples_log2=cfg.verify_flare_cost_samples, log=say)
