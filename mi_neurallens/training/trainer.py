@@ -1193,7 +1193,8 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
         except Exception as e:          # the maps are saved: say how to verify them later, do not lose the run
             print(f"{lens.name}: the flare verification stopped ({type(e).__name__}: {e}); {out_path} holds the "
                   f"trained maps without it (mode auto then gates its ghosts by their held-out accuracy alone): "
-                  f"`mi-neurallens evaluate {out_path} --lens <its lens file> --flare --write` verifies them",
+                  f"`mi-neurallens evaluate {out_path} --lens <its lens file> --recorded --flare --write` verifies "
+                  f"them, and `--recorded --flare-cost --write` times them",
                   file=sys.stderr, flush=True)
             return load_model(out_path, lens)
         if ghosts or timed:
