@@ -48,12 +48,8 @@ class Iris:
         import drjit as dr
         r = self.radius_mm
         if not self.blades:
-            return dr.fma(x, x, y * y) <= r * r
-        ok = None
-        for c, s in self.normals():
-            inside = dr.fma(x, c, y * s) <= r
-            ok = inside if ok is None else ok & inside
-        return ok
+            return dr.fma(x, x, y * y) <= r * r          # no square root on the hot path
+        return self.edge_distance_dr(x, y) >= 0.0         # r − p ≥ 0 exactly where p ≤ r (IEEE subtraction)
 
     def margin_dr(self, x, y):
         """Aperture margin of (x, y): 1 − ρ²/R² for a circle, min over blades of 2·(1 − p/R) (p the
