@@ -392,3 +392,24 @@ def test_row_feed_hands_out_each_fresh_row_once_in_chunks():
     np.testing.assert_array_equal(ids, np.arange(1000))
     assert all(len(g["Y"]) == 100 and g["W"] is None for g in got)
     np.testing.assert_array_equal(got[7]["Y"], 2.0 * np.arange(700, 800))
+
+
+def test_refining_a_network_larger_than_the_finish_takes_is_a_clear_error():
+    """``keep = "refine"`` runs only the finish, which leaves networks above ``MAX_PARAMS`` alone: a 5×32 regressor
+    (or a 3×16 one configured wider than the finish takes) is refused before any training, naming the way out; a
+    3×16 one widened to 3×32 passes."""
+    from mi_neurallens import NeuralLensError
+    from mi_neurallens.training.config import NetConfig
+    from mi_neurallens.training.trainer import _check_finishable
+
+    def base(widths):
+        return types.SimpleNamespace(key="forward.10240", training={}, regressor=random_layers([4, *widths, 5]),
+                                     classifier=random_layers([4, 16, 16, 1]), regressor_activation="tanh",
+                                     classifier_activation="tanh")
+    nets = lambda width: (("regressor", NetConfig(hidden=3, width=width)), ("classifier", NetConfig(hidden=2, width=16)))
+    with pytest.raises(NeuralLensError, match=r"regressor of forward\.10240 \(4549 weights\).*--keep classifier "
+                                              r"--set forward_regressor\.hidden=3"):
+        _check_finishable([base([32] * 5)], nets(32), "forward")
+    _check_finishable([base([16] * 3)], nets(32), "forward")           # 2 437 weights widened: the finish takes it
+    with pytest.raises(NeuralLensError, match="larger than the Levenberg-Marquardt finish takes"):
+        _check_finishable([base([16] * 3)], nets(48), "forward")

@@ -773,6 +773,29 @@ def _refining(nc: NetConfig, network: str, direction: str, bases) -> NetConfig:
     return nc
 
 
+def _check_finishable(bases, nets, direction: str) -> None:
+    """A ``refine`` run only runs the Levenberg–Marquardt finish, which takes networks of at most
+    :data:`~mi_neurallens.training.levenberg.MAX_PARAMS` weights: a larger one (a 5×32 regressor, or one the
+    configured width would widen past it) would come back unchanged, so it is a clear error, before any training,
+    naming the way to a network the finish takes.  ``nets``: (network, its NetConfig) pairs."""
+    from .levenberg import MAX_PARAMS, n_params, widen_as_configured
+    for network, nc in nets:
+        big = []
+        for b in bases:
+            layers = [(np.asarray(W), np.asarray(bias)) for W, bias in getattr(b, network)]
+            P = n_params(widen_as_configured(layers, nc.hidden, nc.width, 0)[0])
+            if P > MAX_PARAMS:
+                big.append(f"{b.key} ({P} weights)")
+        if big:
+            table = f"forward_{network}" if direction == "forward" else network
+            other = "classifier" if network == "regressor" else "regressor"
+            raise NeuralLensError(
+                f"refine: the {network} of {', '.join(big)} is larger than the Levenberg-Marquardt finish takes "
+                f"({MAX_PARAMS} weights), so refining would leave it as it is; train it anew as a network the "
+                f"finish takes, e.g. --keep {other} --set {table}.hidden=3 --set {table}.width=32 "
+                f"--set {table}.lm_minutes=2.5")
+
+
 def _train_networks(train, problems, nc: NetConfig, net: str, ck, keys, cfg: TrainConfig, direction: str,
                     refine_from, progress: bool, log) -> list:
     """One network (``net``: "regressor" or "classifier") of every map of ``problems`` with ``train``
@@ -869,6 +892,8 @@ def train_maps(lens, specs, cfg: TrainConfig, workdir: str | None = None, progre
     keys = [f"{d}.{p}" for p, d, *_ in specs]
     seeds = [map_seed(cfg, p, d) for p, d, *_ in specs]
     rc, cc = cfg.net("regressor", direction), cfg.net("classifier", direction)
+    if keep == "refine":
+        _check_finishable(bases, (("regressor", rc), ("classifier", cc)), direction)
     ck = (lambda net, ks: os.path.join(workdir, stack_name(net, ks) + ".ckpt")) if workdir else (lambda net, ks: None)
     t0 = time.perf_counter()
     samplers, streams = [], []
