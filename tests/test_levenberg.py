@@ -397,7 +397,7 @@ def test_row_feed_hands_out_each_fresh_row_once_in_chunks():
 def test_refining_a_network_larger_than_the_finish_takes_is_a_clear_error():
     """``keep = "refine"`` runs only the finish, which leaves networks above ``MAX_PARAMS`` alone: a 5×32 regressor
     (or a 3×16 one configured wider than the finish takes) is refused before any training, naming the way out; a
-    3×16 one widened to 3×32 passes."""
+    3×16 one widened to 3×32 passes; a stop head widened past the limit by ``refine-stop`` is refused the same way."""
     from mi_neurallens import NeuralLensError
     from mi_neurallens.training.config import NetConfig
     from mi_neurallens.training.trainer import _check_finishable
@@ -413,3 +413,9 @@ def test_refining_a_network_larger_than_the_finish_takes_is_a_clear_error():
     _check_finishable([base([16] * 3)], nets(32), "forward")           # 2 437 weights widened: the finish takes it
     with pytest.raises(NeuralLensError, match="larger than the Levenberg-Marquardt finish takes"):
         _check_finishable([base([16] * 3)], nets(48), "forward")
+    # the stop heads' refine (``keep = "refine-stop"``) refuses the same, before it samples anything
+    from mi_neurallens.training.stop_head import train_stop_heads
+    tm = types.SimpleNamespace(key="forward.278528", direction="forward", path_id=278528)
+    head = types.SimpleNamespace(layers=random_layers([4, 32, 32, 32, 6]))
+    with pytest.raises(NeuralLensError, match=r"refine-stop: forward\.278528 stop head \(\d+ weights\).*--keep both"):
+        train_stop_heads(None, [tm], NetConfig(hidden=3, width=48, lm_minutes=1.0), seeds=[0], start=[head])

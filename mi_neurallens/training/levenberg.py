@@ -92,6 +92,19 @@ def widen_as_configured(layers, hidden: int, width: int, seed) -> tuple:
     return widen(layers, width, np.random.default_rng(seed)), before
 
 
+def too_large_to_finish(named_layers, hidden: int, width: int) -> list:
+    """What a refine run (regressors, classifiers, stop heads alike) cannot do: ``"key (P weights)"`` for each
+    ``(key, layers)`` whose network, widened as configured (:func:`widen_as_configured`), has more than
+    :data:`MAX_PARAMS` weights, so the finish would hand it back unchanged.  Empty where every one can be refined."""
+    out = []
+    for key, layers in named_layers:
+        layers = [(np.asarray(W), np.asarray(b)) for W, b in layers]
+        P = n_params(widen_as_configured(layers, hidden, width, 0)[0])
+        if P > MAX_PARAMS:
+            out.append(f"{key} ({P} weights)")
+    return out
+
+
 def n_params(layers) -> int:
     """Weights and biases of ``layers`` ([(W (out, in), b (out,))])."""
     return int(sum(np.size(W) + np.size(b) for W, b in layers))

@@ -778,14 +778,9 @@ def _check_finishable(bases, nets, direction: str) -> None:
     :data:`~mi_neurallens.training.levenberg.MAX_PARAMS` weights: a larger one (a 5×32 regressor, or one the
     configured width would widen past it) would come back unchanged, so it is a clear error, before any training,
     naming the way to a network the finish takes.  ``nets``: (network, its NetConfig) pairs."""
-    from .levenberg import MAX_PARAMS, n_params, widen_as_configured
+    from .levenberg import MAX_PARAMS, too_large_to_finish
     for network, nc in nets:
-        big = []
-        for b in bases:
-            layers = [(np.asarray(W), np.asarray(bias)) for W, bias in getattr(b, network)]
-            P = n_params(widen_as_configured(layers, nc.hidden, nc.width, 0)[0])
-            if P > MAX_PARAMS:
-                big.append(f"{b.key} ({P} weights)")
+        big = too_large_to_finish([(b.key, getattr(b, network)) for b in bases], nc.hidden, nc.width)
         if big:
             table = f"forward_{network}" if direction == "forward" else network
             other = "classifier" if network == "regressor" else "regressor"
