@@ -11,7 +11,11 @@ renders a converged ``realistic_lens`` reference (``--reference-spp``, its own s
     python benchmarks/aperture.py [--res 96x72] [--spp 64] [--reference-spp 1024]
                                   [--lenses wide-22mm,...] [--scenes still_life,...] [--mults 1,2,4,8]
 
-Prints a Markdown table and writes ``benchmarks/results/aperture.json``.  The neural models must have
+Prints a Markdown table and writes ``benchmarks/results/aperture.json``.
+
+``--bokeh``: the blur disc of a point light through 5, 6 and 9 blades instead (issue 16's bokeh goal: the
+masks of the disc, above 10 % of its mean, neural vs exact, IoU ≥ 0.98), each lens focused near and the film
+cropped to the disc (:func:`bokeh_pair`); writes ``…/aperture_bokeh.json``.  The neural models must have
 stop heads (``mi-neurallens train LENS --paths backward-transmit --keep both``); scenes whose focus is
 closer than a model supports are rendered at its closest focus (``bokeh``: 0.35 m, or farther where the
 model needs it).
@@ -60,11 +64,17 @@ def main(argv=None):
     ap.add_argument("--mults", default="1,2,4,8")
     add_variant_argument(ap)
     ap.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "aperture.json"))
+    ap.add_argument("--bokeh", action="store_true",
+                    help="only the blur disc of a point light through 5, 6 and 9 blades: mask IoU, neural vs exact "
+                         "(default mults 2,4,8)")
+    ap.add_argument("--bokeh-spp", type=int, default=4096, help="--bokeh: samples per pixel (160x160 film)")
     ap.add_argument("--speed", action="store_true",
                     help="only the cost of the iris: camera rays/s of both sensors at each f-number (idle machine)")
     args = ap.parse_args(argv)
     if args.speed:
         return speed(args)
+    if args.bokeh:
+        return bokeh(args)
     import mitsuba as mi
     import numpy as np
     from mi_neurallens.commands.render import load_scene
@@ -108,6 +118,84 @@ def main(argv=None):
     print(f"\ngoals met in {sum(ok)} of {len(ok)} configurations")
     atomic_write_json(args.out, {"machine": platform.processor() or platform.machine(), "argv": sys.argv[1:],
                                  "res": [w, h], "spp": args.spp, "reference_spp": args.reference_spp, "rows": rows})
+    return 0
+
+
+#: the point light of the bokeh comparison: on axis, this far from the sensor plane (m), radius (m), radiance
+BOKEH_LIGHT_M, BOKEH_LIGHT_RADIUS_M, BOKEH_RADIANCE = 4.0, 0.004, 1e3
+
+
+def bokeh_disc_mm(lens, fstop: float, focus_m: float, light_m: float = BOKEH_LIGHT_M) -> float:
+    """Paraxial diameter (mm, on the sensor) of the blur disc of a point ``light_m`` away with the lens focused at
+    ``focus_m`` (both from the sensor plane, treated as object distances: an estimate that sizes the film)."""
+    f = lens.efl()
+    s_f, s_p = 1000.0 * focus_m, 1000.0 * light_m
+    return (f / fstop) * f / (s_f - f) * abs(s_p - s_f) / s_p
+
+
+def bokeh_pair(mi, lens_name: str, fstop: float, blades: int, focus_m: float, spp: int = 4096, res: int = 160,
+               seed: int = 7):
+    """The blur disc of an on-axis point light :data:`BOKEH_LIGHT_M` away, ``realistic_lens`` and ``neural_lens``
+    (its bundled model) with the same seed, the film (``res``², box filter) cropped to 2.5× the paraxial disc
+    (:func:`bokeh_disc_mm`).  Returns ``(exact, neural, iou)``: H×W×3 images and the IoU of the masks of the disc
+    (pixels above 10 % of the mean of the non-zero ones, green channel).  Raises where a sensor refuses the iris
+    (blades near wide open)."""
+    import numpy as np
+    from mi_neurallens.optics.prescription import Lens
+    width_mm = 2.5 * bokeh_disc_mm(Lens.load(lens_name), fstop, focus_m)
+    pair = []
+    for kind in ("realistic_lens", "neural_lens"):
+        s = {"type": kind, "lens": lens_name, "focus_distance": focus_m, "fstop": fstop, "blades": blades,
+             "sensor_width": width_mm,
+             "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+             "sampler": {"type": "independent", "sample_count": spp}}
+        if kind == "neural_lens":
+            s["model"] = lens_name
+        scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": 2}, "sensor": s,
+                              "light": {"type": "sphere", "center": [0, 0, BOKEH_LIGHT_M], "radius": BOKEH_LIGHT_RADIUS_M,
+                                        "emitter": {"type": "area", "radiance": {"type": "rgb",
+                                                                                 "value": [BOKEH_RADIANCE] * 3}}}})
+        pair.append(np.array(mi.render(scene, seed=seed), dtype=np.float64))
+    masks = [p[..., 1] > 0.1 * p[..., 1][p[..., 1] > 0].mean() for p in pair]
+    iou = float((masks[0] & masks[1]).sum() / (masks[0] | masks[1]).sum())
+    return pair[0], pair[1], iou
+
+
+def bokeh(args):
+    """Mask IoU of the blur disc, neural vs exact, per lens × f-number × blade count (:func:`bokeh_pair`)."""
+    import mitsuba as mi
+    from mi_neurallens.fileio import atomic_write_json
+    from mi_neurallens.optics.prescription import Lens
+    import mi_neurallens
+    mi.set_variant(args.variant)
+    mi_neurallens.register()
+    mults = args.mults if args.mults != "1,2,4,8" else "2,4,8"
+    rows = []
+    for lens in args.lenses.split(","):
+        n0 = Lens.load(lens).paraxial(LAMBDA_D).fnumber
+        focus = closest_focus_m(lens)
+        for k in (float(v) for v in mults.split(",")):
+            for blades in (5, 6, 9):
+                t = time.perf_counter()
+                try:
+                    _, _, iou = bokeh_pair(mi, lens, k * n0, blades, focus, spp=args.bokeh_spp)
+                except Exception as e:   # blades near wide open (docs/neural_lens.md): n/a
+                    print(f"  {lens} {k:g}x {blades} blades: n/a ({str(e).splitlines()[-1][:160]})")
+                    iou = None
+                rows.append({"lens": lens, "mult": k, "fstop": k * n0, "blades": blades, "focus_m": focus,
+                             "iou": iou, "seconds": time.perf_counter() - t})
+                if iou is not None:
+                    print(f"{lens:20s} {k:g}x f/{k * n0:5.2f} {blades} blades: mask IoU {iou:.4f}", flush=True)
+    print("\n| lens | f-number | 5 blades | 6 blades | 9 blades |\n|---|---|---|---|---|")
+    for i in range(0, len(rows), 3):
+        r = rows[i]
+        cells = " | ".join("n/a" if x["iou"] is None else f"{x['iou']:.4f}" for x in rows[i:i + 3])
+        print(f"| {r['lens']} | {r['mult']:g}× (f/{r['fstop']:.2f}) | {cells} |")
+    ok = [r["iou"] >= 0.98 for r in rows if r["iou"] is not None]
+    print(f"\nIoU >= 0.98 in {sum(ok)} of {len(ok)}")
+    out = os.path.splitext(args.out)[0] + "_bokeh.json"
+    atomic_write_json(out, {"machine": platform.processor() or platform.machine(), "argv": sys.argv[1:],
+                            "spp": args.bokeh_spp, "res": 160, "light_m": BOKEH_LIGHT_M, "rows": rows})
     return 0
 
 

@@ -207,24 +207,12 @@ def aperture(spp, res, lens="wide-22mm"):
          f"predicted stop crossing), {spp} spp, same seeds", 4)
     N = 4.0 * n0
     imgs, titles = [[], []], [[], []]
+    sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+    from aperture import bokeh_pair      # the bokeh protocol of `benchmarks/aperture.py --bokeh`
     for blades in (5, 6, 9):
-        pair = []
-        for row, kind in enumerate(("realistic_lens", "neural_lens")):
-            s = {"type": kind, "focus_distance": 0.35, "fstop": N, "blades": blades, "sensor_width": 3.4 / N,
-                 "film": {"type": "hdrfilm", "width": 160, "height": 160, "rfilter": {"type": "box"},
-                          "pixel_format": "rgb"},
-                 "sampler": {"type": "independent", "sample_count": 4096}, "lens": lens}
-            if kind == "neural_lens":
-                s["model"] = lens
-            scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": 2}, "sensor": s,
-                                  "light": {"type": "sphere", "center": [0, 0, 4.0], "radius": 0.004,
-                                            "emitter": {"type": "area", "radiance": {"type": "rgb",
-                                                                                     "value": [1e3] * 3}}}})
-            img = np.array(mi.render(scene, seed=7), dtype=np.float64)
-            pair.append(img)
+        ex, nn, iou = bokeh_pair(mi, lens, N, blades, 0.35)
+        for row, img in enumerate((ex, nn)):
             imgs[row].append(img / img.max() * 1.5)
-        masks = [p[..., 1] > 0.1 * p[..., 1][p[..., 1] > 0].mean() for p in pair]
-        iou = float((masks[0] & masks[1]).sum() / (masks[0] | masks[1]).sum())
         out["bokeh"].append({"blades": blades, "fstop": N, "iou": iou})
         titles[0].append(f"realistic_lens, {blades} blades, f/{N:.3g}")
         titles[1].append(f"neural_lens, {blades} blades: mask IoU {iou:.4f}")

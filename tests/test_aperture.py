@@ -221,9 +221,8 @@ def _iou(a, b):
 def test_bokeh_blades_neural_equals_exact_and_a_wrong_stop_fails(tmp_path):
     """The out-of-focus image of a point light through 5, 6 and 9 blades at 4× the widest f-number:
     neural and exact masks (same seeds) agree to IoU ≥ 0.98; a stop head whose crossing is off by
-    20 µm, or blades rotated by half a blade, fail that bound.  (At 8× the blur disc is ~280″ wide in
-    object space and the regressor's few-arcsecond direction error alone moves its rim by ~1 %:
-    docs/results.md.)"""
+    20 µm, or blades rotated by half a blade, fail that bound.  (``benchmarks/aperture.py --bokeh`` measures
+    the three paper lenses at 2×, 4× and 8×: docs/results.md, "The aperture goals on today's camera maps".)"""
     mi = _mitsuba()
     lens = Lens.load("wide-22mm")
     N = 4.0 * lens.paraxial(LAMBDA_D).fnumber
