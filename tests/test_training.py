@@ -245,9 +245,9 @@ def test_config_rejects_unknown_keys(tmp_path):
     # head takes at most 0.5 min of it unless [forward_stop] names its own, and none when [stop] has none
     c = load_config(None)
     assert c.net("stop", "backward").lm_minutes == 1.5 and c.net("stop", "forward").lm_minutes == 0.5
-    # a ghost's head is the regressor's recipe (3×16, 4 000 Adam steps, the finish); the camera head stays 2×32
+    # every head is the regressor's recipe (3×16, 4 000 Adam steps, the finish); the camera head's finish is longer
     fs, bs = c.net("stop", "forward"), c.net("stop", "backward")
-    assert (fs.hidden, fs.width, fs.max_steps) == (3, 16, 4000) and (bs.hidden, bs.width) == (2, 32)
+    assert (fs.hidden, fs.width, fs.max_steps) == (3, 16, 4000) and (bs.hidden, bs.width, bs.max_steps) == (3, 16, 4000)
     p.write_text("[forward_stop]\nmax_minutes = 1.0\n")
     assert load_config(str(p)).net("stop", "forward").lm_minutes == 0.5
     p.write_text("[stop]\nlm_minutes = 0.0\n")

@@ -88,12 +88,15 @@ def classifier_defaults() -> NetConfig:
 
 
 def stop_defaults() -> NetConfig:
-    """The stop head (where rays cross the stop plane): smooth and nearly linear, so a small network; up to
-    1.5 min of the finish (it stops at the goal: 0.5 min left wide-22mm's camera head at 2.08 µm median,
-    1.5 min took ood-59mm's to 1.06 µm — docs/results.md).  Its loss weighs each crossing column by its spread
-    (``loss_weights = "goals"``, :func:`~mi_neurallens.training.stop_head.stop_loss_weights`)."""
-    return NetConfig(hidden=2, width=32, lr=3e-3, max_steps=60000, max_minutes=0.5, lm_minutes=1.5, patience=12,
-                     residual="linear", loss_weights="goals", direction_loss="none", odd_y=True,
+    """The stop head (where rays cross the stop plane): smooth and nearly linear, so a small network, the
+    regressor's 3×16 with :data:`REGRESSOR_ADAM_STEPS` of Adam and up to 1.5 min of the finish (it stops at the
+    goal).  The camera heads were 2×32 until the finish showed what a 3×16 one reaches: 2 min of it took the paper
+    lenses' camera heads to 0.012–0.11 µm median (the 2×32 ones: 0.73–1.40), with half the multiply-adds, so
+    ``neural_lens`` below the widest f-number went from 20.5 to 25.5 M rays/s (docs/results.md, "What the iris
+    costs").  Its loss weighs each crossing column by its spread (``loss_weights = "goals"``,
+    :func:`~mi_neurallens.training.stop_head.stop_loss_weights`)."""
+    return NetConfig(hidden=3, width=16, lr=3e-3, max_steps=REGRESSOR_ADAM_STEPS, max_minutes=0.5, lm_minutes=1.5,
+                     patience=12, residual="linear", loss_weights="goals", direction_loss="none", odd_y=True,
                      pool=1_000_000)
 
 
@@ -122,7 +125,7 @@ FORWARD_CLASSIFIER = dict(target="margin", goal_misclassification=0.0005, max_mi
 #: ``[forward_stop]`` says otherwise: 32 ghosts × the camera head's 1.5 min would add up to half an hour to a lens
 FORWARD_STOP_LM_MINUTES = 0.5
 #: a forward map's stop head: the regressor's recipe, a 3×16 network with :data:`REGRESSOR_ADAM_STEPS` of Adam and
-#: the finish, not the camera head's 2×32 with Adam to its budget.  A ghost crossing the stop plane two or three
+#: the finish (the camera head's too, since; it was 2×32 with Adam to its budget).  A ghost crossing the stop plane two or three
 #: times is as hard to place there as on the film: on dgauss-50mm's ghosts 96, 1152, 16896 and 4224 the 3×16 heads
 #: reached 1.5–1.8 µm median, 7.1–8.9 µm p99 in 2.9 min for the four, the 2×32 ones 2.7–5.2 / 12.5–24 µm in 4.7
 #: (docs/results.md, "Stop heads as small as the regressor")
