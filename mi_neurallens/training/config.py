@@ -125,10 +125,10 @@ FORWARD_CLASSIFIER = dict(target="margin", goal_misclassification=0.0005, max_mi
 #: ``[forward_stop]`` says otherwise: 32 ghosts × the camera head's 1.5 min would add up to half an hour to a lens
 FORWARD_STOP_LM_MINUTES = 0.5
 #: a forward map's stop head: the regressor's recipe, a 3×16 network with :data:`REGRESSOR_ADAM_STEPS` of Adam and
-#: the finish (the camera head's too, since; it was 2×32 with Adam to its budget).  A ghost crossing the stop plane two or three
-#: times is as hard to place there as on the film: on dgauss-50mm's ghosts 96, 1152, 16896 and 4224 the 3×16 heads
-#: reached 1.5–1.8 µm median, 7.1–8.9 µm p99 in 2.9 min for the four, the 2×32 ones 2.7–5.2 / 12.5–24 µm in 4.7
-#: (docs/results.md, "Stop heads as small as the regressor")
+#: the finish (the camera head is one too now; both were 2×32 with Adam to its budget).  A ghost crossing the stop
+#: plane two or three times is as hard to place there as on the film: on dgauss-50mm's ghosts 96, 1152, 16896 and
+#: 4224 the 3×16 heads reached 1.5–1.8 µm median, 7.1–8.9 µm p99 in 2.9 min for the four, the 2×32 ones
+#: 2.7–5.2 / 12.5–24 µm in 4.7 (docs/results.md, "Stop heads as small as the regressor")
 FORWARD_STOP = dict(hidden=3, width=16, max_steps=REGRESSOR_ADAM_STEPS)
 
 PAPER = dict(schedule="paper", lr=1e-4, decay=0.95, decay_every=10000, batch=8192, warmup_steps=0,
