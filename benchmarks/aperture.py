@@ -136,9 +136,9 @@ def bokeh_disc_mm(lens, fstop: float, focus_m: float, light_m: float = BOKEH_LIG
 
 
 def bokeh_pair(mi, lens_name: str, fstop: float, blades: int, focus_m: float, spp: int = 4096, res: int = 160,
-               seed: int = 7):
+               seed: int = 7, model: str | None = None):
     """The blur disc of an on-axis point light :data:`BOKEH_LIGHT_M` away, ``realistic_lens`` and ``neural_lens``
-    (its bundled model) with the same seed, the film (``res``², box filter) cropped to 2.5× the paraxial disc
+    (``model``, default the lens's bundled one) with the same seed, the film (``res``², box filter) cropped to 2.5× the paraxial disc
     (:func:`bokeh_disc_mm`).  Returns ``(exact, neural, iou)``: H×W×3 images and the IoU of the masks of the disc
     (pixels above 10 % of the mean of the non-zero ones, green channel).  Raises where a sensor refuses the iris
     (blades near wide open)."""
@@ -152,7 +152,7 @@ def bokeh_pair(mi, lens_name: str, fstop: float, blades: int, focus_m: float, sp
              "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}, "pixel_format": "rgb"},
              "sampler": {"type": "independent", "sample_count": spp}}
         if kind == "neural_lens":
-            s["model"] = lens_name
+            s["model"] = model or lens_name
         scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": 2}, "sensor": s,
                               "light": {"type": "sphere", "center": [0, 0, BOKEH_LIGHT_M], "radius": BOKEH_LIGHT_RADIUS_M,
                                         "emitter": {"type": "area", "radiance": {"type": "rgb",
