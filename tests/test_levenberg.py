@@ -397,7 +397,9 @@ def test_row_feed_hands_out_each_fresh_row_once_in_chunks():
 def test_refining_a_network_larger_than_the_finish_takes_is_a_clear_error():
     """``keep = "refine"`` runs only the finish, which leaves networks above ``MAX_PARAMS`` alone: a 5×32 regressor
     (or a 3×16 one configured wider than the finish takes) is refused before any training, naming the way out; a
-    3×16 one widened to 3×32 passes; a stop head widened past the limit by ``refine-stop`` is refused the same way."""
+    3×16 one widened to 3×32 passes; a stop head widened past the limit by ``refine-stop`` is refused the same way.
+    A network given no time for the finish (``lm_minutes`` 0) is refused there too, before the other one's finish
+    has run (it used to be found only then, minutes later)."""
     from mi_neurallens import NeuralLensError
     from mi_neurallens.training.config import NetConfig
     from mi_neurallens.training.trainer import _check_finishable
@@ -406,13 +408,16 @@ def test_refining_a_network_larger_than_the_finish_takes_is_a_clear_error():
         return types.SimpleNamespace(key="forward.10240", training={}, regressor=random_layers([4, *widths, 5]),
                                      classifier=random_layers([4, 16, 16, 1]), regressor_activation="tanh",
                                      classifier_activation="tanh")
-    nets = lambda width: (("regressor", NetConfig(hidden=3, width=width)), ("classifier", NetConfig(hidden=2, width=16)))
+    nets = lambda width, lm=1.0: (("regressor", NetConfig(hidden=3, width=width, lm_minutes=1.0)),
+                                  ("classifier", NetConfig(hidden=2, width=16, lm_minutes=lm)))
     with pytest.raises(NeuralLensError, match=r"regressor of forward\.10240 \(4549 weights\).*--keep classifier "
                                               r"--set forward_regressor\.hidden=3"):
         _check_finishable([base([32] * 5)], nets(32), "forward")
     _check_finishable([base([16] * 3)], nets(32), "forward")           # 2 437 weights widened: the finish takes it
     with pytest.raises(NeuralLensError, match="larger than the Levenberg-Marquardt finish takes"):
         _check_finishable([base([16] * 3)], nets(48), "forward")
+    with pytest.raises(NeuralLensError, match=r"the classifier's lm_minutes is 0: .*--set classifier\.lm_minutes"):
+        _check_finishable([base([16] * 3)], nets(16, lm=0.0), "backward")
     # the stop heads' refine (``keep = "refine-stop"``) refuses the same, before it samples anything
     from mi_neurallens.training.stop_head import train_stop_heads
     tm = types.SimpleNamespace(key="forward.278528", direction="forward", path_id=278528)

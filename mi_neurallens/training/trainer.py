@@ -756,13 +756,9 @@ def _carry_history(result: dict, kept: dict) -> None:
 
 
 def _refining(nc: NetConfig, network: str, direction: str, bases) -> NetConfig:
-    """The settings of a ``keep = "refine"`` run: ``nc`` as configured, which must give the
-    Levenberg–Marquardt finish some time; a classifier keeps the target (and its scale) it was trained
-    with, so the finish minimises the loss its weights were made for."""
-    if nc.lm_minutes <= 0:
-        table = f"forward_{network}" if direction == "forward" else network
-        raise NeuralLensError(f"refining a model runs only the Levenberg–Marquardt finish, and the {network}'s "
-                              f"lm_minutes is 0: give it time, e.g. --set {table}.lm_minutes=1.5")
+    """The settings of a ``keep = "refine"`` run: ``nc`` as configured (:func:`_check_finishable` has made sure
+    it gives the finish some time); a classifier keeps the target (and its scale) it was trained with, so the
+    finish minimises the loss its weights were made for."""
     if network == "classifier":
         got = {tuple(b.training.get("classifier", {}).get(k, getattr(nc, k))
                      for k in ("target", "margin_scale", "margin_clip")) for b in bases}
@@ -774,15 +770,19 @@ def _refining(nc: NetConfig, network: str, direction: str, bases) -> NetConfig:
 
 
 def _check_finishable(bases, nets, direction: str) -> None:
-    """A ``refine`` run only runs the Levenberg–Marquardt finish, which takes networks of at most
-    :data:`~mi_neurallens.training.levenberg.MAX_PARAMS` weights: a larger one (a 5×32 regressor, or one the
-    configured width would widen past it) would come back unchanged, so it is a clear error, before any training,
-    naming the way to a network the finish takes.  ``nets``: (network, its NetConfig) pairs."""
+    """A ``refine`` run only runs the Levenberg–Marquardt finish, of every network it refines: one given no time
+    for it (``lm_minutes`` 0), or larger than the finish takes (:data:`~mi_neurallens.training.levenberg.MAX_PARAMS`
+    weights: a 5×32 regressor, or one the configured width would widen past it), would come back unchanged, so
+    each is a clear error before any training (not after the other network's finish), naming the way out.
+    ``nets``: (network, its NetConfig) pairs."""
     from .levenberg import MAX_PARAMS, too_large_to_finish
     for network, nc in nets:
+        table = f"forward_{network}" if direction == "forward" else network
+        if nc.lm_minutes <= 0:
+            raise NeuralLensError(f"refining a model runs only the Levenberg–Marquardt finish, and the {network}'s "
+                                  f"lm_minutes is 0: give it time, e.g. --set {table}.lm_minutes=1.5")
         big = too_large_to_finish([(b.key, getattr(b, network)) for b in bases], nc.hidden, nc.width)
         if big:
-            table = f"forward_{network}" if direction == "forward" else network
             other = "classifier" if network == "regressor" else "regressor"
             raise NeuralLensError(
                 f"refine: the {network} of {', '.join(big)} is larger than the Levenberg-Marquardt finish takes "
