@@ -105,6 +105,24 @@ def too_large_to_finish(named_layers, hidden: int, width: int) -> list:
     return out
 
 
+def check_refinable(named_layers, nc, owner: str, table: str, way_out: str, what: str = "") -> None:
+    """The one rule of every refine run (``--keep refine``: regressors and classifiers; ``refine-stop``: stop
+    heads), which runs only the finish: a :class:`~mi_neurallens.errors.NeuralLensError`, before any training,
+    where ``nc`` (a NetConfig) gives the finish no time or a network of ``named_layers`` ((key, layers) pairs) is
+    too large for it (:func:`too_large_to_finish`), since either would come back unchanged.  ``owner``: whose
+    ``lm_minutes`` the message names (e.g. "the classifier's"); ``table``: its config table; ``what``: the
+    message's lead before the networks' names; ``way_out``: the retrain that works."""
+    from ..errors import NeuralLensError
+    if nc.lm_minutes <= 0:
+        raise NeuralLensError(f"refining runs only the Levenberg–Marquardt finish, and {owner} lm_minutes is 0: "
+                              f"give it time, e.g. --set {table}.lm_minutes=1.5")
+    big = too_large_to_finish(named_layers, nc.hidden, nc.width)
+    if big:
+        raise NeuralLensError(f"{what}{', '.join(big)} is larger than the Levenberg-Marquardt finish takes "
+                              f"({MAX_PARAMS} weights), so refining would leave it as it is; train it anew as a "
+                              f"network the finish takes, e.g. {way_out}")
+
+
 def n_params(layers) -> int:
     """Weights and biases of ``layers`` ([(W (out, in), b (out,))])."""
     return int(sum(np.size(W) + np.size(b) for W, b in layers))

@@ -24,7 +24,7 @@ from .config import NetConfig
 from .data import PathSampler, RegressorStream
 from .evaluate import heldout_valid, stop_errors
 from .stacked import Problem
-from .levenberg import MAX_PARAMS, too_large_to_finish, widen_as_configured
+from .levenberg import check_refinable, widen_as_configured
 from .trainer import _torch, fit_output_transform, pick_device, polish_results
 
 
@@ -161,16 +161,10 @@ def train_stop_heads(lens, tms, nc: NetConfig, *, seeds, fresnel: bool = True, m
     Levenberg–Marquardt finish (``nc.lm_minutes``, which must be > 0) from its weights and output transform, its
     hidden layers first widened to ``nc.width`` where that is wider and the layer count is ``nc.hidden``
     (:func:`~mi_neurallens.training.levenberg.widen`: the same function, with room)."""
-    if start is not None and nc.lm_minutes <= 0:
-        raise NeuralLensError("refining stop heads runs only the Levenberg–Marquardt finish, and its lm_minutes is "
-                              "0: give it time, e.g. --set forward_stop.lm_minutes=1.5")
     if start is not None:
-        big = too_large_to_finish([(f"{tm.key} stop head", h.layers) for tm, h in zip(tms, start)], nc.hidden, nc.width)
-        if big:
-            table = "forward_stop" if tms[0].direction == "forward" else "stop"
-            raise NeuralLensError(f"refine-stop: {', '.join(big)} is larger than the Levenberg-Marquardt finish takes "
-                                  f"({MAX_PARAMS} weights), so refining would leave it as it is; train a new one "
-                                  f"instead, e.g. --keep both --set {table}.hidden=3 --set {table}.width=32")
+        table = "forward_stop" if tms[0].direction == "forward" else "stop"
+        check_refinable([(f"{tm.key} stop head", h.layers) for tm, h in zip(tms, start)], nc, "the stop heads'",
+                        table, f"--keep both --set {table}.hidden=3 --set {table}.width=32", what="refine-stop: ")
     from ..neural.model import StopHead
     from .stacked import pool_rows, train_stack
     torch = _torch(threads)

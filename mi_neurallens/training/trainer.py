@@ -770,25 +770,17 @@ def _refining(nc: NetConfig, network: str, direction: str, bases) -> NetConfig:
 
 
 def _check_finishable(bases, nets, direction: str) -> None:
-    """A ``refine`` run only runs the Levenberg–Marquardt finish, of every network it refines: one given no time
-    for it (``lm_minutes`` 0), or larger than the finish takes (:data:`~mi_neurallens.training.levenberg.MAX_PARAMS`
-    weights: a 5×32 regressor, or one the configured width would widen past it), would come back unchanged, so
-    each is a clear error before any training (not after the other network's finish), naming the way out.
-    ``nets``: (network, its NetConfig) pairs."""
-    from .levenberg import MAX_PARAMS, too_large_to_finish
+    """:func:`~mi_neurallens.training.levenberg.check_refinable` for each network a ``refine`` run finishes, all
+    before any training (not after the other network's finish): one given no time for the finish, or larger than
+    it takes (a 5×32 regressor, or one the configured width would widen past it), is a clear error naming the way
+    out.  ``nets``: (network, its NetConfig) pairs."""
+    from .levenberg import check_refinable
     for network, nc in nets:
         table = f"forward_{network}" if direction == "forward" else network
-        if nc.lm_minutes <= 0:
-            raise NeuralLensError(f"refining a model runs only the Levenberg–Marquardt finish, and the {network}'s "
-                                  f"lm_minutes is 0: give it time, e.g. --set {table}.lm_minutes=1.5")
-        big = too_large_to_finish([(b.key, getattr(b, network)) for b in bases], nc.hidden, nc.width)
-        if big:
-            other = "classifier" if network == "regressor" else "regressor"
-            raise NeuralLensError(
-                f"refine: the {network} of {', '.join(big)} is larger than the Levenberg-Marquardt finish takes "
-                f"({MAX_PARAMS} weights), so refining would leave it as it is; train it anew as a network the "
-                f"finish takes, e.g. --keep {other} --set {table}.hidden=3 --set {table}.width=32 "
-                f"--set {table}.lm_minutes=2.5")
+        other = "classifier" if network == "regressor" else "regressor"
+        check_refinable([(b.key, getattr(b, network)) for b in bases], nc, f"the {network}'s", table,
+                        f"--keep {other} --set {table}.hidden=3 --set {table}.width=32 --set {table}.lm_minutes=2.5",
+                        what=f"refine: the {network} of ")
 
 
 def _train_networks(train, problems, nc: NetConfig, net: str, ck, keys, cfg: TrainConfig, direction: str,
