@@ -58,15 +58,10 @@ def conjugates(mi, dr, lens_name: str, fstop: float, focus_m: float, field_mm=(0
     rows = []
     for x0 in field_mm:
         fx, fy = mi.Float(np.full(n, x0, np.float32)), mi.Float(np.zeros(n, np.float32))
-        X, Y, _ = ex_s.pupil.sample(mi, dr, fx, fy, mi.Point2f(mi.Float(u[:, 0]), mi.Float(u[:, 1])))
-        dzp = ex_s.pupil.dz
-        ex, ey = X - fx, Y - fy
-        il = dr.rsqrt(dr.fma(ex, ex, dr.fma(ey, ey, dzp * dzp)))
-        d = (ex * il, ey * il, -dzp * il)
-        zf = dr.zeros(mi.Float, n) + ex_s.pupil.z_img
+        o, d, _, _ = ex_s._film_rays(fx, fy, mi.Point2f(mi.Float(u[:, 0]), mi.Float(u[:, 1])))   # the sensor's rays
         out = []
         for s in (ex_s, nn_s):
-            pos, dirn, _, valid = s._transport((fx, fy, zf), d, mi.Float(LAMBDA_D), True)
+            pos, dirn, _, valid = s._transport(o, d, mi.Float(LAMBDA_D), True)
             p = np.stack([np.array(c, dtype=np.float64) for c in pos], 1)
             q = np.stack([np.array(c, dtype=np.float64) for c in dirn], 1)
             out.append((p, q / np.linalg.norm(q, axis=1, keepdims=True), np.array(valid).astype(bool)))

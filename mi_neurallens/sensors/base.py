@@ -109,19 +109,26 @@ class LensSensorBase(mi.Sensor):
         return f"lens={self.setup.lens.name}"
 
     # ------------------------------------------------------------------ rays
+    def _film_rays(self, fx, fy, sample3):
+        """Rays from the film points ``(fx, fy)`` (lens space, mm, on the sensor plane) toward the exit pupil
+        points ``sample3`` picks (:attr:`pupil`): ``(o, d, area, cos_t)`` — origins and unit directions (lens
+        space), the pupil sample's area weight, and the cosine of the ray to the axis."""
+        X, Y, area = self.pupil.sample(mi, dr, fx, fy, sample3)
+        dzp = self.pupil.dz
+        ex, ey = X - fx, Y - fy
+        inv_len = dr.rsqrt(dr.fma(ex, ex, dr.fma(ey, ey, dzp * dzp)))
+        d = (ex * inv_len, ey * inv_len, -dzp * inv_len)
+        zf = dr.zeros(mi.Float, dr.width(fx)) + self.pupil.z_img
+        return (fx, fy, zf), d, area, dzp * inv_len
+
     def _trace(self, time, sample1, sample2, sample3, active=True):
         st = self.setup
         lam, wav, wspec, time = sample_wavelength(mi, dr, self, self.lambda_mode, time, sample1,
                                                   sample2, sample3, active)
         fx, fy = film_to_sensor(mi, self, st, sample2)
-        X, Y, area = self.pupil.sample(mi, dr, fx, fy, sample3)
-        z_img, dzp = self.pupil.z_img, self.pupil.dz
-        ex, ey = X - fx, Y - fy
-        inv_len = dr.rsqrt(dr.fma(ex, ex, dr.fma(ey, ey, dzp * dzp)))
-        d = (ex * inv_len, ey * inv_len, -dzp * inv_len)
-        zf = dr.zeros(mi.Float, dr.width(fx)) + z_img
-        pos, dirn, T, valid = self._transport((fx, fy, zf), d, lam, active)
-        cos_t = dzp * inv_len
+        o, d, area, cos_t = self._film_rays(fx, fy, sample3)
+        dzp = self.pupil.dz
+        pos, dirn, T, valid = self._transport(o, d, lam, active)
         c2 = cos_t * cos_t
         # cos^4θ · A / Δz² · T / (π NA'²)
         w = c2 * c2 * area * (st.normalisation / (dzp * dzp)) * T
