@@ -12,6 +12,7 @@
 #   bench   fused literals vs cooperative vectors (bench_mlp.py) and render time thinlens / realistic_lens /
 #           neural_lens (bench_render.py) on the three paper lenses and the 27-surface RF 24 mm, and the RF 24 mm
 #           again with its 16-wide camera map ($RF16: a quarter of the multiply-adds, 2.3x the position error)
+#   render  bench's render times alone, on $PAPER_LENSES (overridable: PAPER_LENSES="canon-ef-24mm-f1.4l")
 #   equal   equal render time, neural vs exact (equal_time.py), on every bundled lens
 #   flare   the Canon EF's whole flare, all 32 ghosts learned vs traced (complete_flare.py; again with the fp16
 #           cooperative vectors at one light position), its first render
@@ -52,7 +53,7 @@ for d in /usr/local/nvidia/lib64 /usr/local/nvidia/lib; do      # the driver's O
 done
 PY=python3
 DEADLINE="${SUITE_DEADLINE:-}"
-PAPER_LENSES="wide-22mm ood-59mm canon-ef-24mm-f1.4l canon-rf-24mm-f1.4l-vcm"
+PAPER_LENSES="${PAPER_LENSES:-wide-22mm ood-59mm canon-ef-24mm-f1.4l canon-rf-24mm-f1.4l-vcm}"   # bench, render
 ALL_LENSES="wide-22mm,ood-59mm,canon-ef-24mm-f1.4l,dgauss-50mm,canon-rf-24mm-f1.4l-vcm"
 FLARE_LENS=canon-ef-24mm-f1.4l
 RF16=benchmarks/models/canon-rf-24mm-f1.4l-vcm.width16.model.safetensors   # 5x16 + 2x16 camera map (not shipped)
@@ -136,6 +137,15 @@ stage_bench() {
         py 90 benchmarks/bench_render.py --lens canon-rf-24mm-f1.4l-vcm --model "$RF16" --res $FILM --spp $SPP \
             --repeats 3 --out "$RES/render_canon-rf-24mm-f1.4l-vcm_width16.json" || rc=1
     fi
+    return $rc
+}
+
+stage_render() {   # bench's render times alone (a call with little time left): PAPER_LENSES="…" picks the lenses
+    local rc=0
+    for lens in $PAPER_LENSES; do
+        py 90 benchmarks/bench_render.py --lens "$lens" --res $FILM --spp $SPP --repeats 3 \
+            --out "$RES/render_$lens.json" || rc=1
+    done
     return $rc
 }
 

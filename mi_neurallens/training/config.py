@@ -100,16 +100,31 @@ def stop_defaults() -> NetConfig:
                      pool=1_000_000)
 
 
+#: the forward maps' Levenberg–Marquardt finish, at most this many iterations per network (besides its minutes).
+#: On this CPU the networks finish one at a time and the minutes end it; on a GPU a lens's 28 forward networks of a
+#: kind finish as one stack whose wall budget is 28 × the minutes, and the 28 classifiers, which rarely reach their
+#: 0.05 % goal, ran 870 iterations in the 76 s before the call's deadline (docs/results.md, "The fourth GPU session").
+#: The caps are what the minutes give on this CPU — dgauss-50mm's 42-min run: classifiers 20–616 iterations
+#: (0.35 min at ≈ 0.035 s), regressors 10–60 and stop heads 10–40 to their goals (0.5 s an iteration) — so a GPU does
+#: the same iterations as this CPU, in a fraction of the time
+FORWARD_LM_ITERATIONS = {"regressor": 120, "classifier": 600, "stop": 60}
 #: forward maps (ghosts, forward transmit) serve flares, so their goals are stated in film pixels at
 #: ``TrainConfig.flare_resolution`` (:func:`flare_goals`: 3 / 30 µm at 2 K full frame) and are looser than a
 #: camera ray's; the ghosts' edges are the flare error, so their classifier regresses the aperture margin
 #: (docs/training.md).  The networks are the defaults' 3×16 / 2×16 with shorter Adam and finish budgets: the
 #: Canon EF's ghosts reached 2.3–39 µm (median map 5.6) with ≤ 1 min of the finish (docs/results.md)
-FORWARD_REGRESSOR = dict(max_minutes=1.0, max_steps=REGRESSOR_ADAM_STEPS, lm_minutes=1.0)
+FORWARD_REGRESSOR = dict(max_minutes=1.0, max_steps=REGRESSOR_ADAM_STEPS, lm_minutes=1.0,
+                         lm_iterations=FORWARD_LM_ITERATIONS["regressor"])
 #: the forward regressor's goals at 2048 pixels across full frame (a 17.6 µm pixel): position (median, p99)
 #: µm, 0.17 / 1.7 pixels; direction (median, p99) arcsec.  Both scale with the pixel (:func:`flare_goals`)
 FLARE_GOAL_UM_2K = (3.0, 30.0)
 FLARE_GOAL_ARCSEC_2K = (30.0, 200.0)
+#: the forward classifier's Adam steps before its finish.  On this CPU the 0.4-min wall budget (a stack of four:
+#: 1.6 min) ended Adam after 12 100–17 700 steps in the 42-min whole-lens run, where the validation had flattened
+#: (ghost 2560: 0.24 % misclassified at 10 000 steps, 0.22 % at 15 376; the finish then took it to 0.05 %).  A GPU
+#: trains a lens's 28 classifiers as one stack whose budget is 28 × 0.4 min, so without a step cap Adam ran to
+#: 40 000 steps there — the step count, not the wall clock, is what makes a run the same on every machine
+FORWARD_CLASSIFIER_ADAM_STEPS = 12000
 #: the forward classifier: 0.4 min of Adam before its 0.35-min finish.  With 1.25 min of Adam, dgauss-50mm's whole
 #: lens spent half its 94 min on classifiers, each stack its whole budget; on eight of its ghosts 0.4 min of Adam
 #: and the same finish gave flare errors within ±0.002 of the 1.25-min maps in 5.0 instead of ≈ 8 min a stack of
@@ -118,9 +133,10 @@ FLARE_GOAL_ARCSEC_2K = (30.0, 200.0)
 #: samples).  The finish was 0.75 min until its rows came from the tracer in chunks (levenberg.ROW_CHUNK): an
 #: iteration then cost 0.042 s instead of 0.155, and 0.35 min left ghosts 1152, 16896, 4224 at 0.058–0.084 %
 #: misclassified where 0.75 min had left them at 0.097–0.138 % (96: 0.045 % both).  The paper lenses' recipes keep
-#: their own
+#: their own.  Adam also stops at :data:`FORWARD_CLASSIFIER_ADAM_STEPS`
 FORWARD_CLASSIFIER = dict(target="margin", goal_misclassification=0.0005, max_minutes=0.4, lm_minutes=0.35,
-                          max_steps=40000, patience=30)
+                          max_steps=FORWARD_CLASSIFIER_ADAM_STEPS, patience=30,
+                          lm_iterations=FORWARD_LM_ITERATIONS["classifier"])
 #: a forward map's stop head (used only through an iris) gets at most this much of the finish unless
 #: ``[forward_stop]`` says otherwise: 32 ghosts × the camera head's 1.5 min would add up to half an hour to a lens
 FORWARD_STOP_LM_MINUTES = 0.5
@@ -129,7 +145,7 @@ FORWARD_STOP_LM_MINUTES = 0.5
 #: plane two or three times is as hard to place there as on the film: on dgauss-50mm's ghosts 96, 1152, 16896 and
 #: 4224 the 3×16 heads reached 1.5–1.8 µm median, 7.1–8.9 µm p99 in 2.9 min for the four, the 2×32 ones
 #: 2.7–5.2 / 12.5–24 µm in 4.7 (docs/results.md, "Stop heads as small as the regressor")
-FORWARD_STOP = dict(hidden=3, width=16, max_steps=REGRESSOR_ADAM_STEPS)
+FORWARD_STOP = dict(hidden=3, width=16, max_steps=REGRESSOR_ADAM_STEPS, lm_iterations=FORWARD_LM_ITERATIONS["stop"])
 
 PAPER = dict(schedule="paper", lr=1e-4, decay=0.95, decay_every=10000, batch=8192, warmup_steps=0,
              residual="none", direction_loss="cosine", loss_weights="uniform", odd_y=False, target="label")
