@@ -22,7 +22,8 @@
 #   tests   the sensor, flare and aperture tests under cuda_ad_rgb ($MI_NEURALLENS_VARIANT)
 #   throughput  the stacked trainer's samples/s on the GPU (training_throughput.py)
 #   train   a whole new lens with the defaults on the GPU: dgauss-50mm, transmit maps and the ghosts of the
-#           default selection (issue 17: <= 10 min), then its held-out evaluation
+#           default selection (issue 17: <= 10 min), then its held-out evaluation; GPU_SUITE_PROFILE=1 runs it
+#           under cProfile (benchmarks/profile_run.py: results/train.pstats, written even when the deadline stops it)
 #   costs   every bundled model's ghost maps timed against tracing them on this backend (evaluate --flare-cost
 #           --write on copies, $RES/models): lens_flare's auto_max_cost then decides on the GPU too; copy each
 #           model's metrics["flare_cost"]["cuda"] into the bundled one (the llvm records stay)
@@ -181,8 +182,9 @@ stage_throughput() {
 }
 
 stage_train() {
-    local t0=$SECONDS rc=0
-    py 100000 -m mi_neurallens train dgauss-50mm $TRAIN --out "$RES/train" --no-progress 2>&1 \
+    local t0=$SECONDS rc=0 prof=()
+    [ -n "${GPU_SUITE_PROFILE:-}" ] && prof=(benchmarks/profile_run.py "$RES/train.pstats")   # kept when stopped
+    py 100000 "${prof[@]}" -m mi_neurallens train dgauss-50mm $TRAIN --out "$RES/train" --no-progress 2>&1 \
         | stamp | tee "$RES/train.log"
     [ "${PIPESTATUS[0]}" -eq 0 ] || rc=1
     echo "wall: $((SECONDS - t0)) s for dgauss-50mm ($TRAIN) with data on $MI_NEURALLENS_VARIANT" | tee -a "$RES/train.log"

@@ -125,6 +125,32 @@ def test_variant_env_sets_the_default_of_commands_benchmarks_and_tests(monkeypat
         default_variant("polarized")
 
 
+def test_profile_run_keeps_the_profile_when_a_deadline_stops_the_run(tmp_path):
+    """benchmarks/profile_run.py (gpu_suite.sh's GPU_SUITE_PROFILE=1): a run that `timeout` stops with SIGTERM
+    still leaves its profile, and exits with timeout's 124; a run that ends keeps its own status."""
+    import pstats
+    import signal
+    import subprocess
+    import sys
+    import time
+    (tmp_path / "slow_mod.py").write_text("import sys, time\n"
+                                          "def wait_here():\n    time.sleep(60)\n"
+                                          "if sys.argv[1:] == ['exit3']:\n    sys.exit(3)\n"
+                                          "wait_here()\n")
+    env = {**os.environ, "PYTHONPATH": str(tmp_path)}
+    script = os.path.join(ROOT, "benchmarks", "profile_run.py")
+    out = tmp_path / "run.pstats"
+    p = subprocess.Popen([sys.executable, script, str(out), "-m", "slow_mod"], env=env, stderr=subprocess.PIPE)
+    time.sleep(2.0)
+    p.send_signal(signal.SIGTERM)
+    assert p.wait(timeout=30) == 124 and out.exists()
+    funcs = {f[2] for f in pstats.Stats(str(out)).stats}
+    assert "wait_here" in funcs
+    out2 = tmp_path / "run2.pstats"
+    assert subprocess.run([sys.executable, script, str(out2), "-m", "slow_mod", "exit3"], env=env).returncode == 3
+    assert out2.exists()
+
+
 def test_flare_neural_on_a_realistic_lens_scene_takes_the_lens_bundled_model(tmp_path, capsys):
     """``flare --mode neural`` on a ``realistic_lens`` scene without ``--model`` uses the bundled model of
     the scene's lens when there is one (the learned ghosts, not an error asking for a model); a lens whose
