@@ -101,13 +101,15 @@ def stop_defaults() -> NetConfig:
 
 
 #: the forward maps' Levenberg–Marquardt finish, at most this many iterations per network (besides its minutes).
-#: On this CPU the networks finish one at a time and the minutes end it; on a GPU a lens's 28 forward networks of a
+#: On a CPU the networks finish one at a time and the minutes end it; on a GPU a lens's 28 forward networks of a
 #: kind finish as one stack whose wall budget is 28 × the minutes, and the 28 classifiers, which rarely reach their
 #: 0.05 % goal, ran 870 iterations in the 76 s before the call's deadline (docs/results.md, "The fourth GPU session").
-#: The caps are what the minutes give on this CPU — dgauss-50mm's 42-min run: classifiers 20–616 iterations
-#: (0.35 min at ≈ 0.035 s), regressors 10–60 and stop heads 10–40 to their goals (0.5 s an iteration) — so a GPU does
-#: the same iterations as this CPU, in a fraction of the time
-FORWARD_LM_ITERATIONS = {"regressor": 120, "classifier": 600, "stop": 60}
+#: The caps sit just above what the minutes give on the 2-core AVX-512 VM (Canon FD 24 mm's whole lens: a regressor
+#: iteration 0.22 s, 1 min ≈ 270; a classifier's 0.024–0.030 s, 0.35 min ≈ 700–875; a stop head's 0.10–0.27 s,
+#: 0.5 min ≈ 110–300), so they do not cut a CPU's finish but keep a GPU stack to about the iterations a CPU gives
+#: each network.  (120 / 600 / 60, the numbers of an older, slower VM, cut 12 of that lens's regressors to half
+#: their minute and left them above the flare goal.)
+FORWARD_LM_ITERATIONS = {"regressor": 300, "classifier": 900, "stop": 300}
 #: forward maps (ghosts, forward transmit) serve flares, so their goals are stated in film pixels at
 #: ``TrainConfig.flare_resolution`` (:func:`flare_goals`: 3 / 30 µm at 2 K full frame) and are looser than a
 #: camera ray's; the ghosts' edges are the flare error, so their classifier regresses the aperture margin
