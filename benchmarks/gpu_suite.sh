@@ -113,6 +113,9 @@ x = mi.Float(1.0) + 1.0
 print("variant", v, "ok:", float(x[0]) == 2.0)
 scene = mi.load_dict({"type": "scene", "s": {"type": "sphere"}})      # OptiX (cuda) or Embree (llvm)
 print("scene ok:", scene.ray_intersect(mi.Ray3f([0, 0, -3], [0, 0, 1])).is_valid())
+from mi_neurallens.trace.api import float_type     # the training data's and numpy faces' backend: LLVM when present
+print("Dr.Jit backends: llvm", dr.has_backend(dr.JitBackend.LLVM), "cuda", dr.has_backend(dr.JitBackend.CUDA),
+      "-> training data on", float_type("float32").__module__)
 try:
     import torch
     print("torch", torch.__version__, "cuda:", torch.cuda.is_available(),
@@ -187,7 +190,7 @@ stage_train() {
     py 100000 "${prof[@]}" -m mi_neurallens train dgauss-50mm $TRAIN --out "$RES/train" --no-progress 2>&1 \
         | stamp | tee "$RES/train.log"
     [ "${PIPESTATUS[0]}" -eq 0 ] || rc=1
-    echo "wall: $((SECONDS - t0)) s for dgauss-50mm ($TRAIN) with data on $MI_NEURALLENS_VARIANT" | tee -a "$RES/train.log"
+    echo "wall: $((SECONDS - t0)) s for dgauss-50mm ($TRAIN) (MI_NEURALLENS_VARIANT=$MI_NEURALLENS_VARIANT; the samplers' backend: setup.txt)" | tee -a "$RES/train.log"
     py 300 -m mi_neurallens evaluate "$RES/train/dgauss-50mm.model.safetensors" -n $EVAL_N --seed 4242 \
         2>&1 | tee -a "$RES/train.log" || rc=1
     rm -rf "$RES/train/"*.work
