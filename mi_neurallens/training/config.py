@@ -125,7 +125,9 @@ FLARE_GOAL_ARCSEC_2K = (30.0, 200.0)
 #: 1.6 min) ended Adam after 12 100–17 700 steps in the 42-min whole-lens run, where the validation had flattened
 #: (ghost 2560: 0.24 % misclassified at 10 000 steps, 0.22 % at 15 376; the finish then took it to 0.05 %).  A GPU
 #: trains a lens's 28 classifiers as one stack whose budget is 28 × 0.4 min, so without a step cap Adam ran to
-#: 40 000 steps there — the step count, not the wall clock, is what makes a run the same on every machine
+#: 40 000 steps there — the step count, not the wall clock, is what makes a run the same on every machine.  On the
+#: AVX-512 VM the cap ends Adam first (Canon FD 24 mm: stacks of four at 12 000 steps after 55–58 s of their 96 s),
+#: which saved ≈ 6 of that lens's minutes; after the finish 31 of its 33 classifiers were within 0.05 %
 FORWARD_CLASSIFIER_ADAM_STEPS = 12000
 #: the forward classifier: 0.4 min of Adam before its 0.35-min finish.  With 1.25 min of Adam, dgauss-50mm's whole
 #: lens spent half its 94 min on classifiers, each stack its whole budget; on eight of its ghosts 0.4 min of Adam
