@@ -131,10 +131,7 @@ stage_bench() {
     for lens in $PAPER_LENSES; do
         py 60 benchmarks/bench_mlp.py --lens "$lens" --rays $RAYS --out "$RES/mlp_$lens.json" || rc=1
     done
-    for lens in $PAPER_LENSES; do
-        py 90 benchmarks/bench_render.py --lens "$lens" --res $FILM --spp $SPP --repeats 3 \
-            --out "$RES/render_$lens.json" || rc=1
-    done
+    stage_render || rc=1
     if [ -z "${GPU_SUITE_QUICK:-}" ] && [ -f "$RF16" ]; then   # a 4x cheaper camera map: does it beat the tracer?
         py 60 benchmarks/bench_mlp.py --lens canon-rf-24mm-f1.4l-vcm --model "$RF16" --rays $RAYS \
             --out "$RES/mlp_canon-rf-24mm-f1.4l-vcm_width16.json" || rc=1

@@ -44,7 +44,6 @@ def main(argv: list[str]) -> int:
     try:
         runpy.run_module(module, run_name="__main__", alter_sys=True)
     except SystemExit as e:
-        write()
         return e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
     finally:
         write()
