@@ -41,6 +41,19 @@ def test_cie_sampling_matches_mitsuba_and_its_pdf():
     np.testing.assert_allclose(lam_d.numpy(), lam, rtol=1e-5)
 
 
+def test_domain_u_to_x_is_the_cie_sample_and_inverts_across_its_blocks():
+    """u_to_x works in blocks of 2¹⁶ rows: every row, those of a partial last block too, is the closed form
+    (r_max·u₀, the disc point of (u₁, u₂), sample_cie_wavelength(u₃)), and x_to_u inverts it."""
+    dom = data.Domain(12.5, 0.3)
+    u = np.random.default_rng(2).random(((1 << 16) + 777, 4)) * 0.998 + 0.001
+    x = dom.u_to_x(u)
+    rho, th = 0.3 * np.sqrt(u[:, 1]), math.pi * u[:, 2]
+    np.testing.assert_array_equal(x[:, 0], 12.5 * u[:, 0])
+    np.testing.assert_allclose(x[:, 1:3], np.stack([rho * np.cos(th), rho * np.sin(th)], 1), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(x[:, 3], planning.sample_cie_wavelength(u[:, 3])[0], rtol=1e-15)
+    np.testing.assert_allclose(dom.x_to_u(x), u, atol=1e-9)
+
+
 def test_generator_wavelength_histogram_follows_cie():
     lens = thick_lens()
     ps = data.PathSampler(lens, 0, "forward", -1.0, 60.0, data.Domain(8.0, 0.1))
@@ -188,6 +201,32 @@ def test_bounded_rejection_is_uniform_over_the_valid_region_and_wastes_fewer_ray
     assert not cut.contains(dom.u_to_x(ur)).all()
 
 
+def test_a_stop_stream_takes_the_regressor_streams_pilot_and_still_samples_its_valid_region():
+    """The stop head's stream (a sampler with the crossings) built ``like`` the regressor's stream of the same map
+    traces no valid-fraction rays and no pilot: it takes that stream's fraction and bounds, and its rows are valid,
+    carry the crossings and follow the regressor stream's distribution.  A stream of another map is refused."""
+    lens = Lens.load("wide-22mm")
+    s0, _ = plan.sensor_distance_range(lens, 300.0)
+    z_front, z_rear = plan.planes(lens, s0)
+    dom = plan.backward_domain(lens, 0, z_rear, z_front, np.random.default_rng(0), n=1 << 20)
+    reg = data.RegressorStream(data.PathSampler(lens, 0, "backward", z_rear, z_front, dom), seed=1)
+    assert reg.ps.bounds is not None
+    ps = data.PathSampler(lens, 0, "backward", z_rear, z_front, dom, stops=True)
+    st = data.RegressorStream(ps, seed=2, like=reg)
+    assert ps.rays_traced == 0 and ps.bounds is reg.ps.bounds and st.fraction == reg.fraction
+    u, x, y = st.sample(50_000)
+    assert ps.rays_traced > 0 and y.shape[1] == 5 + 2 * ps.map.stop_crossings and np.isfinite(y).all()
+    assert ps.valid_u(u[:5000]).all()
+    ur, _, _ = reg.sample(50_000)
+    for k in range(4):
+        h1, _ = np.histogram(u[:, k], np.linspace(0, 1, 11))
+        h2, _ = np.histogram(ur[:, k], np.linspace(0, 1, 11))
+        assert 0.5 * np.abs(h1 / h1.sum() - h2 / h2.sum()).sum() < 0.02, k
+    other = data.PathSampler(lens, 0, "backward", z_rear, z_front, data.Domain(dom.r_max * 0.5, dom.s_max), stops=True)
+    with pytest.raises(NeuralLensError, match="not this sampler's map"):
+        data.RegressorStream(other, seed=3, like=reg)
+
+
 def test_classifier_samples_are_balanced_with_boundary_points():
     lens = thick_lens()
     ps = data.PathSampler(lens, 0, "backward", 52.0, -1.0, data.Domain(12.0, 0.4))
@@ -223,6 +262,29 @@ def test_aperture_margin_is_the_validity_boundary(blades, path):
 
 
 # ----------------------------------------------------------------------------- config
+def test_output_transform_is_the_least_squares_fit_over_many_blocks():
+    """fit_output_transform's blocked normal equations give what one least-squares solve of the whole
+    (N, 5) design matrix gives (the odd factor on the y columns included), and the residuals' spread."""
+    from mi_neurallens.training.trainer import FIT_BLOCK_ROWS, fit_output_transform, odd_factor
+    rng = np.random.default_rng(11)
+    n = 2 * FIT_BLOCK_ROWS + 1234
+    xn = rng.uniform(-1, 1, (n, 4))
+    y = np.stack([np.sin(xn @ rng.normal(size=4)) * (3 + j) + 0.2 * j + 0.01 * rng.normal(size=n)
+                  for j in range(5)], 1)
+    M = odd_factor(xn[:, 2] * 0.4, 0.4)
+    skip, shift, scale = fit_output_transform(xn, y, "linear", M)
+    for j in range(5):
+        A = np.concatenate([xn, np.ones((n, 1))], 1) * M[:, j:j + 1]
+        coef, *_ = np.linalg.lstsq(A, y[:, j], rcond=None)
+        np.testing.assert_allclose(skip[j], coef[:-1], rtol=0, atol=1e-10)
+        assert abs(shift[j] - coef[-1]) < 1e-10
+        assert abs(scale[j] / (y[:, j] - A @ coef).std() - 1) < 1e-10
+    skip0, shift0, scale0 = fit_output_transform(xn, y, "none")
+    assert not skip0.any()
+    np.testing.assert_allclose(shift0, y.mean(0), rtol=1e-12)
+    np.testing.assert_allclose(scale0, y.std(0), rtol=1e-10)
+
+
 def test_config_rejects_unknown_keys(tmp_path):
     p = tmp_path / "c.toml"
     p.write_text("seed = 3\n[regressor]\nmax_stepz = 10\n")

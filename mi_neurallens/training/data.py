@@ -81,7 +81,9 @@ class PathSampler:
         dr.eval(outs, valid)
         self.rays_traced += n
         v = valid.numpy().astype(bool)
-        y = np.stack([o.numpy() for o in outs], 1).astype(np.float64)
+        y = np.empty((len(v), len(outs)))
+        for i, o in enumerate(outs):          # column by column: one float32 -> float64 pass, no temporaries
+            y[:, i] = o.numpy()
         y[~v] = np.nan
         return v, y
 
@@ -164,11 +166,13 @@ class PathSampler:
 
 # ----------------------------------------------------------------------------- samplers
 def rejection_sample(ps: PathSampler, n: int, rng: np.random.Generator, chunk: int = 1 << 21,
-                     max_rays: int | None = None, whole_chunks: bool = False):
+                     max_rays: int | None = None, whole_chunks: bool = False, inputs: bool = True):
     """Up to ``n`` valid samples uniform over the valid region: returns (u, x, y, stats).
     Random numbers come from Dr.Jit's PCG32 (streams seeded from ``rng``) and the valid rays are
     compacted inside Dr.Jit.  Stops early (returning fewer) after ``max_rays`` traced rays.
-    ``whole_chunks``: return every valid ray of the chunks traced (at least ``n``), not the first ``n``."""
+    ``whole_chunks``: return every valid ray of the chunks traced (at least ``n``), not the first ``n``.
+    ``inputs``: also map ``u`` to the inputs ``x`` (else x is None: a caller that keeps only ``u`` saves a
+    pass over millions of rows)."""
     us, ys, got, traced = [], [], 0, 0
     t0 = time.perf_counter()
     while got < n and (max_rays is None or traced < max_rays):
@@ -183,7 +187,7 @@ def rejection_sample(ps: PathSampler, n: int, rng: np.random.Generator, chunk: i
     dt = time.perf_counter() - t0
     stats = {"rays": traced, "valid": int(got), "acceptance": got / max(traced, 1), "seconds": dt,
              "valid_per_s": got / max(dt, 1e-9), "rays_per_s": traced / max(dt, 1e-9)}
-    return u, ps.domain.u_to_x(u), y, stats
+    return u, (ps.domain.u_to_x(u) if inputs else None), y, stats
 
 
 class MCMCSampler:
@@ -204,7 +208,7 @@ class MCMCSampler:
                  seed_rays: int = 1 << 24):
         self.ps, self.rng = ps, rng
         self.p_large, self.sigma = float(p_large), float(sigma)
-        u, _, y, st = rejection_sample(ps, n_chains, rng, chunk=1 << 20, max_rays=seed_rays)
+        u, _, y, st = rejection_sample(ps, n_chains, rng, chunk=1 << 20, max_rays=seed_rays, inputs=False)
         if len(u) == 0:
             raise NeuralLensError(f"path {ps.path_id} ({ps.direction}): no valid ray in {st['rays']} random "
                                   "rays; the path carries no light in this domain")
@@ -272,15 +276,25 @@ class RegressorStream:
     KEEP = 1 << 18
 
     def __init__(self, ps: PathSampler, seed: int, mcmc_threshold: float = 0.02, n_chains: int = 1 << 16,
-                 p_large: float = 0.3, sigma: float = 0.02, bounded: bool = True):
+                 p_large: float = 0.3, sigma: float = 0.02, bounded: bool = True, like: "RegressorStream | None" = None):
+        """``like``: a stream of the same map (path, planes, domain) whose sampler differs only in its output
+        columns (e.g. without the stop-plane crossings): its valid fraction and pilot-traced bounds describe
+        this stream's valid region too, so they are taken instead of traced again (a valid fraction's 2²⁰ rays
+        and a pilot's 2²² a map; the Metropolis chains, which carry their own outputs, are started anew)."""
         self.ps = ps
         self.rng = np.random.default_rng(seed)
-        self.fraction = valid_fraction(ps, self.rng)
+        if like is not None and (like.ps.path_id, like.ps.direction, like.ps.z_in, like.ps.z_out, like.ps.domain) != (
+                ps.path_id, ps.direction, ps.z_in, ps.z_out, ps.domain):
+            raise NeuralLensError(f"RegressorStream(like=…): the stream given samples {like.ps.direction}."
+                                  f"{like.ps.path_id}, not this sampler's map {ps.direction}.{ps.path_id}")
+        self.fraction = valid_fraction(ps, self.rng) if like is None else like.fraction
         self.mcmc = None
         self._u = np.zeros((0, 4))
         self._y = np.zeros((0, ps.n_out))
         if self.fraction < mcmc_threshold:
             self.mcmc = MCMCSampler(ps, self.rng, n_chains=n_chains, p_large=p_large, sigma=sigma)
+        elif bounded and like is not None:
+            ps.bounds = like.ps.bounds
         elif bounded:
             ps.build_bounds(self.rng)
 
@@ -299,7 +313,7 @@ class RegressorStream:
             if self.mcmc is not None:
                 u, _, y = self.mcmc.sample(need, whole_steps=True)
             else:
-                u, _, y, _ = rejection_sample(self.ps, need, self.rng, whole_chunks=True)
+                u, _, y, _ = rejection_sample(self.ps, need, self.rng, whole_chunks=True, inputs=False)
             self._u, self._y = np.concatenate([self._u, u]), np.concatenate([self._y, y])
         u, y = self._u[:n], self._y[:n]
         self._u, self._y = self._u[n:n + self.KEEP].copy(), self._y[n:n + self.KEEP].copy()

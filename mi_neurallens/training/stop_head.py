@@ -152,10 +152,13 @@ def train_stop_head(lens, tm, nc: NetConfig, *, seed: int, fresnel: bool = True,
 
 def train_stop_heads(lens, tms, nc: NetConfig, *, seeds, fresnel: bool = True, mcmc_threshold: float = 0.02,
                      n_val: int = 20_000, threads: int = 2, device: str = "auto", progress: bool = True,
-                     log=None, streams=None, start=None):
+                     log=None, streams=None, start=None, like_streams=None):
     """The stop heads of the maps ``tms`` (all crossing the stop plane the same number of times, on one
     domain), trained as one stack (:func:`~mi_neurallens.training.stacked.train_stack`); a list of
-    :class:`~mi_neurallens.neural.model.StopHead` in the order of ``tms``.
+    :class:`~mi_neurallens.neural.model.StopHead` in the order of ``tms``.  ``streams``: each map's
+    :class:`~mi_neurallens.training.data.RegressorStream` with ``stops=True`` (default: built here);
+    ``like_streams``: streams of the same maps without the crossings (the regressors'), whose valid fractions
+    and pilot bounds the streams built here take instead of tracing them again.
 
     ``start``: one :class:`~mi_neurallens.neural.model.StopHead` per map to refine instead — no Adam, only the
     Levenberg–Marquardt finish (``nc.lm_minutes``, which must be > 0) from its weights and output transform, its
@@ -177,7 +180,7 @@ def train_stop_heads(lens, tms, nc: NetConfig, *, seeds, fresnel: bool = True, m
         stream = streams[j] if streams is not None else None
         if stream is None:
             ps = PathSampler(lens, tm.path_id, tm.direction, tm.z_in, tm.z_out, tm.domain, fresnel=fresnel, stops=True)
-            stream = RegressorStream(ps, seeds[j], mcmc_threshold)
+            stream = RegressorStream(ps, seeds[j], mcmc_threshold, like=None if like_streams is None else like_streams[j])
         k = stream.ps.map.stop_crossings
         if k == 0 or stream.ps.n_out != 5 + 2 * k:
             raise NeuralLensError(f"map {tm.key} of '{lens.name}': its path never crosses the stop plane, or the "

@@ -86,26 +86,53 @@ def odd_factor(x_wy: np.ndarray, s_max: float | None, n_out: int = 5) -> np.ndar
     return M
 
 
+#: rows per block of :func:`fit_output_transform`'s two passes (its temporaries stay in the cache)
+FIT_BLOCK_ROWS = 1 << 16
+
+
 def fit_output_transform(xn: np.ndarray, y: np.ndarray, residual: str, M: np.ndarray | None = None):
-    """(skip (5, 4), out_shift (5,), out_scale (5,)) of the regressor's output transform
-    ``y = M · (shift + skip·xn + scale·network)`` (``M`` from :func:`odd_factor`; None = ones): the
-    linear part is the least-squares fit of y (``residual = "linear"``) or the mean (``"none"``), and
-    ``scale`` the spread of what is left, so the network's target has about unit variance."""
-    M = np.ones_like(y) if M is None else M
+    """(skip (c, k), out_shift (c,), out_scale (c,)) of the regressor's output transform
+    ``y = M · (shift + skip·xn + scale·network)`` (``M`` from :func:`odd_factor`; None = ones), for inputs
+    ``xn`` (N, k) and targets ``y`` (N, c): the linear part is the least-squares fit of y (``residual =
+    "linear"``) or the mean (``"none"``), and ``scale`` the spread of what is left, so the network's target
+    has about unit variance.
+
+    The fit solves the normal equations, accumulated in float64 over blocks of :data:`FIT_BLOCK_ROWS` rows
+    (a (k+1)² system per column: the columns are the normalised inputs, about [−1, 1], and a constant, so it
+    is well conditioned), and a second blocked pass takes the residuals' spread.  ``np.linalg.lstsq`` on
+    the whole (N, k+1) design matrix cost 0.11 s a column on a map's two million pool rows, mostly memory
+    traffic through full-size temporaries: 15 s of a lens's 28 forward maps' set-up (docs/results.md, "The
+    data set-up")."""
     n, k = xn.shape
-    skip, shift, scale = np.zeros((y.shape[1], k)), np.zeros(y.shape[1]), np.zeros(y.shape[1])
+    c = y.shape[1]
     if residual not in ("linear", "none"):
         raise NeuralLensError(f"unknown residual mode {residual!r}: use 'linear' or 'none'")
-    for j in range(y.shape[1]):
-        A = np.concatenate([xn, np.ones((n, 1))], 1) if residual == "linear" else np.ones((n, 1))
-        A = A * M[:, j:j + 1]
-        coef, *_ = np.linalg.lstsq(A, y[:, j], rcond=None)
-        res = y[:, j] - A @ coef
-        if residual == "linear":
-            skip[j], shift[j] = coef[:-1], coef[-1]
-        else:
-            shift[j] = coef[0]
-        scale[j] = res.std()
+    p = k + 1 if residual == "linear" else 1
+
+    def base(sl):
+        m = sl.stop - sl.start
+        return np.concatenate([xn[sl], np.ones((m, 1))], 1) if p > 1 else np.ones((m, 1))
+
+    blocks = [slice(a, min(a + FIT_BLOCK_ROWS, n)) for a in range(0, n, FIT_BLOCK_ROWS)]
+    G, b = np.zeros((c, p, p)), np.zeros((c, p))
+    for sl in blocks:
+        B = base(sl)
+        for j in range(c):
+            A = B if M is None else B * M[sl, j:j + 1]
+            G[j] += A.T @ A
+            b[j] += A.T @ y[sl, j]
+    coef = np.stack([np.linalg.lstsq(G[j], b[j], rcond=None)[0] for j in range(c)])   # rank-safe
+    s1, s2 = np.zeros(c), np.zeros(c)
+    for sl in blocks:
+        B = base(sl)
+        for j in range(c):
+            A = B if M is None else B * M[sl, j:j + 1]
+            r = y[sl, j] - A @ coef[j]
+            s1[j] += r.sum()
+            s2[j] += r @ r
+    scale = np.sqrt(np.maximum(s2 / max(n, 1) - (s1 / max(n, 1)) ** 2, 0.0))
+    skip = coef[:, :-1] if p > 1 else np.zeros((c, k))
+    shift = coef[:, -1]
     scale = np.where(scale > 1e-9, scale, 1e-9)
     return skip, shift, scale
 
@@ -942,7 +969,7 @@ def train_maps(lens, specs, cfg: TrainConfig, workdir: str | None = None, progre
             calibrate_classifier(lens, tm, min(cfg.heldout, 200_000), seeds[j] + 13, cfg.fresnel)
         tms.append(tm)
     t3 = time.perf_counter()
-    heads = _stop_heads_of(lens, tms, cfg, seeds, progress, log, bases if keep is not None else None)
+    heads = _stop_heads_of(lens, tms, cfg, seeds, progress, log, bases if keep is not None else None, streams=streams)
     t4 = time.perf_counter()
     for tm, head, seed in zip(tms, heads, seeds):
         tm.stop_head = head
@@ -956,11 +983,14 @@ def train_maps(lens, specs, cfg: TrainConfig, workdir: str | None = None, progre
     return tms
 
 
-def _stop_heads_of(lens, tms, cfg: TrainConfig, seeds, progress: bool, log, bases=None, refine: bool = False) -> list:
+def _stop_heads_of(lens, tms, cfg: TrainConfig, seeds, progress: bool, log, bases=None, refine: bool = False,
+                   streams=None) -> list:
     """The stop heads of ``tms`` trained with ``cfg.stop`` — one stack per stop-crossing count; None for a
     map whose path never crosses the stop plane, or all None when ``stop.max_minutes = 0``.  With
     ``bases``, a stop head the base map has is kept.  ``refine``: each map's own stop head (``tms[j].stop_head``)
-    is the start of only the finish (:func:`~mi_neurallens.training.stop_head.train_stop_heads`' ``start``)."""
+    is the start of only the finish (:func:`~mi_neurallens.training.stop_head.train_stop_heads`' ``start``).
+    ``streams``: the maps' regressor streams, whose valid fractions and pilot bounds the stop heads' samplers
+    take instead of tracing their own (:class:`~mi_neurallens.training.data.RegressorStream`'s ``like``)."""
     from ..transport.exact import ExactMap
     out = [None] * len(tms)
     if not tms:
@@ -979,7 +1009,8 @@ def _stop_heads_of(lens, tms, cfg: TrainConfig, seeds, progress: bool, log, base
         heads = train_stop_heads(lens, [tms[j] for j in idx], nc, seeds=[seeds[j] + 17 for j in idx],
                                  fresnel=cfg.fresnel, mcmc_threshold=cfg.mcmc_threshold, threads=cfg.threads,
                                  device=cfg.device, progress=progress, log=log,
-                                 start=[tms[j].stop_head for j in idx] if refine else None)
+                                 start=[tms[j].stop_head for j in idx] if refine else None,
+                                 like_streams=None if streams is None else [streams[j] for j in idx])
         for j, h in zip(idx, heads):
             out[j] = h
     return out

@@ -105,10 +105,16 @@ class Domain:
     def u_to_x(self, u: np.ndarray) -> np.ndarray:
         """(N, 4) unit-cube points → (N, 4) reduced inputs (r, ωx, ωy, λ), float64."""
         u = np.asarray(u, dtype=np.float64)
-        rho = self.s_max * np.sqrt(u[:, 1])
-        th = math.pi * u[:, 2]
-        lam, _ = sample_cie_wavelength(u[:, 3])
-        return np.stack([self.r_max * u[:, 0], rho * np.cos(th), rho * np.sin(th), lam], 1)
+        x = np.empty((len(u), 4))
+        for a in range(0, len(u), 1 << 16):     # in blocks: the temporaries stay in the cache
+            b = u[a:a + (1 << 16)]
+            rho = self.s_max * np.sqrt(b[:, 1])
+            th = math.pi * b[:, 2]
+            x[a:a + len(b), 0] = self.r_max * b[:, 0]
+            x[a:a + len(b), 1] = rho * np.cos(th)
+            x[a:a + len(b), 2] = rho * np.sin(th)
+            x[a:a + len(b), 3] = 538.0 - np.arctanh(_CIE_A - _CIE_B * b[:, 3]) * _CIE_C   # sample_cie_wavelength's λ
+        return x
 
     def x_to_u(self, x: np.ndarray) -> np.ndarray:
         x = np.asarray(x, dtype=np.float64)
