@@ -354,3 +354,29 @@ def test_shared_kernel_parameters_one_kernel_per_architecture():
         assert 0.05 < v.mean() < 0.95
         np.testing.assert_array_equal(outs["shared", k][:, 0], outs["fused", k][:, 0])
         np.testing.assert_allclose(outs["shared", k][v], outs["fused", k][v], rtol=1e-5, atol=1e-5)
+
+
+def test_held_out_evaluation_compiles_one_kernel_per_architecture_with_the_literals_numbers():
+    """The held-out evaluation and the calibration (training.evaluate.map_outputs_np) run a map's float64 core
+    with its numbers as kernel parameters: two maps of one architecture share one kernel, and the logit and
+    outputs are the literal kernel's to float64 rounding."""
+    import dataclasses
+    import drjit as dr
+    from mi_neurallens.training.evaluate import map_outputs_np
+    rng = np.random.default_rng(5)
+    maps = [_map(rng, "forward", 2560, width=8) for _ in range(2)]
+    x = maps[0].domain.u_to_x(rng.random((3000, 4)))
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        hashes = []
+        for tm in maps:
+            dr.kernel_history()
+            logit, y = map_outputs_np(tm, x)
+            hashes.append({h["hash"] for h in dr.kernel_history() if h["type"] == dr.KernelType.JIT})
+            ref_logit, ref_y = tm.eval_reduced_np(x)           # the map's own mode: literals
+            np.testing.assert_allclose(logit, ref_logit, rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(y, ref_y, rtol=1e-12, atol=1e-12)
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert hashes[0] == hashes[1] and len(hashes[0]) >= 1
+    assert maps[0].mlp == "fused"                               # the map itself is left as it was

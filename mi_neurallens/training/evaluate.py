@@ -17,6 +17,18 @@ from .data import MCMCSampler, PathSampler, rejection_sample, valid_fraction
 ARCSEC = ARCSEC_PER_RAD
 
 
+def map_outputs_np(tm, x):
+    """(logit (N,), outputs (N, 5 + 2k)) of the learned map ``tm`` on reduced inputs ``x`` (N, 4), float64,
+    through the Dr.Jit core with the map's numbers as kernel parameters (``mlp = "shared"``): every map of
+    one architecture then runs one compiled kernel, where literals compiled one per map and per weight set
+    (the calibration's shifted bias is another) — 1.7 s of LLVM compilation a ghost, 48 s of a lens's 28
+    forward maps on this CPU (docs/results.md, "The data set-up").  The arithmetic is the literals' own."""
+    import dataclasses
+    if getattr(tm, "mlp", "shared") != "shared":
+        tm = dataclasses.replace(tm, mlp="shared")
+    return tm.eval_reduced_np(x)
+
+
 def regression_errors(y_pred: np.ndarray, y_true: np.ndarray, heading: int) -> dict:
     """Per-sample errors → summary dict.  Columns (x, y, dx, dy, T) in the reduced frame."""
     pos = np.hypot(y_pred[:, 0] - y_true[:, 0], y_pred[:, 1] - y_true[:, 1]) * 1000.0  # µm
@@ -109,7 +121,7 @@ def evaluate_map(lens, tm, n: int = 200_000, seed: int = 999, mcmc_threshold: fl
         reg_data = heldout_valid(lens, (tm.path_id, tm.direction, tm.z_in, tm.z_out), dom, n, seed + 1,
                                  mcmc_threshold, fresnel, stops=k > 0)
     x, y = reg_data
-    _, yp = tm.eval_reduced_np(x)
+    _, yp = map_outputs_np(tm, x)
     m = {"regressor": regression_errors(yp[:, :5], y[:, :5], tm.heading)}
     if k and y.shape[1] >= 5 + 2 * k:
         m["stop"] = stop_errors(yp[:, 5:5 + 2 * k], y[:, 5:5 + 2 * k])
@@ -117,7 +129,7 @@ def evaluate_map(lens, tm, n: int = 200_000, seed: int = 999, mcmc_threshold: fl
     ps = PathSampler(lens, tm.path_id, tm.direction, tm.z_in, tm.z_out, dom, fresnel=fresnel, precision="float64")
     xu = dom.u_to_x(rng.random((n, 4)))
     v, _ = ps.trace_x(xu)
-    logit, _ = tm.eval_reduced_np(xu)
+    logit, _ = map_outputs_np(tm, xu)
     pv = logit > 0
     wrong = pv != v
     c = {"n": int(n), "valid_fraction": float(v.mean()), "misclassification": float(wrong.mean()),
@@ -126,7 +138,7 @@ def evaluate_map(lens, tm, n: int = 200_000, seed: int = 999, mcmc_threshold: fl
          "false_blocked_of_valid": float((~pv & v).sum() / max(v.sum(), 1))}
     # classifier on truly-valid regressor samples (important for rare ghosts, where the natural mix is
     # almost all invalid)
-    lv, _ = tm.eval_reduced_np(x)
+    lv, _ = map_outputs_np(tm, x)
     c["false_blocked_on_valid_set"] = float((lv <= 0).mean())
     if boundary and wrong.any():
         idx = np.nonzero(wrong)[0][:2000]

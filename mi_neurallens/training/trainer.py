@@ -31,6 +31,7 @@ from ..errors import NeuralLensError
 from ..fileio import atomic_write_text
 from .config import NETWORK_KINDS, NetConfig, TrainConfig, budget_minutes, minutes_text, parse_size
 from .data import Domain, PathSampler, RegressorStream, classifier_samples
+from .evaluate import map_outputs_np
 from .stacked import Problem
 
 CLASSIFIER_VALIDATION = 400_000   # rays uniform over the domain that pick the classifier's best weights
@@ -693,7 +694,7 @@ def calibrate_classifier(lens, tm, n: int = 200_000, seed: int = 0, fresnel: boo
     ps = PathSampler(lens, tm.path_id, tm.direction, tm.z_in, tm.z_out, dom, fresnel=fresnel, precision="float64")
     x = dom.u_to_x(rng.random((n, 4)))
     v, _ = ps.trace_x(x)
-    logit, _ = tm.eval_reduced_np(x)
+    logit, _ = map_outputs_np(tm, x)
     grid = np.linspace(-8.0, 8.0, 641)
     err = np.array([np.mean((logit > b) != v) for b in grid])
     best = np.flatnonzero(err <= err.min() + 1e-12)
@@ -1037,7 +1038,7 @@ def _add_stop_heads(lens, bases, cfg: TrainConfig, seeds, progress: bool, log, r
         tm = dataclasses.replace(base, stop_head=head)
         x, y = heldout_valid(lens, (tm.path_id, tm.direction, tm.z_in, tm.z_out), tm.domain, cfg.heldout,
                              seed + 101, cfg.mcmc_threshold, cfg.fresnel, stops=True)
-        _, yp = tm.eval_reduced_np(x)
+        _, yp = map_outputs_np(tm, x)
         head.metrics = stop_errors(yp[:, 5:], y[:, 5:])
         tm.metrics = {**tm.metrics, "stop": head.metrics}
         out.append(tm)
