@@ -100,14 +100,23 @@ def lr_at(step: int, nc, seconds: float = 0.0) -> float:
 
 
 # ----------------------------------------------------------------------------- the activation
-def training_tanh(torch):
-    """tanh for training: Eigen's clamped 13/6 rational (the render kernel's), fused by ``torch.compile``
-    with the backward ``g·(1 − y²)``; ``torch.tanh`` where compiling is unavailable or disabled
-    (``MI_NEURALLENS_TORCH_COMPILE=0``).  Cached per process."""
-    if "tanh" in _ACT:
-        return _ACT["tanh"]
-    fn = torch.tanh
-    if os.environ.get("MI_NEURALLENS_TORCH_COMPILE", "1") != "0":
+def training_tanh(torch, device=None):
+    """tanh for Adam on ``device``: on a CPU Eigen's clamped 13/6 rational (the render kernel's), fused by
+    ``torch.compile`` with the backward ``g·(1 − y²)``; ``torch.tanh`` on a GPU, and wherever compiling is
+    unavailable or disabled (``MI_NEURALLENS_TORCH_COMPILE=0``).  Cached per process and device type; what
+    was chosen, and the compilation's seconds, are in :data:`TANH_CHOICE` (the training log reports them).
+
+    Both are tanh to float32 rounding (the rational is checked against ``torch.tanh`` to 1e-6 before it is
+    used), and the Levenberg–Marquardt finish, which sets the weights a map ships with, uses ``torch.tanh``
+    anyway.  On a CPU the fused rational's steps were up to a quarter faster than ``torch.tanh``'s, for a
+    one-time compilation of ≈ 17 s a process (a C++ compiler; docs/results.md, "The data set-up").  On a
+    GPU ``torch.tanh`` is already one kernel forward and one backward, the most a fused version could be,
+    so compiling (Inductor and Triton, on an empty cache) could only add to the set-up."""
+    kind = torch.device(device).type if device is not None else "cpu"
+    if kind in _ACT:
+        return _ACT[kind]
+    fn, how = torch.tanh, "torch.tanh"
+    if kind == "cpu" and os.environ.get("MI_NEURALLENS_TORCH_COMPILE", "1") != "0":
         from ..neural.mlp import TANH_CLAMP, TANH_P, TANH_Q
 
         def rational(x):
@@ -121,6 +130,7 @@ def training_tanh(torch):
                 q = q * x2 + b
             return x * p / q
 
+        t0 = time.perf_counter()
         try:
             compiled = torch.compile(rational, dynamic=True)
             compiled_grad = torch.compile(lambda g, y: g * (1.0 - y * y), dynamic=True)
@@ -137,13 +147,21 @@ def training_tanh(torch):
                     (y,) = ctx.saved_tensors
                     return compiled_grad(g, y)
 
-            probe = torch.linspace(-9.0, 9.0, 257)
-            if float((RationalTanh.apply(probe) - torch.tanh(probe)).abs().max()) < 1e-6:
-                fn = RationalTanh.apply
+            probe = torch.linspace(-9.0, 9.0, 258).reshape(2, 3, 43).requires_grad_()   # (K, B, width), as trained
+            out = RationalTanh.apply(probe)
+            out.sum().backward()                  # compile the backward too, here, where it is timed
+            if float((out.detach() - torch.tanh(probe.detach())).abs().max()) < 1e-6:
+                fn, how = RationalTanh.apply, "the render kernel's rational tanh, fused by torch.compile"
         except Exception:          # no C++ compiler, unsupported platform: the exact torch.tanh
-            fn = torch.tanh
-    _ACT["tanh"] = fn
+            fn, how = torch.tanh, "torch.tanh (torch.compile failed)"
+        how += f" ({time.perf_counter() - t0:.1f} s to compile)"
+    _ACT[kind] = fn
+    TANH_CHOICE[kind] = how
     return fn
+
+
+#: what :func:`training_tanh` chose per device type, in words (for the training log)
+TANH_CHOICE = {}
 
 
 # ----------------------------------------------------------------------------- K networks
@@ -166,7 +184,7 @@ class StackedMLP:
         self.params = []
         for W, b in zip(Ws, bs):
             self.params += [torch.stack(W).to(dev).requires_grad_(), torch.stack(b).to(dev).requires_grad_()]
-        self.act = training_tanh(torch) if activation == "tanh" else torch.relu
+        self.act = training_tanh(torch, dev) if activation == "tanh" else torch.relu
 
     @property
     def k(self) -> int:

@@ -32,7 +32,7 @@ from ..fileio import atomic_write_text
 from .config import NETWORK_KINDS, NetConfig, TrainConfig, budget_minutes, minutes_text, parse_size
 from .data import Domain, PathSampler, RegressorStream, classifier_samples
 from .evaluate import map_outputs_np
-from .stacked import Problem
+from .stacked import TANH_CHOICE, Problem
 
 CLASSIFIER_VALIDATION = 400_000   # rays uniform over the domain that pick the classifier's best weights
 #: the first pool of a network that is only refined (Levenberg–Marquardt draws fresh rows per iteration; the
@@ -1177,7 +1177,7 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
     say = (lambda m: print(f"{lens.name}: {m}", file=sys.stderr, flush=True)) if progress or log else (lambda m: None)
     if keep is None and any(pending.values()):
         say(_budget_text(cfg, pending))
-    spent, t_run = {}, time.perf_counter()
+    spent, t_run, told = {}, time.perf_counter(), set()
     for direction in ("backward", "forward"):
         group = pending[direction]
         if not group:
@@ -1201,6 +1201,10 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
         spent[direction] = {"maps": len(tms), "seconds": time.perf_counter() - t_dir, "phases": phases}
         model.extra["training_time"] = {"this_run": spent, "seconds": time.perf_counter() - t_run}
         say(_spent_text(direction, spent[direction], time.perf_counter() - t_run))
+        for dev, how in TANH_CHOICE.items():
+            if dev not in told:
+                told.add(dev)
+                say(f"Adam's tanh on {dev}: {how}")
         for tm in tms:
             model.maps[tm.key] = tm
         if base_model is not None:      # the base's order (ghosts: strongest first), new maps after
