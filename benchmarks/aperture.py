@@ -32,7 +32,7 @@ import time
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 from mi_neurallens.constants import LAMBDA_D  # noqa: E402
-from mi_neurallens.render_utils import add_variant_argument  # noqa: E402
+from mi_neurallens.render_utils import BOKEH_LIGHT_M, add_variant_argument  # noqa: E402
 
 LENSES = ("wide-22mm", "ood-59mm", "canon-ef-24mm-f1.4l")
 SCENES = ("still_life", "chart", "bokeh", "night")
@@ -123,8 +123,6 @@ def main(argv=None):
     return 0
 
 
-#: the point light of the bokeh comparison: on axis, this far from the sensor plane (m), radius (m), radiance
-BOKEH_LIGHT_M, BOKEH_LIGHT_RADIUS_M, BOKEH_RADIANCE = 4.0, 0.004, 1e3
 
 
 def bokeh_disc_mm(lens, fstop: float, focus_m: float, light_m: float = BOKEH_LIGHT_M) -> float:
@@ -137,30 +135,20 @@ def bokeh_disc_mm(lens, fstop: float, focus_m: float, light_m: float = BOKEH_LIG
 
 def bokeh_pair(mi, lens_name: str, fstop: float, blades: int, focus_m: float, spp: int = 4096, res: int = 160,
                seed: int = 7, model: str | None = None):
-    """The blur disc of an on-axis point light :data:`BOKEH_LIGHT_M` away, ``realistic_lens`` and ``neural_lens``
+    """The blur disc of the on-axis point light of :func:`~mi_neurallens.render_utils.bokeh_scene`, ``realistic_lens`` and ``neural_lens``
     (``model``, default the lens's bundled one) with the same seed, the film (``res``², box filter) cropped to 2.5× the paraxial disc
     (:func:`bokeh_disc_mm`).  Returns ``(exact, neural, iou)``: H×W×3 images and the IoU of the masks of the disc
     (pixels above 10 % of the mean of the non-zero ones, green channel).  Raises where a sensor refuses the iris
     (blades near wide open)."""
     import numpy as np
     from mi_neurallens.optics.prescription import Lens
+    from mi_neurallens.render_utils import bokeh_scene, disc_mask, mask_iou
     width_mm = 2.5 * bokeh_disc_mm(Lens.load(lens_name), fstop, focus_m)
     pair = []
     for kind in ("realistic_lens", "neural_lens"):
-        s = {"type": kind, "lens": lens_name, "focus_distance": focus_m, "fstop": fstop, "blades": blades,
-             "sensor_width": width_mm,
-             "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}, "pixel_format": "rgb"},
-             "sampler": {"type": "independent", "sample_count": spp}}
-        if kind == "neural_lens":
-            s["model"] = model or lens_name
-        scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": 2}, "sensor": s,
-                              "light": {"type": "sphere", "center": [0, 0, BOKEH_LIGHT_M], "radius": BOKEH_LIGHT_RADIUS_M,
-                                        "emitter": {"type": "area", "radiance": {"type": "rgb",
-                                                                                 "value": [BOKEH_RADIANCE] * 3}}}})
+        scene = mi.load_dict(bokeh_scene(kind, lens_name, fstop, blades, focus_m, width_mm, res, spp, model=model))
         pair.append(np.array(mi.render(scene, seed=seed), dtype=np.float64))
-    masks = [p[..., 1] > 0.1 * p[..., 1][p[..., 1] > 0].mean() for p in pair]
-    iou = float((masks[0] & masks[1]).sum() / (masks[0] | masks[1]).sum())
-    return pair[0], pair[1], iou
+    return pair[0], pair[1], mask_iou(disc_mask(pair[0]), disc_mask(pair[1]))
 
 
 def bokeh(args):

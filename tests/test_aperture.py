@@ -13,7 +13,7 @@ import pytest
 from mi_neurallens.constants import LAMBDA_D
 from mi_neurallens.neural.model import bundled_model_path, load_model
 from mi_neurallens.optics.prescription import Lens
-from mi_neurallens.render_utils import default_variant
+from mi_neurallens.render_utils import bokeh_scene, default_variant, disc_mask, mask_iou
 from mi_neurallens.trace.iris import Iris
 from mi_neurallens.transport.exact import ExactMap
 
@@ -197,24 +197,10 @@ def _mitsuba():
 
 def _bokeh(mi, kind, fstop, blades, rotation=0.0, model="wide-22mm", n=80, spp=2048, radius=0.004):
     """The defocused image of a small bright sphere (``radius`` m) 4 m away, the lens focused at 0.35 m:
-    the iris shape, about 60 % of the film wide (the film is cropped to the blur disc)."""
-    s = {"type": kind, "focus_distance": 0.35, "fstop": fstop, "blades": blades, "blade_rotation": rotation,
-         "sensor_width": 3.4 / fstop,
-         "film": {"type": "hdrfilm", "width": n, "height": n, "rfilter": {"type": "box"}, "pixel_format": "rgb"},
-         "sampler": {"type": "independent", "sample_count": spp}}
-    s.update({"model": model, "lens": "wide-22mm"} if kind == "neural_lens" else {"lens": "wide-22mm"})
-    scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": 2}, "sensor": s,
-                          "light": {"type": "sphere", "center": [0, 0, 4.0], "radius": radius,
-                                    "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [1e3] * 3}}}})
-    return np.array(mi.render(scene, seed=7), dtype=np.float64)[..., 1]
-
-
-def _mask(img):
-    return img > 0.1 * img[img > 0].mean()
-
-
-def _iou(a, b):
-    return (a & b).sum() / max((a | b).sum(), 1)
+    the iris shape, about 60 % of the film wide (the film is cropped to the blur disc); green channel."""
+    scene = bokeh_scene(kind, "wide-22mm", fstop, blades, 0.35, 3.4 / fstop, n, spp, rotation_deg=rotation,
+                        model=model, light_m=4.0, radius_m=radius)
+    return np.array(mi.render(mi.load_dict(scene), seed=7), dtype=np.float64)[..., 1]
 
 
 @has_model
@@ -227,21 +213,21 @@ def test_bokeh_blades_neural_equals_exact_and_a_wrong_stop_fails(tmp_path):
     lens = Lens.load("wide-22mm")
     N = 4.0 * lens.paraxial(LAMBDA_D).fnumber
     for blades in (5, 6, 9):
-        ex = _mask(_bokeh(mi, "realistic_lens", N, blades))
-        nn = _mask(_bokeh(mi, "neural_lens", N, blades))
+        ex = disc_mask(_bokeh(mi, "realistic_lens", N, blades))
+        nn = disc_mask(_bokeh(mi, "neural_lens", N, blades))
         assert 0.15 < ex.mean() < 0.5
-        assert _iou(ex, nn) >= 0.98, (blades, _iou(ex, nn))
+        assert mask_iou(ex, nn) >= 0.98, (blades, mask_iou(ex, nn))
         if blades == 6:
             ex6 = ex
-    wrong_rot = _mask(_bokeh(mi, "neural_lens", N, 6, rotation=30.0))
-    assert _iou(ex6, wrong_rot) < 0.98
+    wrong_rot = disc_mask(_bokeh(mi, "neural_lens", N, 6, rotation=30.0))
+    assert mask_iou(ex6, wrong_rot) < 0.98
     m = load_model(MODEL)
     head = m.map("transmit", "backward").stop_head
     head.out_shift = np.asarray(head.out_shift, np.float64) + np.array([0.020, 0.0])   # radial, 20 µm
     bad = str(tmp_path / "shifted.model.safetensors")
     m.save(bad)
-    shifted = _mask(_bokeh(mi, "neural_lens", N, 6, model=bad))
-    assert _iou(ex6, shifted) < 0.98
+    shifted = disc_mask(_bokeh(mi, "neural_lens", N, 6, model=bad))
+    assert mask_iou(ex6, shifted) < 0.98
 
 
 def _chart(mi, kind, fstop, spp=64):
