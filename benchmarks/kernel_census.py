@@ -14,7 +14,8 @@ folder for a machine that never traced the lens.  Variant: ``$MI_NEURALLENS_VARI
 LLVM backend wherever libLLVM is found, ``trace/api.py::float_type``).
 
 On the 2-core AVX-512 VM, empty cache, dgauss-50mm's four ghosts: 62 distinct kernels (about 15 a ghost), 10.6 s
-of LLVM compilation in a 65-s run (docs/results.md, "The fourth GPU session").
+of LLVM compilation in a 65-s run (docs/results.md, "The fourth GPU session"); 49 since the stop heads' samplers
+take the regressors' pilot and the held-out evaluation its networks as kernel parameters ("The data set-up").
 """
 from __future__ import annotations
 
