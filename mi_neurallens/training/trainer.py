@@ -1196,7 +1196,9 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
                   f"{', '.join(str(t[0]) for t in group)}", file=sys.stderr, flush=True)
         t_dir = time.perf_counter()
         tms = train_maps(lens, group, cfg, workdir, progress=progress, log=log, keep=keep, bases=bases)
-        phases = dict(tms[0].training.get("phase_seconds", {})) if tms else {}
+        # each phase's time, as train_maps records it; a run that trains only stop heads keeps its base maps'
+        # records, whose phases are the base's run's, not this one's
+        phases = dict(tms[0].training.get("phase_seconds", {})) if tms and keep not in ("both", "refine-stop") else {}
         phases.pop("maps", None)
         spent[direction] = {"maps": len(tms), "seconds": time.perf_counter() - t_dir, "phases": phases}
         model.extra["training_time"] = {"this_run": spent, "seconds": time.perf_counter() - t_run}
