@@ -1,18 +1,19 @@
-"""A stop head trained on its map's input normalisation against one trained on the valid region's bounding box.
+"""A stop head trained on its map's input normalisation against one trained on its valid rays' bounding box.
 
     python benchmarks/stop_head_box_norm.py [--lens canon-ef-24mm-f1.4l] [--key forward.278528]
                                             [--modes map,box] [--lm-minutes 3] [--size 3x16] [--json OUT]
 
 A learned map normalises its inputs (r, ωx, ωy, λ) over its whole sampled domain, so that its classifier sees
 every ray; a ghost's valid rays may fill only a corner of it (the Canon EF's ghost 278528: ωy in the lowest
-quarter, ωx in 60 %), and the stop head and regressor, which only ever see valid rays, then have to resolve their
-function inside a small part of their inputs' range.  ``box`` trains the head on the bounding box of 200 000
-held-out valid rays (2 % margin; λ as the map's) and folds that affine change into its first layer and linear
-skip afterwards, so the head it returns computes the same function on the map's own normalisation — the model
-file, the render kernel and the head's cost are unchanged.  ``map`` is the head as ``train`` makes it.  Both with
-the lens's stop settings, the given size and minutes of the Levenberg–Marquardt finish, the same seed; the
-held-out crossing errors (µm, 200 000 rays, float64 tracer) beside the bundled head's.  One mode at a time, the
-machine otherwise idle: the finish is bounded by wall time.
+quarter, ωx in 60 %), and the stop head, which only ever sees valid rays, then has to resolve its function inside
+a small part of its inputs' range.  ``box`` trains the head with ``input_box = true``
+(:func:`~mi_neurallens.training.stop_head.input_box`: the bounding box of its first pool, 2 % margin, λ as the
+map's), folded back into its first layer and skip (:func:`~mi_neurallens.training.stop_head.fold_input_box`), so
+the head computes the same function of the map's own normalised inputs: the model file, the render kernel and
+the head's cost are unchanged.  ``map`` is the head as ``train`` makes it by default.  Both with the lens's stop
+settings, the given size and minutes of the Levenberg–Marquardt finish, the same seed; the held-out crossing
+errors (µm, 200 000 rays, float64 tracer) beside the bundled head's.  One mode at a time, the machine otherwise
+idle: the finish is bounded by wall time.
 """
 from __future__ import annotations
 
@@ -28,36 +29,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 
-def box_normalisation(lens, tm, n: int = 200_000, seed: int = 4242, margin: float = 0.02):
-    """(center, scale) of the bounding box of ``n`` held-out valid reduced inputs of the map ``tm``, widened by
-    ``margin`` of its extent each side; λ keeps the map's own."""
-    import numpy as np
-    from mi_neurallens.training.evaluate import heldout_valid
-    x, _ = heldout_valid(lens, (tm.path_id, tm.direction, tm.z_in, tm.z_out), tm.domain, n, seed)
-    lo, hi = x.min(0), x.max(0)
-    pad = margin * (hi - lo)
-    c, s = 0.5 * (lo + hi), 0.5 * (hi - lo) + pad
-    c[3], s[3] = tm.input_center[3], tm.input_scale[3]
-    return c, s
-
-
-def fold_input_normalisation(head, c_from, s_from, c_to, s_to):
-    """``head`` (a :class:`~mi_neurallens.neural.model.StopHead` trained on inputs normalised by ``(c_from,
-    s_from)``) changed in place to compute the same crossings from inputs normalised by ``(c_to, s_to)``:
-    x_from = (c_to − c_from)/s_from + (s_to/s_from)·x_to, absorbed by the first layer and the linear skip."""
-    import numpy as np
-    a, d = np.asarray(s_to) / np.asarray(s_from), (np.asarray(c_to) - np.asarray(c_from)) / np.asarray(s_from)
-    W0, b0 = (np.asarray(v, np.float64) for v in head.layers[0])
-    head.layers[0] = (W0 * a[None, :], b0 + W0 @ d)
-    skip = np.asarray(head.skip, np.float64)
-    head.out_shift = np.asarray(head.out_shift, np.float64) + skip @ d
-    head.skip = skip * a[None, :]
-    head._fold = None
-    return head
-
-
 def run(lens_name: str, key: str, mode: str, lm_minutes: float, size: str, seed: int = 12345) -> dict:
-    import numpy as np
     from mi_neurallens.neural.model import NeuralLensModel
     from mi_neurallens.optics.formats import load_lens
     from mi_neurallens.training.config import default_config_path, load_config
@@ -68,23 +40,20 @@ def run(lens_name: str, key: str, mode: str, lm_minutes: float, size: str, seed:
     tm = model.maps[key]
     lens = load_lens(lens_name)
     cfg = load_config(default_config_path(lens_name), lens_name,
-                      {"forward_stop": {"lm_minutes": lm_minutes, "hidden": hidden, "width": width, "lm_iterations": 0}})
+                      {"forward_stop": {"lm_minutes": lm_minutes, "hidden": hidden, "width": width, "lm_iterations": 0,
+                                        "input_box": mode == "box"}})
     nc = cfg.net("stop", tm.direction)
-    c, s = np.asarray(tm.input_center, np.float64), np.asarray(tm.input_scale, np.float64)
-    cl, sl = box_normalisation(lens, tm) if mode == "box" else (c, s)
     t0 = time.perf_counter()
-    head = train_stop_heads(lens, [dataclasses.replace(tm, input_center=cl, input_scale=sl, stop_head=None)], nc,
-                            seeds=[seed], fresnel=cfg.fresnel, mcmc_threshold=cfg.mcmc_threshold, progress=False)[0]
+    head = train_stop_heads(lens, [dataclasses.replace(tm, stop_head=None)], nc, seeds=[seed], fresnel=cfg.fresnel,
+                            mcmc_threshold=cfg.mcmc_threshold, progress=False)[0]
     seconds = time.perf_counter() - t0
-    if mode == "box":
-        fold_input_normalisation(head, cl, sl, c, s)
     x, y = heldout_valid(lens, (tm.path_id, tm.direction, tm.z_in, tm.z_out), tm.domain, 200_000, 1000, stops=True)
     _, yp = map_outputs_np(dataclasses.replace(tm, stop_head=head), x)
     _, yb = map_outputs_np(tm, x)
     lm = head.training.get("lm", {})
     return {"lens": lens_name, "key": key, "mode": mode, "size": size, "lm_minutes": lm_minutes, "seed": seed,
             "train_seconds": round(seconds, 1), "lm_iterations": lm.get("iterations"),
-            "lm_stop": lm.get("stop_reason"), "box": {"center": list(map(float, cl)), "scale": list(map(float, sl))},
+            "lm_stop": lm.get("stop_reason"), "input_box": head.training.get("input_box"),
             "heldout": stop_errors(yp[:, 5:], y[:, 5:]), "bundled": stop_errors(yb[:, 5:], y[:, 5:])}
 
 

@@ -247,8 +247,9 @@ def test_stop_head_residuals_are_its_weighted_loss():
         stop_loss_weights("physical", oscale)
     g = np.random.default_rng(5)
     n = 400
-    fit = types.SimpleNamespace(torch=torch, W=torch.as_tensor(w), k=3, wy_c=0.1, wy_s=0.2, s_max=0.7)
-    fit.M_of = lambda xb: StopFit.M_of(fit, xb)
+    fit = types.SimpleNamespace(torch=torch, W=torch.as_tensor(w), k=3, wy_c=0.1, wy_s=0.2, s_max=0.7,
+                                f32=lambda a: torch.as_tensor(np.asarray(a, np.float64)))
+    fit.M_of = lambda xb, const=None: StopFit.M_of(fit, xb, const)
     batch = {"X": torch.as_tensor(g.normal(size=(n, 4))), "Y": torch.as_tensor(g.normal(size=(n, 6)))}
     z = torch.as_tensor(g.normal(size=(n, 6)))
     r, s = StopFit.lm_residual(fit, z, batch)
@@ -256,12 +257,36 @@ def test_stop_head_residuals_are_its_weighted_loss():
     np.testing.assert_allclose(float((r ** 2).sum(1).mean() / 6), float(loss), rtol=1e-12)
     r2, _ = StopFit.lm_residual(fit, z + 1e-3, batch)
     np.testing.assert_allclose(((r2 - r) / 1e-3).numpy(), s.numpy(), rtol=1e-6)
-    # a stack of two maps: each map's loss with its own weights
-    const = {"W": torch.stack([fit.W[None], torch.ones(1, 6, dtype=torch.float64)])}
+    # a stack of two maps: each map's loss with its own weights and its own ωy normalisation (input_box)
+    other = types.SimpleNamespace(**{**vars(fit), "wy_c": 0.3, "wy_s": 0.05})
+    const = {"W": torch.stack([fit.W[None], torch.ones(1, 6, dtype=torch.float64)]),
+             "WY": torch.stack([StopFit.constants(fit)["WY"], StopFit.constants(other)["WY"]])}
     both = StopFit.rows_loss(fit, torch.stack([z, z]), {k: torch.stack([v, v]) for k, v in batch.items()}, const)
     np.testing.assert_allclose(float(both[0]), float(loss), rtol=1e-12)
-    plain = ((z * fit.M_of(batch["X"]) - batch["Y"]) ** 2).mean()
+    plain = ((z * StopFit.M_of(other, batch["X"]) - batch["Y"]) ** 2).mean()
     np.testing.assert_allclose(float(both[1]), float(plain), rtol=1e-12)
+    assert abs(float(plain) - float(((z * fit.M_of(batch["X"]) - batch["Y"]) ** 2).mean())) > 1e-3
+
+
+def test_a_stop_head_trained_on_its_input_box_folds_into_the_same_function():
+    """input_box normalises over the valid rays' box (λ kept); fold_input_box turns a head on that box into the
+    same function of the map's normalised inputs (first layer and skip absorb the affine change)."""
+    from mi_neurallens.neural.mlp import mlp_np
+    from mi_neurallens.training.stop_head import INPUT_BOX_MARGIN, fold_input_box, input_box
+    g = np.random.default_rng(8)
+    c, s = np.array([16.8, 0.0, 0.35, 595.0]), np.array([16.8, 0.71, 0.35, 235.0])
+    x = np.stack([g.uniform(0, 31.6, 5000), g.uniform(-0.7, 0.16, 5000), g.uniform(0, 0.17, 5000),
+                  g.uniform(360, 830, 5000)], 1)
+    cb, sb = input_box(x, c, s)
+    assert cb[3] == c[3] and sb[3] == s[3]
+    xb = (x - cb) / sb
+    assert np.abs(xb[:, :3]).max() <= 1.0 / (1.0 + 2.0 * INPUT_BOX_MARGIN) + 1e-12
+    assert np.abs(xb[:, :3]).max() > 0.95 / (1.0 + 2.0 * INPUT_BOX_MARGIN)
+    layers = random_layers([4, 16, 16, 6])
+    skip, shift = g.normal(size=(6, 4)), g.normal(size=6)
+    head = lambda L, sk, sh, xn: mlp_np(xn, L) + xn @ sk.T + sh
+    L2, sk2, sh2 = fold_input_box(layers, skip, shift, (cb, sb), (c, s))
+    np.testing.assert_allclose(head(L2, sk2, sh2, (x - c) / s), head(layers, skip, shift, xb), rtol=1e-10, atol=1e-10)
 
 
 def test_large_networks_are_left_to_adam():

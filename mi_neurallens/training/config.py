@@ -39,6 +39,8 @@ class NetConfig:
     loss_weights: str = "goals"         # regressor, stop head: per-output MSE weights ∝ (output std / accuracy goal),
                                         # floored; or "uniform"
     odd_y: bool = True                  # regressor: y, dy = (ωy / s_max) × network: exactly odd in ωy, no mirror-plane seam
+    input_box: bool = False             # stop head: train on inputs normalised over its valid rays' bounding box, folded
+                                        # back into the first layer and skip (same file, same kernel; stop_head.input_box)
     target: str = "margin"              # classifier: "margin" (regress scale·(aperture margin) inside ±clip, one-sided
                                         # beyond: a sharper boundary) or "label" (BCE on blocked/passed, the paper's)
     margin_scale: float = 40.0          # classifier "margin" target: logit slope per unit margin at the boundary
