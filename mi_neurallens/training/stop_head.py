@@ -60,9 +60,10 @@ def input_box(x, center, scale):
     :data:`INPUT_BOX_MARGIN` of its extent each side, λ (and any column the rays do not spread) left as the
     map's ``center``/``scale``.  A map normalises over its whole domain, for its classifier; a ghost's valid
     rays may fill only a corner of it (the Canon EF's 278528: ωy in its lowest quarter), and a stop head sees
-    nothing else.  Used with ``NetConfig.input_box`` (off by default): 278528's head reached 3.98–5.19 µm median
-    on its box where the map's normalisation gave 5.35–5.81 (three runs each, the same cost), and dgauss-50mm's
-    28 heads met their goals in 0.83× the time (docs/results.md, "The last one, 278528")."""
+    nothing else.  Used with ``NetConfig.input_box`` (on for forward maps): 278528's head reached 3.98–5.19 µm
+    median on its box where the map's normalisation gave 5.35–5.81 (three runs each, the same cost), dgauss-50mm's
+    28 heads met their goals in 0.83× the time, and the Canon EF's seven three-crossing heads came out 5–46 %
+    lower (docs/results.md, "The last one, 278528")."""
     x = np.asarray(x, np.float64)
     c, s = np.array(center, np.float64), np.array(scale, np.float64)
     lo, hi = x.min(0), x.max(0)
