@@ -7,8 +7,8 @@ A learned map normalises its inputs (r, ωx, ωy, λ) over its whole sampled dom
 every ray; a ghost's valid rays may fill only a corner of it (the Canon EF's ghost 278528: ωy in the lowest
 quarter, ωx in 60 %), and the stop head, which only ever sees valid rays, then has to resolve its function inside
 a small part of its inputs' range.  ``box`` trains the head with ``input_box = true``
-(:func:`~mi_neurallens.training.stop_head.input_box`: the bounding box of its first pool, 2 % margin, λ as the
-map's), folded back into its first layer and skip (:func:`~mi_neurallens.training.stop_head.fold_input_box`), so
+(:func:`~mi_neurallens.training.input_box.input_box`: the bounding box of its first pool, 2 % margin, λ as the
+map's), folded back into its first layer and skip (:func:`~mi_neurallens.training.input_box.fold_input_box`), so
 the head computes the same function of the map's own normalised inputs: the model file, the render kernel and
 the head's cost are unchanged.  ``map`` is the head as ``train`` makes it by default.  Both with the lens's stop
 settings, the given size and minutes of the Levenberg–Marquardt finish, the same seed; the held-out crossing

@@ -272,7 +272,7 @@ def test_a_stop_head_trained_on_its_input_box_folds_into_the_same_function():
     """input_box normalises over the valid rays' box (λ kept); fold_input_box turns a head on that box into the
     same function of the map's normalised inputs (first layer and skip absorb the affine change)."""
     from mi_neurallens.neural.mlp import mlp_np
-    from mi_neurallens.training.stop_head import INPUT_BOX_MARGIN, fold_input_box, input_box
+    from mi_neurallens.training.input_box import INPUT_BOX_MARGIN, fold_input_box, input_box
     g = np.random.default_rng(8)
     c, s = np.array([16.8, 0.0, 0.35, 595.0]), np.array([16.8, 0.71, 0.35, 235.0])
     x = np.stack([g.uniform(0, 31.6, 5000), g.uniform(-0.7, 0.16, 5000), g.uniform(0, 0.17, 5000),

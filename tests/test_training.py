@@ -513,3 +513,33 @@ def test_edge_weighted_regressor_loss():
         assert res["state"]["done"] and logged[-1]["pos_um_med"] < 20.0
         ratio[ew] = logged[-1]["edge_pos_um_med"] / logged[-1]["pos_um_med"]
     assert ratio[0.0] > 1.3 and ratio[30.0] < 0.8 * ratio[0.0]
+
+
+def test_a_regressor_trained_on_its_input_box_is_returned_in_the_maps_normalisation():
+    """With ``input_box`` the regressor trains on its valid rays' bounding box (recorded in its state) and comes
+    back folded into the normalisation it was given: evaluated there, it reproduces the held-out position error
+    its own validation logged at the kept (best) step, and the box is not the normalisation it was given."""
+    pytest.importorskip("torch")
+    from mi_neurallens.neural.mlp import mlp_np
+    from mi_neurallens.training.config import NetConfig
+    from mi_neurallens.training.evaluate import regression_errors
+    from mi_neurallens.training.trainer import odd_factor, train_regressor
+    lens = thick_lens()
+    ps = data.PathSampler(lens, 0, "backward", 52.0, -1.0, data.Domain(12.0, 0.4))
+    _, x, y, _ = data.rejection_sample(ps, 8000, np.random.default_rng(0))
+    center, scale = x.mean(0) + [3.0, 0.1, 0.1, 0.0], 6.0 * x.std(0)     # a domain far wider than the valid rays
+    nc = NetConfig(hidden=2, width=16, batch=1024, pool=30000, refresh_every=100, eval_every=100, max_steps=400,
+                   max_minutes=1.0, warmup_steps=20, lr=1e-2, patience=100, input_box=True)
+    logged = []
+    res = train_regressor(data.RegressorStream(ps, seed=1, bounded=False), (x, y), nc, heading=-1, center=center,
+                          scale_in=scale, seed=0, ckpt=None, threads=1, progress=False, s_max=0.4,
+                          log=lambda d, r: logged.append(r))
+    cb, sb = (np.asarray(v) for v in res["state"]["input_box"])
+    assert np.abs(sb[:3] / scale[:3]).max() < 0.5 and np.abs(cb - center)[:3].min() > 0.0
+    xn = (x - center) / scale
+    M = odd_factor(x[:, 2], 0.4)
+    yp = M * (res["out_shift"] + xn @ res["skip"].T) + res["out_scale"] * (M * mlp_np(xn, res["layers"]))
+    best = min(logged, key=lambda r: r["val_mse"])
+    got = regression_errors(yp, y, -1)["position_um_median"]
+    assert got < 50.0
+    np.testing.assert_allclose(got, best["pos_um_med"], rtol=2e-3)

@@ -39,9 +39,9 @@ class NetConfig:
     loss_weights: str = "goals"         # regressor, stop head: per-output MSE weights ∝ (output std / accuracy goal),
                                         # floored; or "uniform"
     odd_y: bool = True                  # regressor: y, dy = (ωy / s_max) × network: exactly odd in ωy, no mirror-plane seam
-    input_box: bool = False             # stop head: train on inputs normalised over its valid rays' bounding box, folded
-                                        # back into the first layer and skip (same file, same kernel; stop_head.input_box;
-                                        # on for forward maps, FORWARD_STOP)
+    input_box: bool = False             # regressor, stop head: train on inputs normalised over the valid rays' bounding
+                                        # box, folded back into the first layer and skip (same file, same kernel;
+                                        # training/input_box.py; on for forward stop heads, FORWARD_STOP)
     target: str = "margin"              # classifier: "margin" (regress scale·(aperture margin) inside ±clip, one-sided
                                         # beyond: a sharper boundary) or "label" (BCE on blocked/passed, the paper's)
     margin_scale: float = 40.0          # classifier "margin" target: logit slope per unit margin at the boundary
@@ -152,7 +152,7 @@ FORWARD_STOP_LM_MINUTES = 0.5
 #: plane two or three times is as hard to place there as on the film: on dgauss-50mm's ghosts 96, 1152, 16896 and
 #: 4224 the 3×16 heads reached 1.5–1.8 µm median, 7.1–8.9 µm p99 in 2.9 min for the four, the 2×32 ones
 #: 2.7–5.2 / 12.5–24 µm in 4.7 (docs/results.md, "Stop heads as small as the regressor")
-#: With ``input_box`` (the head trained on its valid rays' bounding box, folded back; stop_head.input_box): back to back
+#: With ``input_box`` (the head trained on its valid rays' bounding box, folded back; training/input_box.py): back to back
 #: with it off, dgauss-50mm's 28 heads met their goals in 3.8 min against 4.6, and the Canon EF's seven three-crossing
 #: heads (its hardest) came out lower at the median, all seven, by 5–46 % (docs/results.md, "The last one, 278528").
 FORWARD_STOP = dict(hidden=3, width=16, max_steps=REGRESSOR_ADAM_STEPS, lm_iterations=FORWARD_LM_ITERATIONS["stop"],

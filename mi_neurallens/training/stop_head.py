@@ -23,6 +23,7 @@ from ..errors import NeuralLensError
 from .config import NetConfig
 from .data import PathSampler, RegressorStream
 from .evaluate import heldout_valid, stop_errors
+from .input_box import fold_input_box, input_box, is_box
 from .stacked import Problem
 from .levenberg import check_refinable, widen_as_configured
 from .trainer import _torch, fit_output_transform, pick_device, polish_results
@@ -49,40 +50,6 @@ def odd_columns(x_wy: np.ndarray, s_max: float, k: int) -> np.ndarray:
     M = np.ones((len(x_wy), 2 * k))
     M[:, 1::2] = np.asarray(x_wy, np.float64)[:, None] / float(s_max)
     return M
-
-
-#: the margin of :func:`input_box`, a fraction of the valid rays' extent on each side
-INPUT_BOX_MARGIN = 0.02
-
-
-def input_box(x, center, scale):
-    """(center, scale) normalising the valid reduced inputs ``x`` (N, 4) over their bounding box widened by
-    :data:`INPUT_BOX_MARGIN` of its extent each side, λ (and any column the rays do not spread) left as the
-    map's ``center``/``scale``.  A map normalises over its whole domain, for its classifier; a ghost's valid
-    rays may fill only a corner of it (the Canon EF's 278528: ωy in its lowest quarter), and a stop head sees
-    nothing else.  Used with ``NetConfig.input_box`` (on for forward maps): 278528's head reached 3.98–5.19 µm
-    median on its box where the map's normalisation gave 5.35–5.81 (three runs each, the same cost), dgauss-50mm's
-    28 heads met their goals in 0.83× the time, and the Canon EF's seven three-crossing heads came out 5–46 %
-    lower (docs/results.md, "The last one, 278528")."""
-    x = np.asarray(x, np.float64)
-    c, s = np.array(center, np.float64), np.array(scale, np.float64)
-    lo, hi = x.min(0), x.max(0)
-    half = 0.5 * (hi - lo) * (1.0 + 2.0 * INPUT_BOX_MARGIN)
-    use = (half > 1e-9 * s) & (np.arange(len(c)) < 3)
-    c[use], s[use] = 0.5 * (lo + hi)[use], half[use]
-    return c, s
-
-
-def fold_input_box(layers, skip, shift, box, to):
-    """A head trained on inputs normalised by ``box`` = (c_b, s_b) — its ``layers`` ([(W (out, in), b), …]) and
-    linear ``skip`` (2k, 4), ``shift`` (2k,) — as the same function of inputs normalised by ``to`` = (c, s):
-    x_b = (c − c_b)/s_b + (s/s_b)·x, absorbed by the first layer and the skip.  Returns (layers, skip, shift)."""
-    (cb, sb), (c, s) = (np.asarray(v, np.float64) for v in box), (np.asarray(v, np.float64) for v in to)
-    a, d = s / sb, (c - cb) / sb
-    W0, b0 = (np.asarray(v, np.float64) for v in layers[0])
-    skip, shift = np.asarray(skip, np.float64), np.asarray(shift, np.float64)
-    return ([(W0 * a[None, :], b0 + W0 @ d)] + [(np.asarray(W, np.float64), np.asarray(b, np.float64))
-                                                for W, b in layers[1:]], skip * a[None, :], shift + skip @ d)
 
 
 class StopFit(Problem):
@@ -270,7 +237,7 @@ def train_stop_heads(lens, tms, nc: NetConfig, *, seeds, fresnel: bool = True, m
     for r, (skip, shift, oscale), seed, (cb, sb), tm in zip(res, transforms, seeds, boxes, tms):
         st = r["state"]
         box = None
-        if not (np.array_equal(cb, tm.input_center) and np.array_equal(sb, tm.input_scale)):
+        if is_box((cb, sb), tm.input_center, tm.input_scale):
             r["layers"], skip, shift = fold_input_box(r["layers"], skip, shift, (cb, sb),
                                                       (tm.input_center, tm.input_scale))
             box = {"center": [float(v) for v in cb], "scale": [float(v) for v in sb]}

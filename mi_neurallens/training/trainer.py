@@ -32,6 +32,7 @@ from ..fileio import atomic_write_text
 from .config import NETWORK_KINDS, NetConfig, TrainConfig, budget_minutes, minutes_text, parse_size
 from .data import Domain, PathSampler, RegressorStream, classifier_samples
 from .evaluate import map_outputs_np
+from .input_box import fold_input_box, input_box, is_box
 from .stacked import TANH_CHOICE, Problem
 
 CLASSIFIER_VALIDATION = 400_000   # rays uniform over the domain that pick the classifier's best weights
@@ -326,6 +327,11 @@ def train_regressors(problems, nc: NetConfig, *, ckpt: str | None = None, thread
                                       "use another work directory or the same setting")
             stream.reseed([int(p["seed"]), state["step"]])
         u0, x0, y0 = stream.sample(n_pool)
+        if nc.input_box and start is None:          # train on the valid rays' box; folded back at the end
+            if "input_box" not in state and not resumed:
+                state["input_box"] = [v.tolist() for v in input_box(x0, center, scale_in)]
+            if "input_box" in state:
+                center, scale_in = (np.asarray(v, np.float64) for v in state["input_box"])
         xn0 = (x0 - center) / scale_in
         if not resumed:
             transform = fit_output_transform(xn0, y0, nc.residual, odd_factor(x0[:, 2], odd_s))
@@ -344,12 +350,16 @@ def train_regressors(problems, nc: NetConfig, *, ckpt: str | None = None, thread
         res = [{"layers": s0["layers"], "state": f.state} for s0, f in zip(start, fits)]
     polish_results(torch, fits, res, nc, keys, ckpt, log, progress)
     out = []
-    for r, f in zip(res, fits):
+    for r, f, p in zip(res, fits, problems):
         st = r["state"]
         st["wall_seconds_total"] = time.perf_counter() - t_start
         st["stacked_with"] = len(problems)
-        out.append({"layers": r["layers"], "skip": np.asarray(f.skip), "out_shift": np.asarray(f.shift),
-                    "out_scale": np.asarray(f.oscale), "odd_y": f.odd_s is not None, "state": st})
+        layers, skip, shift = r["layers"], np.asarray(f.skip), np.asarray(f.shift)
+        if is_box((f.center, f.scale_in), p["center"], p["scale_in"]):
+            layers, skip, shift = fold_input_box(layers, skip, shift, (f.center, f.scale_in),
+                                                 (p["center"], p["scale_in"]))
+        out.append({"layers": layers, "skip": skip, "out_shift": shift, "out_scale": np.asarray(f.oscale),
+                    "odd_y": f.odd_s is not None, "state": st})
     return out
 
 
@@ -954,6 +964,8 @@ def train_maps(lens, specs, cfg: TrainConfig, workdir: str | None = None, progre
         for net_name, r in (("regressor", reg), ("classifier", cls)):
             if r["state"].get("lm"):
                 training[f"{net_name}_lm"] = r["state"]["lm"]
+        if reg["state"].get("input_box"):      # trained on this box (input_box), folded back into the map's inputs
+            training["regressor_input_box"] = dict(zip(("center", "scale"), reg["state"]["input_box"]))
         if keep is not None:
             training["kept"] = {"network": keep, "from_config_digest": base.training.get("config_digest")}
             if keep == "classifier":       # its calibration offset is already folded into its last bias
