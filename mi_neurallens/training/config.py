@@ -41,7 +41,7 @@ class NetConfig:
     odd_y: bool = True                  # regressor: y, dy = (ωy / s_max) × network: exactly odd in ωy, no mirror-plane seam
     input_box: bool = False             # regressor, stop head: train on inputs normalised over the valid rays' bounding
                                         # box, folded back into the first layer and skip (same file, same kernel;
-                                        # training/input_box.py; on for forward stop heads, FORWARD_STOP)
+                                        # training/input_box.py; on for the forward maps: FORWARD_REGRESSOR, FORWARD_STOP)
     target: str = "margin"              # classifier: "margin" (regress scale·(aperture margin) inside ±clip, one-sided
                                         # beyond: a sharper boundary) or "label" (BCE on blocked/passed, the paper's)
     margin_scale: float = 40.0          # classifier "margin" target: logit slope per unit margin at the boundary
@@ -118,8 +118,12 @@ FORWARD_LM_ITERATIONS = {"regressor": 300, "classifier": 900, "stop": 300}
 #: camera ray's; the ghosts' edges are the flare error, so their classifier regresses the aperture margin
 #: (docs/training.md).  The networks are the defaults' 3×16 / 2×16 with shorter Adam and finish budgets: the
 #: Canon EF's ghosts reached 2.3–39 µm (median map 5.6) with ≤ 1 min of the finish (docs/results.md)
+#: With ``input_box`` (trained on the valid rays' bounding box, folded back; training/input_box.py): back to back
+#: with it off, dgauss-50mm's 28 ghost regressors all met their goals both ways, in 6.1 min against 6.8 (27 of 28
+#: sooner, 17 of 28 lower at the median); the Canon EF's 278528, trained anew as 3×32 on its box, 4.68 µm where its
+#: shipped map had 11.0 after three sessions of the finish (docs/results.md, "278528 on its box")
 FORWARD_REGRESSOR = dict(max_minutes=1.0, max_steps=REGRESSOR_ADAM_STEPS, lm_minutes=1.0,
-                         lm_iterations=FORWARD_LM_ITERATIONS["regressor"])
+                         lm_iterations=FORWARD_LM_ITERATIONS["regressor"], input_box=True)
 #: the forward regressor's goals at 2048 pixels across full frame (a 17.6 µm pixel): position (median, p99)
 #: µm, 0.17 / 1.7 pixels; direction (median, p99) arcsec.  Both scale with the pixel (:func:`flare_goals`)
 FLARE_GOAL_UM_2K = (3.0, 30.0)
