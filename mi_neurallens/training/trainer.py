@@ -327,11 +327,11 @@ def train_regressors(problems, nc: NetConfig, *, ckpt: str | None = None, thread
                                       "use another work directory or the same setting")
             stream.reseed([int(p["seed"]), state["step"]])
         u0, x0, y0 = stream.sample(n_pool)
-        if nc.input_box and start is None:          # train on the valid rays' box; folded back at the end
-            if "input_box" not in state and not resumed:
-                state["input_box"] = [v.tolist() for v in input_box(x0, center, scale_in)]
-            if "input_box" in state:
-                center, scale_in = (np.asarray(v, np.float64) for v in state["input_box"])
+        # input_box: train on the valid rays' box (folded back at the end); a checkpoint resumes on the box it had
+        if nc.input_box and start is None and not resumed:
+            state["input_box"] = [v.tolist() for v in input_box(x0, center, scale_in)]
+        if "input_box" in state:
+            center, scale_in = (np.asarray(v, np.float64) for v in state["input_box"])
         xn0 = (x0 - center) / scale_in
         if not resumed:
             transform = fit_output_transform(xn0, y0, nc.residual, odd_factor(x0[:, 2], odd_s))
