@@ -15,7 +15,6 @@ of per cent between minutes: compare runs of one invocation only.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import subprocess
@@ -86,11 +85,11 @@ def main(argv=None) -> int:
         r = rows["this tree"]["data_setup_s"] / max(rows["baseline"]["data_setup_s"], 1e-9)
         print(f"data set-up, this tree / baseline: {r:.2f}")
     if a.json:
-        os.makedirs(os.path.dirname(os.path.abspath(a.json)), exist_ok=True)
-        with open(a.json, "w") as f:
-            json.dump({"benchmark": "setup_time", "lens": a.lens, "paths": a.paths, "machine": platform.processor()
-                       or platform.machine(), "cpus": os.cpu_count(), "command": " ".join(["python"] + sys.argv),
-                       "rows": rows}, f, indent=1)
+        sys.path.insert(0, ROOT)
+        from mi_neurallens.fileio import atomic_write_json
+        atomic_write_json(a.json, {"benchmark": "setup_time", "lens": a.lens, "paths": a.paths,
+                                   "machine": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
+                                   "command": " ".join(["python"] + sys.argv), "rows": rows})
     return 0
 
 

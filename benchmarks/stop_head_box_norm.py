@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
 import platform
 import sys
@@ -78,10 +77,9 @@ def main(argv=None) -> int:
               f"(bundled {b['stop_um_median']:.2f} / {b['stop_um_p99']:.1f}), {r['lm_iterations']} iterations, "
               f"{r['lm_stop']}", flush=True)
     if a.json:
-        os.makedirs(os.path.dirname(os.path.abspath(a.json)), exist_ok=True)
-        with open(a.json, "w") as f:
-            json.dump({"benchmark": "stop_head_box_norm", "machine": platform.processor() or platform.machine(),
-                       "cpus": os.cpu_count(), "command": " ".join(["python"] + sys.argv), "rows": rows}, f, indent=1)
+        from mi_neurallens.fileio import atomic_write_json
+        atomic_write_json(a.json, {"benchmark": "stop_head_box_norm", "machine": platform.processor() or platform.machine(),
+                                   "cpus": os.cpu_count(), "command": " ".join(["python"] + sys.argv), "rows": rows})
     return 0
 
 

@@ -18,7 +18,6 @@ them and prints, for its stop head:
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 
@@ -50,6 +49,7 @@ def main(argv=None) -> int:
     import mitsuba as mi
     from mi_neurallens.render_utils import default_variant
     mi.set_variant(default_variant())
+    from mi_neurallens.fileio import atomic_write_json
     from mi_neurallens.neural.model import NeuralLensModel, bundled_model_path
     from mi_neurallens.optics.formats import load_lens
     from mi_neurallens.training.data import PathSampler
@@ -104,9 +104,7 @@ def main(argv=None) -> int:
         print(f"  |∂s/∂{name}| of the worst crossing: all rays median {q['all_median']:.0f}, p99 {q['all_p99']:.0f};"
               f" the error's top 1 %: median {q['top1pct_median']:.0f} mm per unit")
     if a.json:
-        os.makedirs(os.path.dirname(os.path.abspath(a.json)), exist_ok=True)
-        with open(a.json, "w") as fh:
-            json.dump(out, fh, indent=1)
+        atomic_write_json(a.json, out)
     return 0
 
 

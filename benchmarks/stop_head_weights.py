@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
 import sys
 import time
@@ -78,9 +77,8 @@ def main(argv=None):
                   f"{e0['stop_um_median']:6.2f} / {e0['stop_um_p99']:6.1f}   finish {lm.get('iterations')} it, "
                   f"{lm.get('seconds', 0):.0f} s, {lm.get('stop_reason')}   stack {wall:.0f} s", flush=True)
     if a.json:
-        os.makedirs(os.path.dirname(os.path.abspath(a.json)), exist_ok=True)
-        with open(a.json, "w") as f:
-            json.dump({"lens": a.lens, "lm_minutes": a.lm_minutes, "rows": rows}, f, indent=1)
+        from mi_neurallens.fileio import atomic_write_json
+        atomic_write_json(a.json, {"lens": a.lens, "lm_minutes": a.lm_minutes, "rows": rows})
 
 
 if __name__ == "__main__":
