@@ -11,7 +11,9 @@ does), fixed step counts, goals off.  Samples/s counts
 training samples (batch × steps × maps) per second of the training loop (set-up excluded: building the
 samplers and held-out sets is the same for both).  ``--baseline-tree``: a checkout of the repository
 before the stacked trainer (e.g. ``git worktree add /tmp/old c6c3982``), run in a subprocess with the
-same settings, one map at a time.  Writes ``benchmarks/results/training_throughput.json``.
+same settings, one map at a time.  Every run also times the batched products alone at a stack's shape
+(:func:`matmul_peak`, fp32 and bf16) and reports the fp32 ceiling: the samples/s a trainer would reach if
+nothing but those products took time.  Writes ``benchmarks/results/training_throughput.json`` (``--out``).
 """
 from __future__ import annotations
 
@@ -113,6 +115,34 @@ def measure_old(k, kind, steps):
             "samples_per_s": samples / seconds}
 
 
+def matmul_peak(k=4, rows=8192, width=32, repeats=200):
+    """What the CPU's batched products reach at a stack's shape — ``k`` maps × ``rows`` × ``width`` @ ``width`` ×
+    ``width``, the hidden layers' product — in fp32 and bf16 (GFLOP/s, best of three timings), and the samples/s
+    the benchmark's regressor and classifier could reach if *all* their time were such products at the fp32
+    rate (forward and the two backward products per layer; no activation, loss or optimiser): the ceiling of
+    an fp32 trainer on this machine."""
+    import torch
+    torch.set_num_threads(2)
+    out = {"shape": [k, rows, width, width]}
+    for name, dt in (("fp32", torch.float32), ("bf16", torch.bfloat16)):
+        a, w = torch.randn(k, rows, width, dtype=dt), torch.randn(k, width, width, dtype=dt)
+        for _ in range(20):
+            torch.bmm(a, w)
+        best = float("inf")
+        for _ in range(3):
+            t = time.perf_counter()
+            for _ in range(repeats):
+                torch.bmm(a, w)
+            best = min(best, (time.perf_counter() - t) / repeats)
+        out[f"{name}_gflops"] = 2.0 * k * rows * width * width / best / 1e9
+    for kind, (hidden, width_) in BENCH_NETWORKS.items():
+        n_out = 5 if kind == "regressor" else 1
+        macs = 4 * width_ + (hidden - 1) * width_ * width_ + width_ * n_out
+        out[f"{kind}_flop_per_sample"] = 3 * 2 * macs
+        out[f"{kind}_fp32_ceiling_samples_per_s"] = out["fp32_gflops"] * 1e9 / (3 * 2 * macs)
+    return out
+
+
 def grid(maps=(1, 2, 4, 8, 16), batches=(1024, 2048, 4096, 8192)):
     """Step time of one stack of K regressors at batch B (pools in memory, no validation or refresh):
     what :data:`~mi_neurallens.training.stacked.CPU_STACK_ROWS` is chosen from."""
@@ -187,6 +217,13 @@ def main():
         rows["old"] = json.loads(out.stdout.strip().splitlines()[-1])
         for r in rows["old"]:
             print(f"old  {r['kind']:10s} one at a time ×{r['maps']}: {r['samples_per_s'] / 1e6:.2f} M samples/s")
+    rows["matmul_peak"] = peak = matmul_peak()
+    print(f"batched products {peak['shape']}: fp32 {peak['fp32_gflops']:.0f} GFLOP/s, bf16 {peak['bf16_gflops']:.0f}")
+    for kind in kinds:
+        ceil = peak[f"{kind}_fp32_ceiling_samples_per_s"]
+        base = next((o["samples_per_s"] for o in rows["old"] if o["kind"] == kind), None)
+        print(f"fp32 ceiling {kind:10s}: {ceil / 1e6:.2f} M samples/s"
+              + (f"  {ceil / base:.2f}× the old trainer" if base else ""))
     for kind in kinds:
         for k in map(int, args.maps.split(",")):
             r = measure_new(k, kind, args.steps)
@@ -195,9 +232,8 @@ def main():
             ratio = f"  {r['samples_per_s'] / base:.2f}× the old trainer" if base else ""
             print(f"new  {kind:10s} {k:2d} maps ({r['stacks']} stacks): {r['samples_per_s'] / 1e6:.2f} M samples/s{ratio}",
                   flush=True)
-    os.makedirs(os.path.join(ROOT, "benchmarks", "results"), exist_ok=True)
-    with open(args.out, "w") as f:
-        json.dump(rows, f, indent=1)
+    from mi_neurallens.fileio import atomic_write_json
+    atomic_write_json(args.out, rows)
 
 
 if __name__ == "__main__":
