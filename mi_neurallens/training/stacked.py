@@ -109,7 +109,7 @@ def training_tanh(torch, device=None):
     Both are tanh to float32 rounding (the rational is checked against ``torch.tanh`` to 1e-6 before it is
     used), and the Levenberg–Marquardt finish, which sets the weights a map ships with, uses ``torch.tanh``
     anyway.  On a CPU the fused rational takes 167 µs for the 1 M activations of a 4 × 8192 × 32 stack, where
-    ``torch.tanh`` takes 1.1 ms (2 cores, AVX-512), for a one-time compilation of a few seconds a process (a C++
+    ``torch.tanh`` takes 1.1 ms (2 cores, AVX-512), for a one-time compilation a process (≈ 17 s on an empty cache; a C++
     compiler; docs/results.md, "The data set-up" and "Training many maps at once").  On a
     GPU ``torch.tanh`` is already one kernel forward and one backward, the most a fused version could be,
     so compiling (Inductor and Triton, on an empty cache) could only add to the set-up."""
