@@ -120,7 +120,7 @@ def matmul_peak(k=4, rows=8192, width=32, repeats=200):
     ``width``, the hidden layers' product — in fp32 and bf16 (GFLOP/s, best of three timings), and the samples/s
     the benchmark's regressor and classifier could reach if *all* their time were such products at the fp32
     rate (forward and the two backward products per layer; no activation, loss or optimiser): the ceiling of
-    an fp32 trainer on this machine."""
+    an fp32 trainer built on PyTorch's batched products on this machine (not the CPU's FMA peak)."""
     import torch
     torch.set_num_threads(2)
     out = {"shape": [k, rows, width, width]}
