@@ -709,3 +709,26 @@ def test_a_resumed_verification_keeps_the_bands_it_measured(tmp_path):
     assert out[0.0][2560]["marker"] == 1 and 2560 in out[1.0]
     met = load_model(f).map(2560, "forward").metrics
     assert met["flare"]["marker"] == 1 and met["flare_bands"]["1"]["log2_samples"] == 12
+
+
+def test_verification_refines_every_band_but_the_first(tmp_path):
+    """``record_flare_errors`` over bands 0, 1, 2 with a gate no record passes: band 0 stays at its sample count
+    (the next band measures the ghost anyway), bands 1 and 2 are rendered again with more samples before the ghost
+    goes on, so a ghost reaches a wider band only when the narrower one, refined, misses the gate."""
+    from mi_neurallens.flare.verify import record_flare_errors
+    from mi_neurallens.neural.model import load_model
+    m = load_model(MODEL)
+    m.maps = {k: v for k, v in m.maps.items() if k in ("backward.0", "forward.2560")}
+    met = m.maps["forward.2560"].metrics
+    met.pop("flare_bands", None)
+    met.pop("flare", None)
+    f = tmp_path / "one-ghost.model.safetensors"
+    m.save(f)
+    out = record_flare_errors(f, "wide-22mm", ghosts=[2560], bands=(0.0, 1.0, 2.0), samples_log2=10, max_log2=12,
+                              gate=0.0, log=None)
+    assert sorted(out) == [0.0, 1.0, 2.0]
+    assert max(out[0.0][2560]["per_light_log2_samples"]) == 10
+    for band in (1.0, 2.0):
+        assert max(out[band][2560]["per_light_log2_samples"]) > 10, band
+    met = load_model(f).map(2560, "forward").metrics
+    assert sorted(met["flare_bands"]) == ["1", "2"]

@@ -348,10 +348,12 @@ def record_flare_errors(model_path, lens=None, *, ghosts=None, bands=(0.0, 1.0),
     or with every band's when none passes (``auto`` then traces it).  What ``mi-neurallens evaluate MODEL --flare
     --write`` (and ``--flare-boundary-band 1``) do, in one call; ``mi-neurallens train`` ends with it.
 
-    Every band renders 2^``samples_log2`` samples; only the last band refines a ghost above the gate, up to
-    2^``max_log2`` (:func:`verify_model`), since a ghost an earlier band leaves above it is measured at the next
-    band anyway, and noise only ever raises the paired error: so a ghost is learned at a wider band, or traced,
-    where converged records would let it in narrower — never the other way.  The file is rewritten (atomically)
+    Every band renders 2^``samples_log2`` samples; every band but the first (and the first too when it is the only
+    one) refines a ghost above the gate, up to 2^``max_log2`` (:func:`verify_model`).  The first is not refined
+    because a ghost it leaves above the gate is measured at the next band anyway, and noise only ever raises the
+    paired error: so a ghost is learned at a wider band, or traced, where a converged record of the learned edges
+    would let it in narrower — never the other way.  A later band is refined, so that a ghost goes on to a still
+    wider band only when the narrower one, converged, misses the gate.  The file is rewritten (atomically)
     after each band, so an interruption keeps the bands done; ``keep_measured``: a ghost's record of a band that the
     file already holds is kept, not measured again (how a resumed ``train`` goes on).  Returns
     {band: {path_id: record}}."""
@@ -367,7 +369,7 @@ def record_flare_errors(model_path, lens=None, *, ghosts=None, bands=(0.0, 1.0),
     for band in bands:
         if not todo:
             break
-        last = band == bands[-1]
+        refine = band == bands[-1] or band != bands[0]
         have = {}
         if keep_measured:
             model = load_model(model_path)
@@ -386,10 +388,10 @@ def record_flare_errors(model_path, lens=None, *, ghosts=None, bands=(0.0, 1.0),
             log(f"verifying the flare of {len(run)} ghost map(s) against the tracer"
                 + (f" with their edges traced (boundary_band {band:g})" if band else " (their learned edges)")
                 + f": 2^{samples_log2} samples a render"
-                + (f" (up to 2^{max_log2} for a ghost above {gate:g})" if last and max_log2 > samples_log2 else "")
+                + (f" (up to 2^{max_log2} for a ghost above {gate:g})" if refine and max_log2 > samples_log2 else "")
                 + f", {len(LIGHTS)} light positions")
         res = verify_model(model_path, lens, ghosts=run, samples_log2=samples_log2,
-                           max_log2=max_log2 if last else samples_log2, refine_above=gate, boundary_band=band, log=log)
+                           max_log2=max_log2 if refine else samples_log2, refine_above=gate, boundary_band=band, log=log)
         model = load_model(model_path)
         for pid, rec in res.items():
             store_flare_record(model.map(pid, "forward").metrics, rec)

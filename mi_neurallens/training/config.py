@@ -202,13 +202,15 @@ class TrainConfig:
     # record kept in the model file, where the flare's mode auto reads it to choose, ghost by ghost, its learned map
     # (at the narrowest boundary band that passes) or the tracer.  Not part of what a map is trained with (digest)
     verify_flare: bool = True
-    verify_flare_bands: list = field(default_factory=lambda: [0.0, 1.0])  # band 0 (the learned edges) for every
-                                        # ghost, each further band only for the ghosts the bands before leave above
-                                        # the gate (auto_max_flare_error, 0.01)
+    verify_flare_bands: list = field(default_factory=lambda: [0.0, 1.0, 2.0])  # band 0 (the learned edges) for
+                                        # every ghost, each further band only for the ghosts the bands before leave
+                                        # above the gate (auto_max_flare_error, 0.01).  Band 2 catches a fold's edge,
+                                        # whose false-valid rays lie beyond ±1 logit (double-Gauss ghost 33024:
+                                        # docs/results.md, "Band 2 by default")
     verify_flare_samples: int = 24      # log2 samples of each render pair, per light position
-    verify_flare_max_samples: int = 26  # at the last band a ghost above the gate is rendered again with 4× the
-                                        # samples up to this (the protocol of `evaluate --flare`); earlier bands
-                                        # are not refined: a ghost they leave above the gate goes to the next
+    verify_flare_max_samples: int = 26  # at every band but the first a ghost above the gate is rendered again with
+                                        # 4× the samples up to this (the protocol of `evaluate --flare`); the first
+                                        # is not refined: a ghost it leaves above the gate goes to the next
     verify_flare_cost: bool = True      # then each ghost map auto may learn is timed against tracing the ghost
                                         # (flare.verify.record_flare_costs, this machine's backend): auto learns a
                                         # ghost only where that is faster (auto_max_cost)
