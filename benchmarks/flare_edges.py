@@ -2,7 +2,7 @@
 
     python benchmarks/flare_edges.py wide-22mm 192 [288 ...|all] [--model FILE] [--samples 24]
                                      [--reference 28] [--json OUT] [--set fstop=5.4 --set blades=6]
-                                     [--boundary-band B]
+                                     [--boundary-band B] [--light X,Y] [--attribute]
 
 Renders each ghost of ``scenes/night_point.xml`` alone, exactly and with its neural map *with the same samples*
 (``pilot_with = "exact"``, same seed: common random numbers, so Monte Carlo noise cancels), then splits
@@ -48,6 +48,8 @@ def main(argv=None):
     ap.add_argument("--iris-band", type=float, default=None,
                     help="the learned renders' iris_band (samples at the iris's edge traced exactly; default: "
                          "--boundary-band)")
+    ap.add_argument("--light", metavar="X,Y",
+                    help="the point light's position (m, at z = 5 m; default: the scene's, 0.9,0.45)")
     ap.add_argument("--attribute", action="store_true",
                     help="also render the two hybrids (exact validity + learned exit rays, learned validity + exact "
                          "exit rays) that split the error between the regressor and the classifier")
@@ -67,7 +69,9 @@ def main(argv=None):
     model = a.model or bundled_model_path(a.lens)
     ghosts = load_model(model).ghost_ids if a.ghosts == ["all"] else [int(g) for g in a.ghosts]
     scene = load_scene(os.path.join(ROOT, "scenes", "night_point.xml"), variant=default_variant(), lens=a.lens,
-                       sensor_type="neural_lens", sets=[f"model={model}"] + a.sets)
+                       sensor_type="neural_lens", sets=[f"model={model}"] + a.sets,
+                       params=[] if not a.light else [f"light_x={a.light.split(',')[0]}",
+                                                      f"light_y={a.light.split(',')[1]}"])
     n = 1 << a.samples
     rows = []
     for g in ([] if a.combined_only else ghosts) + (["all"] if a.combined or a.combined_only else []):
