@@ -134,10 +134,13 @@ def test_train_command_keeps_the_bundled_regressor(tmp_path, capsys):
     assert new.training["kept"]["network"] == "regressor" and new.training["classifier_steps"] == 60
     assert new.metrics["regressor"]["position_um_median"] < 3.0
     # the run ended by verifying the flare of the ghost it trained (a classifier of 60 steps: its learned edges
-    # miss the gate, so its record with the edges traced was measured too); the maps it carried over keep theirs
+    # miss the gate, so its record with the edges traced was measured too, and band 2's where band 1 misses it
+    # as well); the maps it carried over keep theirs
     from mi_neurallens.flare.verify import flare_records
     recs = flare_records(new.metrics)
-    assert [r["boundary_band"] for r in recs] == [0.0, 1.0] and recs[0]["paired_mape"] > 0.01
+    bands = [r["boundary_band"] for r in recs]
+    assert bands == ([0.0, 1.0] if recs[1]["paired_mape"] <= 0.01 else [0.0, 1.0, 2.0]), bands
+    assert recs[0]["paired_mape"] > 0.01
     assert all(r["log2_samples"] == 20 and r["film"] == [240, 160] for r in recs)
     assert recs[1]["paired_mape"] < recs[0]["paired_mape"]
     # then timed against tracing it, where a record lets auto learn it (the cost auto_max_cost reads)
