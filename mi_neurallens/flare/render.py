@@ -617,7 +617,14 @@ class FlareRenderer:
         indisk = dr.fma(qx, qx, qy * qy) <= d["R"] * d["R"]
         u_lam = rng.next_float32()
         u_em = mi.Point2f(rng.next_float32(), rng.next_float32())
-        hit, _, _, val, lam, _ = self._contrib(ev, emitter, scene, xf, qx, qy, u_lam, u_em, indisk)
+        hit, px, py, val, lam, near = self._contrib(ev, emitter, scene, xf, qx, qy, u_lam, u_em, indisk)
+        if near is not None:
+            # the samples a learned evaluator leaves to the tracer (boundary_band, iris_band) may well be lit: the
+            # main pass traces them, so their cells must be kept, and their learned value counts toward the ghost's
+            # energy.  Counted as dark, a thin ghost (a fold's band) whose cells hold only such samples vanished
+            ox, oy = self.crop_offset
+            cw, ch = self.crop_size
+            hit = hit | (near & (px >= ox) & (px < ox + cw) & (py >= oy) & (py < oy + ch))
         return hit, val, lam, indisk
 
     def _splat_kernel(self, ev, emitter, scene, xf, d):
