@@ -41,6 +41,10 @@ SAMPLES_LOG2 = 24
 MAX_SAMPLES_LOG2 = 26
 #: converged: 4× the samples lowered the paired error by less than this fraction (pure noise would halve it)
 CONVERGED_DROP = 0.1
+#: the boundary bands a ghost is verified at, each only for the ghosts the bands before leave above the gate
+#: (:func:`record_flare_errors`, ``mi-neurallens train``'s ``verify_flare_bands``): the learned edges, then their
+#: samples within ±1 logit traced, then within ±2 (a fold's edge, whose wrong rays lie further out: docs/results.md)
+BANDS = (0.0, 1.0, 2.0)
 
 
 def record_band(rec) -> float:
@@ -339,7 +343,7 @@ def _duration(seconds: float) -> str:
     return f"{seconds:.0f} s" if seconds < 90 else f"{seconds / 60:.1f} min"
 
 
-def record_flare_errors(model_path, lens=None, *, ghosts=None, bands=(0.0, 1.0), samples_log2=SAMPLES_LOG2,
+def record_flare_errors(model_path, lens=None, *, ghosts=None, bands=BANDS, samples_log2=SAMPLES_LOG2,
                         max_log2=MAX_SAMPLES_LOG2, gate=None, keep_measured=False, log=print) -> dict:
     """Verify the ghost maps ``ghosts`` (default: all) of the model file ``model_path`` and keep the records in it,
     where mode ``auto`` reads them (:meth:`~mi_neurallens.flare.render.FlareRenderer.auto_choice`): every ghost

@@ -15,6 +15,7 @@ import os
 
 from ..constants import FULL_FRAME_HALF_DIAGONAL_MM
 from ..errors import NeuralLensError
+from ..flare.verify import BANDS as VERIFY_BANDS
 
 
 @dataclass
@@ -202,11 +203,10 @@ class TrainConfig:
     # record kept in the model file, where the flare's mode auto reads it to choose, ghost by ghost, its learned map
     # (at the narrowest boundary band that passes) or the tracer.  Not part of what a map is trained with (digest)
     verify_flare: bool = True
-    verify_flare_bands: list = field(default_factory=lambda: [0.0, 1.0, 2.0])  # band 0 (the learned edges) for
-                                        # every ghost, each further band only for the ghosts the bands before leave
-                                        # above the gate (auto_max_flare_error, 0.01).  Band 2 catches a fold's edge,
-                                        # whose false-valid rays lie beyond ±1 logit (double-Gauss ghost 33024:
-                                        # docs/results.md, "Band 2 by default")
+    verify_flare_bands: list = field(default_factory=lambda: list(VERIFY_BANDS))  # band 0 (the learned edges)
+                                        # for every ghost, each further band only for the ghosts the bands before
+                                        # leave above the gate (auto_max_flare_error, 0.01); band 2 catches a fold's
+                                        # edge (flare.verify.BANDS)
     verify_flare_samples: int = 24      # log2 samples of each render pair, per light position
     verify_flare_max_samples: int = 26  # at every band but the first a ghost above the gate is rendered again with
                                         # 4× the samples up to this (the protocol of `evaluate --flare`); the first
