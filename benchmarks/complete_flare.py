@@ -3,6 +3,7 @@ positions: the numbers a user decides ``lens_flare``'s mode by.
 
     python benchmarks/complete_flare.py [--lens wide-22mm] [--model FILE] [--before FILE] [--samples 24]
                                         [--reference 27] [--mlp auto|fused|shared|coopvec] [--boundary-band B]
+                                        [--auto-max-cost inf]
                                         [--json OUT]
 
 ``scenes/night_point.xml`` (one point light 5 m away, 240×160 full-frame film) with the light at four places
@@ -55,6 +56,9 @@ def main(argv=None):
     ap.add_argument("--mlp", default="auto", help="network evaluation of the learned renders (the flare's mlp option)")
     ap.add_argument("--boundary-band", type=float, default=0.0,
                     help="the learned renders' boundary_band (samples at a classifier's edge traced exactly)")
+    ap.add_argument("--auto-max-cost", type=float, default=None,
+                    help="mode auto's auto_max_cost (default: the flare's, 1; inf: accuracy alone decides, so every "
+                         "ghost whose record passes is learned, at its band)")
     a = ap.parse_args(argv)
     sys.path.insert(0, ROOT)
     import mitsuba as mi
@@ -75,6 +79,8 @@ def main(argv=None):
         if opts.get("mode") != "exact":
             opts["mlp"] = a.mlp
             opts["boundary_band"] = a.boundary_band
+        if opts.get("mode") == "auto" and a.auto_max_cost is not None:
+            opts["auto_max_cost"] = a.auto_max_cost
         r = FlareRenderer(scene, 0, FlareOptions(samples=samples, **opts))
         t0 = time.perf_counter()
         img = r.render(seed=seed).total
