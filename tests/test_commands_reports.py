@@ -169,3 +169,41 @@ def test_train_command_keeps_the_bundled_regressor(tmp_path, capsys):
                  str(tmp_path / "wide-22mm.model.safetensors"), "--out", str(tmp_path / "b"), "--no-progress",
                  "--quiet"] + small) == 1
     assert "no map 'forward.999'" in capsys.readouterr().err
+
+
+def test_a_ghost_that_misses_the_gate_at_every_band_is_refined_after_its_verification(tmp_path):
+    """``verify_flare_refine_minutes``: after the verification, a ghost whose records all miss the gate gets its
+    regressor refined past its goals (a ``keep = "refine"`` run of that ghost, verified as any run), the better map
+    is kept, and the map is marked so that a rerun does not refine it again."""
+    pytest.importorskip("torch")
+    import time
+    from mi_neurallens import Lens
+    from mi_neurallens.neural.model import bundled_model_path, load_model
+    from mi_neurallens.training.config import load_config
+    from mi_neurallens.training.trainer import REFINED_KEY, _refine_missed
+    lens = Lens.load("wide-22mm")
+    m = load_model(bundled_model_path("wide-22mm"))
+    m.maps = {k: v for k, v in m.maps.items() if k in ("backward.0", "forward.2560")}
+    met = m.maps["forward.2560"].metrics
+    met["flare"] = {"paired_mape": 0.5, "boundary_band": 0.0}            # as if it missed at every band
+    met["flare_bands"] = {"1": {"paired_mape": 0.5, "boundary_band": 1.0},
+                          "2": {"paired_mape": 0.5, "boundary_band": 2.0}}
+    out = str(tmp_path / "wide-22mm.model.safetensors")
+    m.save(out)
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    cfg = load_config(os.path.join(root, "training", "wide-22mm.toml"), overrides={
+        "heldout": 5000, "verify_flare_samples": 14, "verify_flare_max_samples": 14, "verify_flare_cost": False,
+        "verify_flare_refine_minutes": 0.02, "forward_classifier": {"lm_minutes": 0.01}})
+    said = []
+    got = _refine_missed(lens, cfg, out, [2560], str(tmp_path / "work"), False, None, said.append, time.perf_counter())
+    mark = got.map(2560, "forward").training[REFINED_KEY]
+    assert mark["best_before"] == 0.5 and mark["best_refined"] is not None and mark["best_refined"] < 0.5
+    assert mark["kept"] == "refined" and got.map(2560, "forward").training["config_digest"] == cfg.digest()
+    back = load_model(out)
+    assert back.map(2560, "forward").training[REFINED_KEY]["kept"] == "refined"
+    assert back.map(2560, "forward").stop_head is not None                       # its render-time aperture stays
+    assert any("refined past their goals" in s for s in said)
+    # a rerun finds nothing to refine: the map is marked
+    said.clear()
+    _refine_missed(lens, cfg, out, [2560], str(tmp_path / "work"), False, None, said.append, time.perf_counter())
+    assert not said

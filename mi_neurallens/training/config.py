@@ -215,6 +215,10 @@ class TrainConfig:
                                         # (flare.verify.record_flare_costs, this machine's backend): auto learns a
                                         # ghost only where that is faster (auto_max_cost)
     verify_flare_cost_samples: int = 22  # log2 samples of each timed render
+    verify_flare_refine_minutes: float = 1.5  # a ghost the verification leaves above the gate at every band: its
+                                        # regressor refined past its goals (the finish, this many minutes, from
+                                        # the map as trained), verified again, and the better map kept (0: off;
+                                        # trainer._refine_missed, docs/training.md)
 
     def to_dict(self) -> dict:
         return asdict(self)
