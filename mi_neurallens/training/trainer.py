@@ -1118,7 +1118,9 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
     the tracer and its record kept in the file (:func:`~mi_neurallens.flare.verify.record_flare_errors`; the
     ``verify_flare*`` settings), and with ``cfg.verify_flare_cost`` timed against tracing its ghost
     (:func:`~mi_neurallens.flare.verify.record_flare_costs`): the model leaves training ready for the flare's mode
-    ``auto``, which learns a ghost only where its record passes and the map is the faster."""
+    ``auto``, which learns a ghost only where its record passes and the map is the faster.  Last, with
+    ``cfg.verify_flare_refine_minutes`` and no ``keep``, a ghost whose records all miss the gate gets its regressor
+    refined past its goals and the better map kept (:func:`_refine_missed`)."""
     from ..neural.model import NeuralLensModel, load_model
     from . import plan
     from ..transport.planning import select_ghosts
@@ -1266,7 +1268,8 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
             say(f"verified the flares of {len(ghosts)} ghost map(s) and timed {len(timed)} in "
                 f"{minutes_text((time.perf_counter() - t_v) / 60)}; "
                 f"{minutes_text((time.perf_counter() - t_run) / 60)} since the start")
-        if cfg.verify_flare_refine_minutes > 0 and keep != "refine":
+        # a --keep run is surgery on chosen networks: it keeps what it was told to keep, refines nothing else
+        if cfg.verify_flare_refine_minutes > 0 and keep is None:
             model = _refine_missed(lens, cfg, out_path, trained, workdir, progress, log, say, t_run)
     return model
 
