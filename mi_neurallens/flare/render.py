@@ -581,15 +581,19 @@ class FlareRenderer:
         W, H = self.size
         px = (x * (1.0 / self.setup.sensor_width_mm) + 0.5) * W
         py = (y * (1.0 / self.setup.sensor_height_mm) + 0.5) * H
-        ox, oy = self.crop_offset
-        cw, ch = self.crop_size
-        hit = valid & (px >= ox) & (px < ox + cw) & (py >= oy) & (py < oy + ch)
+        hit = valid & self._in_crop(px, py)
         val = E * (T * dz * k_pix)
         if not isinstance(wspec, float):
             val = val * wspec
         if mi.is_spectral:
             return hit, px, py, mi.spectrum_to_srgb(val, wav, hit), None, near
         return hit, px, py, val, (None if isinstance(lam, float) else lam), near
+
+    def _in_crop(self, px, py):
+        """Whether film position (``px``, ``py``; pixels of the full film) lies in the film's crop window."""
+        ox, oy = self.crop_offset
+        cw, ch = self.crop_size
+        return (px >= ox) & (px < ox + cw) & (py >= oy) & (py < oy + ch)
 
     @staticmethod
     def _rgb(hit, val, lam):
@@ -622,9 +626,7 @@ class FlareRenderer:
             # the samples a learned evaluator leaves to the tracer (boundary_band, iris_band) may well be lit: the
             # main pass traces them, so their cells must be kept, and their learned value counts toward the ghost's
             # energy.  Counted as dark, a thin ghost (a fold's band) whose cells hold only such samples vanished
-            ox, oy = self.crop_offset
-            cw, ch = self.crop_size
-            hit = hit | (near & (px >= ox) & (px < ox + cw) & (py >= oy) & (py < oy + ch))
+            hit = hit | (near & self._in_crop(px, py))
         return hit, val, lam, indisk
 
     def _splat_kernel(self, ev, emitter, scene, xf, d):

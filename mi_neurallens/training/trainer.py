@@ -1298,10 +1298,12 @@ def _refine_missed(lens, cfg: TrainConfig, out_path: str, trained, workdir: str,
         recs = [r["paired_mape"] for r in flare_records(tm.metrics) if r.get("paired_mape") is not None]
         return min(recs) if recs else None
 
-    missed = [pid for pid in trained if model.has(pid, "forward")
-              and REFINED_KEY not in model.map(pid, "forward").training
-              and best(model.map(pid, "forward")) is not None
-              and passing_band(flare_records(model.map(pid, "forward").metrics), 0.0, gate) is None]
+    def misses(tm):                     # verified, and no band's record passes the gate
+        return best(tm) is not None and passing_band(flare_records(tm.metrics), 0.0, gate) is None
+
+    ghosts = {pid: model.maps.get(f"forward.{pid}") for pid in trained}
+    missed = [pid for pid, tm in ghosts.items()
+              if tm is not None and REFINED_KEY not in tm.training and misses(tm)]
     if not missed:
         return model
     t0 = time.perf_counter()
@@ -1338,8 +1340,7 @@ def _refine_missed(lens, cfg: TrainConfig, out_path: str, trained, workdir: str,
             + f": {mark['kept']} kept")
     model.extra.setdefault("training_time", {})["refine_missed_seconds"] = time.perf_counter() - t0
     model.save(out_path)
-    passing = sum(1 for pid in missed if passing_band(flare_records(model.map(pid, "forward").metrics), 0.0, gate)
-                  is not None)
+    passing = sum(1 for pid in missed if not misses(model.map(pid, "forward")))
     say(f"refined {len(missed)} ghost map(s) in {minutes_text((time.perf_counter() - t0) / 60)}: {len(took)} "
         f"better, {passing} now within {gate:g}; {minutes_text((time.perf_counter() - t_run) / 60)} since the start")
     return model
