@@ -318,6 +318,31 @@ def test_config_rejects_unknown_keys(tmp_path):
     assert load_config(str(p)).net("stop", "forward").lm_minutes == 2.0
 
 
+def test_close_focus_auto_is_300_mm_unless_the_lens_is_long_and_then_a_quarter_magnification():
+    """``close_focus_mm = "auto"`` (the default): the 300 mm every bundled model was trained with for the lenses up
+    to 60 mm, and for a long lens — the 250 mm telephoto cannot focus 300 mm away at all — the distance where the
+    paraxial magnification is 1:4, checked against the lens's own paraxial image of an object there.  A distance
+    the lens cannot focus names the setting and what auto would give; bad values are refused."""
+    from mi_neurallens.optics.glass import LAMBDA_D
+    assert load_config(None).close_focus_mm == "auto"
+    for name in ("dgauss-50mm", "wide-22mm", "ood-59mm", "canon-ef-24mm-f1.4l", "canon-rf-24mm-f1.4l-vcm"):
+        lens = Lens.load(name)
+        assert plan.close_focus_mm(lens, "auto") == 300.0
+        assert plan.sensor_distance_range(lens, "auto") == plan.sensor_distance_range(lens, 300.0)
+    tele = Lens.load("telephoto-250mm")
+    d = plan.close_focus_mm(tele, "auto")
+    assert 1000.0 < d < 2000.0
+    assert abs(tele.paraxial(LAMBDA_D).magnification(d)) == pytest.approx(0.25, rel=1e-9)
+    s0, s1 = plan.sensor_distance_range(tele, "auto")
+    assert s1 == pytest.approx(tele.paraxial(LAMBDA_D).sensor_distance_for(d)) and s1 > s0
+    with pytest.raises(NeuralLensError, match=r"close_focus_mm = 300: cannot focus.*\"auto\", which would be 1331 mm"):
+        plan.sensor_distance_range(tele, 300.0)
+    assert plan.sensor_distance_range(tele, 0.0)[1] == pytest.approx(tele.paraxial(LAMBDA_D).bfl)
+    for bad in ("near", -5.0):
+        with pytest.raises(NeuralLensError, match="close_focus_mm"):
+            plan.close_focus_mm(tele, bad)
+
+
 def test_budget_is_the_sum_of_the_networks_wall_budgets():
     """What `train` announces before a lens: the most minutes its networks may take — Adam's budget once per
     size tried plus the finish, per map — checked against the defaults' numbers written out."""

@@ -73,6 +73,17 @@ def _overrides(sets):
     return out
 
 
+def _focus_text(lens, setting) -> str:
+    """The focus range a training supports, for its header (and the check that the lens can focus it, before any
+    work: :func:`~mi_neurallens.training.plan.sensor_distance_range` raises otherwise)."""
+    from ..training import plan
+    s0, s1 = plan.sensor_distance_range(lens, setting)
+    d = plan.close_focus_mm(lens, setting)
+    near = f"{d / 1000:.3g} m in front of the first vertex" if d else "infinity only"
+    return (f"infinity to {near} (close_focus_mm = {setting!r}; sensor {s0:.4g}–{s1:.4g} mm behind the last "
+            "vertex)" if d else near)
+
+
 def run(args):
     from ..optics.prescription import Lens
     from ..training.config import default_config_path, load_config
@@ -89,6 +100,7 @@ def run(args):
         cfgs.append(cfg)
         print(f"training {lens.name} (fingerprint {lens.fingerprint()}), config {cfg_path or 'defaults'} "
               f"[{cfg.digest()}] -> {outs[-1]}", file=sys.stderr)
+        print(f"  focus: {_focus_text(lens, cfg.close_focus_mm)}", file=sys.stderr)
     if args.ray:
         if args.keep:
             from ..errors import NeuralLensError

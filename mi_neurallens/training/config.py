@@ -176,7 +176,9 @@ class TrainConfig:
     max_ghosts: int = 32                # keep the top-K ghosts carrying energy_fraction of ghost energy…
     ghost_energy_fraction: float = 0.99
     ship_ghosts: int = 32               # …but train at most this many (CPU budget)
-    close_focus_mm: float = 300.0       # nearest object distance (from the first vertex) to support
+    close_focus_mm: float | str = "auto"  # nearest object distance (mm from the first vertex) the maps support; 0:
+                                        # infinity only; "auto": 300 mm, farther for a long lens (1:4 magnification at
+                                        # most: plan.close_focus_mm)
     film_half_diagonal_mm: float = FULL_FRAME_HALF_DIAGONAL_MM
     flare_resolution: int = 2048        # pixels across the film's width the forward (flare) maps' goals are stated
                                         # for (flare_goals); fewer pixels: looser goals, smaller networks (sizes)

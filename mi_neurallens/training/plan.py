@@ -35,14 +35,51 @@ def surface_extent(lens):
     return lo, hi
 
 
-def sensor_distance_range(lens, close_focus_mm: float | None, margin: float = 0.02):
+#: ``close_focus_mm = "auto"``: never nearer than this (mm in front of the first vertex; every model trained before
+#: the setting had a default of its own used it)
+AUTO_CLOSE_FOCUS_MM = 300.0
+#: ``close_focus_mm = "auto"``: nor nearer than where the paraxial magnification reaches this (1:4, about the
+#: closest a non-macro lens focuses): what keeps a long lens's default valid (a 300 mm lens cannot focus 300 mm away)
+AUTO_CLOSE_FOCUS_MAGNIFICATION = 0.25
+
+
+def close_focus_mm(lens, setting) -> float:
+    """The nearest object distance (mm in front of the first vertex; 0: infinity only) a training supports, from
+    the config's ``close_focus_mm``: a number is taken as it is; ``"auto"`` is :data:`AUTO_CLOSE_FOCUS_MM`, or, for
+    a lens that cannot focus that near or only with more than :data:`AUTO_CLOSE_FOCUS_MAGNIFICATION`, the
+    distance of that magnification: Newton's ``x = f / m`` beyond the front focal point (d-line, paraxial).  For
+    the lenses up to 60 mm here that is the 300 mm; the 250 mm telephoto gets 1.33 m, a 300 mm lens 1.71 m."""
+    if isinstance(setting, str):
+        if setting != "auto":
+            raise NeuralLensError(f"training config: close_focus_mm = {setting!r}; give a distance in mm in front "
+                                  "of the first vertex, 0 (infinity only) or \"auto\"")
+        px = lens.paraxial(LAMBDA_D)
+        if not px.power > 0:
+            return AUTO_CLOSE_FOCUS_MM
+        return max(AUTO_CLOSE_FOCUS_MM, float(px.ffl) + float(px.efl) / AUTO_CLOSE_FOCUS_MAGNIFICATION)
+    if not (isinstance(setting, (int, float)) and setting >= 0):
+        raise NeuralLensError(f"training config: close_focus_mm = {setting!r}; give a distance in mm in front of "
+                              "the first vertex, 0 (infinity only) or \"auto\"")
+    return float(setting)
+
+
+def sensor_distance_range(lens, close_focus: float | str | None, margin: float = 0.02):
     """[s_min, s_max] (mm behind the last vertex): from just beyond infinity focus (``margin`` ·
     BFL closer, and never farther than the file's own sensor distance) to the paraxial sensor
-    distance for an object ``close_focus_mm`` in front of the first vertex."""
+    distance for an object ``close_focus`` in front of the first vertex (the config's ``close_focus_mm``:
+    :func:`close_focus_mm`; 0 or None: infinity only).  A distance the lens cannot focus raises
+    :class:`~mi_neurallens.errors.NeuralLensError` naming the setting."""
+    from ..errors import LensError
     px = lens.paraxial(LAMBDA_D)
     s_inf = float(px.bfl)
     s_min = min(s_inf, float(lens.surfaces[-1].thickness)) * (1.0 - margin)
-    s_max = s_inf if not close_focus_mm else float(px.sensor_distance_for(float(close_focus_mm)))
+    d = close_focus_mm(lens, close_focus) if close_focus is not None else 0.0
+    try:
+        s_max = s_inf if not d else float(px.sensor_distance_for(d))
+    except LensError as e:
+        raise NeuralLensError(f"lens '{lens.name}': close_focus_mm = {d:g}: {e.what}; "
+                              f"set close_focus_mm farther (or \"auto\", which would be "
+                              f"{close_focus_mm(lens, 'auto'):.4g} mm for this lens)") from None
     return s_min, max(s_max, s_inf, float(lens.surfaces[-1].thickness))
 
 
