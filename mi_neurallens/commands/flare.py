@@ -136,7 +136,8 @@ def run(args) -> int:
         print(f"{mode}: {len(set(s.path_id for s in r.stats))} path(s) x {len(fr.lights)} light(s) in {secs:.2f} s",
               file=sys.stderr)
         for s in r.stats:
-            why = fr.auto_reason(s.path_id) if mode == "auto" and s.evaluator == "exact" and s.path_id else None
+            why = s.why_traced or (fr.auto_reason(s.path_id) if mode == "auto" and s.evaluator == "exact"
+                                   and s.path_id else None)
             print(f"  ghost {s.path_id:>8} {str(tuple(s.surfaces)):>9} {s.evaluator:6} {s.light:16} "
                   f"samples {s.samples:>9}  reach sensor: before {s.fraction_before:6.3f}  after "
                   f"{s.fraction_after:6.3f}" + (f"  (traced: {why})" if why else "")

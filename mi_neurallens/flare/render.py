@@ -88,6 +88,8 @@ class GhostStats:
     splat_seconds: float = 0.0         #: the main pass alone (the tracer's second pass included), wall clock
     traced: int = 0                   #: of ``samples``, traced exactly near a learned map's edges (boundary_band)
     band: float = 0.0                 #: the learned map's boundary_band in this render (0: its edges learned)
+    #: why a ghost the render would have learned is traced for this light (its map cannot answer there), else None
+    why_traced: str | None = None
 
     @property
     def fraction_before(self):
@@ -103,7 +105,7 @@ class GhostStats:
                 "fraction_before": self.fraction_before, "fraction_after": self.fraction_after,
                 "cells": self.cells, "cells_total": self.cells_total, "energy": self.energy,
                 "seconds": self.seconds, "splat_seconds": self.splat_seconds, "traced": self.traced,
-                "band": self.band}
+                "band": self.band, "why_traced": self.why_traced}
 
 
 @dataclass
@@ -331,6 +333,7 @@ class FlareRenderer:
         self._frozen_ev = None      # the evaluator of the call being recorded
         self._learned_maps = {}     # (map key, mlp) -> the learned map as this renderer evaluates it
         self._exact_evs = {}        # path id -> the tracer's evaluator (exact_evaluator)
+        self._light_sines = {}      # light name -> light_sine(), for one render
         self._mlp = None            # learned_mlp(), resolved at the first learned map
 
     def _refresh(self):
@@ -527,6 +530,51 @@ class FlareRenderer:
                              f"cannot render the iris {self.iris.describe()}; use mode='auto' (exact where "
                              f"a map cannot) or add stop heads (`mi-neurallens train LENS --keep both`)")
         return None
+
+    # -------------------------------------------------------------- the field the maps learned
+    def light_sine(self, light) -> float:
+        """The largest sine of the angle to the lens axis (|ω_xy| of the unit direction, the quantity a forward
+        map's domain bounds: ``s_max``) among ``light``'s rays toward the flare's input disk: sampled from the
+        disk's centre and 8 points of its rim, each toward 9 points of the emitter (an area light's extent),
+        plus a margin for the rays between them.  Cached per render."""
+        import mitsuba as mi
+        import drjit as dr
+        got = self._light_sines.get(light.name)
+        if got is not None:
+            return got
+        R = self._region_radius(light)
+        ang = np.linspace(0.0, 2.0 * np.pi, 8, endpoint=False)
+        qx = np.concatenate([[0.0], R * np.cos(ang)])
+        qy = np.concatenate([[0.0], R * np.sin(ang)])
+        u = np.array([0.05, 0.5, 0.95])
+        QX, U0, U1 = (a.ravel() for a in np.meshgrid(qx, u, u, indexing="ij"))
+        QY = np.meshgrid(qy, u, u, indexing="ij")[0].ravel()
+        it = self._interaction(mi.Float(QX), mi.Float(QY), None, self._to_world)
+        ds, _ = light.emitter.sample_direction(it, mi.Point2f(mi.Float(U0), mi.Float(U1)), False)
+        dl = self._to_cam @ (-ds.d)
+        dx, dy, dz = (np.asarray(v, np.float64) for v in (dl.x, dl.y, dl.z))
+        n = np.sqrt(dx * dx + dy * dy + dz * dz)
+        sine = np.sqrt(dx * dx + dy * dy) / np.where(n > 0.0, n, 1.0)
+        # between two rim points 45° apart the sine can rise above both by less than their spread × sin(π/8):
+        # added, so the bound holds for every ray (0 for a directional light, ≈ 0.3° for a point light 5 m away)
+        got = self._light_sines[light.name] = float(sine.max() + np.ptp(sine) * math.sin(math.pi / 8))
+        return got
+
+    def beyond_field(self, light, ev) -> str | None:
+        """Why the learned (or baseline) evaluator ``ev`` cannot render ``light``: some of its rays arrive
+        steeper than the field the map was trained on (its domain's ``s_max``, the film's field × the training's
+        ``field_margin``), where a map answers only "blocked" — so a light just outside the frame, whose ghosts
+        may well cross the film, would lose them.  None where the map covers the light (and for the tracer)."""
+        dom = getattr(ev.map, "domain", None) if ev.kind != "exact" else None
+        if dom is None:
+            return None
+        from ..transport.planning import Domain
+        s_max = Domain.from_dict(dom).s_max
+        sine = self.light_sine(light)
+        if sine <= s_max:
+            return None
+        return (f"the light lies up to {math.degrees(math.asin(min(sine, 1.0))):.1f}° off axis, beyond the "
+                f"{math.degrees(math.asin(s_max)):.1f}° field its map learned")
 
     # -------------------------------------------------------------- sampling core
     def _region_radius(self, light):
@@ -812,17 +860,21 @@ class FlareRenderer:
         total = self.new_block()
         blocks = {}
         stats = []
+        self._light_sines = {}
         for li, light in enumerate(self.lights):
             plan = []          # (path id, evaluator, pilot, stats) of the paths that reach the film
             for pid in ids:
                 t0 = time.perf_counter()
                 ev = self.evaluator(pid)
+                why = self.beyond_field(light, ev)
+                if why is not None:                   # the map learned nothing there: the tracer renders it
+                    ev = self.exact_evaluator(pid)
                 ev_plan = ev if opts.pilot_with == "self" or ev.kind == "exact" else self.exact_evaluator(pid)
                 pl = self.pilot(light, ev_plan, seed * 1000 + li)
                 st = GhostStats(pid, ghost_surfaces(pid) if pid else (), light.name, ev.kind,
                                 pilot_samples=pl.samples, pilot_hits=pl.hits, cells=len(pl.cells),
                                 cells_total=int(round(math.pi * pl.radius ** 2 / pl.cell_size ** 2)),
-                                energy=pl.energy, seconds=time.perf_counter() - t0, band=ev.band)
+                                energy=pl.energy, seconds=time.perf_counter() - t0, band=ev.band, why_traced=why)
                 stats.append(st)
                 if pl.hits > 0:
                     plan.append((pid, ev, pl, st))
