@@ -519,6 +519,24 @@ def test_flare_verification_sees_a_shifted_map(tmp_path):
     assert rec["per_light"][0] == rec["paired_mape"] and rec["paired_mape"] < 0.025
 
 
+def test_verification_lights_lie_inside_the_field_the_maps_learned():
+    """The verification's lights (10° and 2° off axis) lie outside a long lens's learned field (a 300 mm lens's
+    maps learn 4.5°), where the render traces the ghost (``beyond_field``) and a record would compare the tracer
+    with itself.  So they are scaled toward the axis, pattern kept, until the farther lies at 0.6 of the field's
+    tangent; every bundled model keeps them as they are, so the records it ships were measured where they are."""
+    from mi_neurallens.flare.verify import LIGHTS, lights_within_field, verification_lights
+    from mi_neurallens.neural.model import bundled_model_path, load_model
+    for lens in ("wide-22mm", "ood-59mm", "dgauss-50mm", "canon-ef-24mm-f1.4l", "canon-rf-24mm-f1.4l-vcm"):
+        assert verification_lights(load_model(bundled_model_path(lens))) == LIGHTS
+    s_max = math.sin(math.radians(4.5))
+    got = lights_within_field(LIGHTS, s_max)
+    far = max(math.hypot(x, y) for x, y in got) / 5.0
+    assert far == pytest.approx(0.6 * math.tan(math.radians(4.5)), rel=1e-12)
+    k = got[0][0] / LIGHTS[0][0]
+    assert 0.2 < k < 0.3 and all((x, y) == pytest.approx((k * a, k * b)) for (x, y), (a, b) in zip(got, LIGHTS))
+    assert lights_within_field(LIGHTS, math.sin(math.radians(40.0))) == LIGHTS
+
+
 def test_refinement_stops_where_the_paired_error_decides():
     """refine_paired: a ghost within the gate is not rendered again (noise only adds to the paired error); one above
     it gets 4x the samples until it falls within the gate, stops falling (converged above it) or meets the cap."""

@@ -25,11 +25,16 @@ ghost, uses the learned map with the narrowest band whose record passes, or the 
 """
 from __future__ import annotations
 
+import math
 import time
 
 #: light positions (m; x, y at z = 5 m in front of the lens): the night scene's (10° / 5° off axis) and one
 #: near the axis, where the ghosts overlap most and the maps' errors showed most (docs/results.md)
 LIGHTS = ((0.9, 0.45), (0.15, 0.1))
+#: the verification lights lie within this fraction of the tangent of the field a model's ghost maps learned: a long
+#: lens's narrow field gets :data:`LIGHTS` scaled toward the axis (:func:`verification_lights`); every bundled model's
+#: field holds them as they are (the narrowest, ood-59mm's 21.9°, up to 0.241 m off axis at 5 m against 0.201)
+LIGHT_FIELD_FRACTION = 0.6
 #: the film of the verification renders (pixels; 36 mm wide on a full-frame sensor: 150 µm pixels)
 FILM = (240, 160)
 #: default samples of each render (all on one ghost; 2^24 ≈ 440 per film pixel, more on the ghost's mask: the
@@ -203,7 +208,7 @@ def record_flare_costs(model_path, lens=None, *, ghosts=None, samples_log2=COST_
         log(f"measuring the cost of {len(plan)} ghost map(s) against tracing them ({variant_backend()}, 2^{samples_log2} "
             f"samples a render, {COST_RENDERS} renders each)" + (f"; {len(ids) - len(plan)} skipped (traced by auto: "
                                                                   "no record within the gate)" if len(plan) < len(ids) else ""))
-    scene = verification_scene(lens or model.lens_name, model_path, LIGHTS[0], FILM)
+    scene = verification_scene(lens or model.lens_name, model_path, verification_lights(model)[0], FILM)
     out, t0 = {}, time.perf_counter()
     for k, (pid, bands) in enumerate(plan.items()):
         out[pid] = c = measure_flare_cost(scene, pid, bands, samples_log2)
@@ -241,6 +246,26 @@ def refine_paired(error_at, log2_from: int, log2_max: int, above: float, drop: f
         converged = r["paired_mape"] <= above or r["paired_mape"] >= (1.0 - drop) * prev
     r.update(log2_samples=log2, sequence=seq, converged=bool(converged))
     return r
+
+
+def lights_within_field(lights, s_max: float, fraction: float = LIGHT_FIELD_FRACTION, z_m: float = 5.0) -> tuple:
+    """Light positions ``lights`` ((x, y) m at ``z_m`` in front of the lens) as they are where the farthest lies
+    within ``fraction`` of the tangent of the field whose sine is ``s_max`` (a forward map's domain), else all
+    scaled toward the axis by one factor until it does (their pattern kept)."""
+    t_field = s_max / math.sqrt(max(1.0 - s_max * s_max, 1e-12))
+    t_far = max(math.hypot(float(x), float(y)) for x, y in lights) / z_m
+    k = min(1.0, fraction * t_field / t_far) if t_far > 0 else 1.0
+    return tuple((float(x) * k, float(y) * k) for x, y in lights)
+
+
+def verification_lights(model, lights=LIGHTS) -> tuple:
+    """The light positions a model's ghost maps are verified at: :data:`LIGHTS`, scaled toward the axis for a
+    model whose maps learned a narrower field (:func:`lights_within_field`; the narrowest of its forward ghost
+    maps' domains).  A light outside that field would be traced (``FlareRenderer.beyond_field``), so a record
+    measured there would say nothing of the map."""
+    from ..transport.planning import Domain
+    doms = [Domain.from_dict(model.map(pid, "forward").domain).s_max for pid in model.ghost_ids]
+    return tuple(lights) if not doms else lights_within_field(lights, min(doms))
 
 
 def verification_scene(lens, model, light=LIGHTS[0], film=FILM):
@@ -283,12 +308,12 @@ def paired_flare_error(scene, pid, samples=1 << SAMPLES_LOG2, seed=1, boundary_b
             "flux_ratio": yn / ye if ye > 0 else None}
 
 
-def verify_model(model_path, lens=None, *, ghosts=None, lights=LIGHTS, samples_log2=SAMPLES_LOG2,
+def verify_model(model_path, lens=None, *, ghosts=None, lights=None, samples_log2=SAMPLES_LOG2,
                  max_log2=MAX_SAMPLES_LOG2, refine_above=None, film=FILM, boundary_band=0.0, log=print) -> dict:
     """Every forward ghost map (or those of ``ghosts``, each of which it must have: else a ModelError) of the
     model at ``model_path`` against the tracer: {path_id: record}, the record ``metrics["flare"]`` keeps — ``paired_mape`` the largest over ``lights``
     (None if the ghost reached no pixel at any of them), the per-light values, flux ratios and sample counts
-    (log2), whether each converged, and the protocol (film, lights).  Each light starts at 2^``samples_log2``
+    (log2), whether each converged, and the protocol (film, lights; default :func:`verification_lights`).  Each light starts at 2^``samples_log2``
     samples and a ghost above ``refine_above`` (default: the flare's ``auto_max_flare_error``, 0.01) is refined
     up to 2^``max_log2`` (:func:`refine_paired`; ``max_log2 = samples_log2``: no refinement).  ``lens``: a
     bundled name or a lens file (default: the model's lens).  ``boundary_band``: the learned renders'
@@ -300,6 +325,7 @@ def verify_model(model_path, lens=None, *, ghosts=None, lights=LIGHTS, samples_l
     from ..neural.model import load_model
     model = load_model(model_path)
     lens = lens or model.lens_name
+    lights = verification_lights(model) if lights is None else lights
     ids = model.ghost_ids if ghosts is None else [int(g) for g in ghosts]
     missing = [pid for pid in ids if not model.has(pid, "forward")]
     if missing:
@@ -369,6 +395,7 @@ def record_flare_errors(model_path, lens=None, *, ghosts=None, bands=BANDS, samp
         mi.set_variant(default_variant())
     gate = FlareOptions.auto_max_flare_error if gate is None else float(gate)
     todo = list(load_model(model_path).ghost_ids if ghosts is None else (int(g) for g in ghosts))
+    lights = verification_lights(load_model(model_path))
     out = {}
     for band in bands:
         if not todo:
@@ -393,7 +420,9 @@ def record_flare_errors(model_path, lens=None, *, ghosts=None, bands=BANDS, samp
                 + (f" with their edges traced (boundary_band {band:g})" if band else " (their learned edges)")
                 + f": 2^{samples_log2} samples a render"
                 + (f" (up to 2^{max_log2} for a ghost above {gate:g})" if refine and max_log2 > samples_log2 else "")
-                + f", {len(LIGHTS)} light positions")
+                + f", {len(lights)} light positions"
+                + ("" if lights == LIGHTS else " (" + ", ".join(f"({x:.3g}, {y:.3g}, 5) m" for x, y in lights)
+                   + ": within the maps' field)"))
         res = verify_model(model_path, lens, ghosts=run, samples_log2=samples_log2,
                            max_log2=max_log2 if refine else samples_log2, refine_above=gate, boundary_band=band, log=log)
         model = load_model(model_path)
