@@ -555,9 +555,9 @@ class FlareRenderer:
         dx, dy, dz = (np.asarray(v, np.float64) for v in (dl.x, dl.y, dl.z))
         n = np.sqrt(dx * dx + dy * dy + dz * dz)
         sine = np.sqrt(dx * dx + dy * dy) / np.where(n > 0.0, n, 1.0)
-        # between two rim points 45° apart the sine can rise above both by less than their spread × sin(π/8):
-        # added, so the bound holds for every ray (0 for a directional light, ≈ 0.3° for a point light 5 m away)
-        got = self._light_sines[light.name] = float(sine.max() + np.ptp(sine) * math.sin(math.pi / 8))
+        # over the rim the sine is s0 + a·cos(φ − φ0) to first order (a: half its spread), so between two rim points
+        # 45° apart it rises above both by at most a·(1 − cos(π/8)): twice that is added (0 for a directional light)
+        got = self._light_sines[light.name] = float(sine.max() + np.ptp(sine) * (1.0 - math.cos(math.pi / 8)))
         return got
 
     def beyond_field(self, light, ev) -> str | None:

@@ -400,9 +400,11 @@ class NeuralLensModel:
     def check_sensor_distance(self, s_mm: float):
         lo, hi = self.sensor_distance_range
         if not (lo - 1e-9 <= s_mm <= hi + 1e-9):
+            why = (f"a nearer focus than its training's close_focus_mm: retrain with a nearer one (`mi-neurallens "
+                   f"train LENS --set close_focus_mm=MM`, mm in front of the first vertex)" if s_mm > hi
+                   else "a focus beyond infinity")
             raise ModelError(f"{self.path or 'model'}: sensor distance {s_mm:.6g} mm is outside the range this "
-                             f"model supports [{lo:.6g}, {hi:.6g}] mm behind the last vertex; retrain with a "
-                             f"wider 'sensor_distance' range")
+                             f"model supports [{lo:.6g}, {hi:.6g}] mm behind the last vertex: {why}")
 
     # ------------------------------------------------------------------ I/O
     def metadata(self) -> dict:
