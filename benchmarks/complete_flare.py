@@ -7,7 +7,8 @@ positions: the numbers a user decides ``lens_flare``'s mode by.
                                         [--json OUT]
 
 ``scenes/night_point.xml`` (one point light 5 m away, 240×160 full-frame film) with the light at four places
-across the field (``--positions``, x:y in m).  Per position, the default ghost selection of the flare
+across the field (``--positions``, x:y in m; by default :data:`POSITIONS`, scaled toward the axis for a long lens
+whose ghost maps learned a narrower field, which the four must lie within: outside it the learned renders trace).  Per position, the default ghost selection of the flare
 renderer (99 % of the ghost energy, at most 32 ghosts) is rendered
 
 * ``exact`` at 2^samples (seed 1): the test budget's noise floor against the reference;
@@ -50,7 +51,9 @@ def main(argv=None):
     ap.add_argument("--before", help="another model file, rendered in mode auto for comparison")
     ap.add_argument("--samples", type=int, default=24, help="log2 samples of the test renders (all ghosts)")
     ap.add_argument("--reference", type=int, default=27, help="log2 samples of the exact reference")
-    ap.add_argument("--positions", default=",".join(POSITIONS), help="light positions x:y (m, at z = 5 m)")
+    ap.add_argument("--positions", help="light positions x:y (m, at z = 5 m; default: the four across the field; for a "
+                                        "long lens whose ghost maps learned a narrower field (the farthest beyond 0.95 "
+                                        "of its tangent) scaled toward the axis until it lies at 0.8)")
     ap.add_argument("--json", help="write the rows here")
     ap.add_argument("--equal-time", action="store_true", help="also the neural flare at the exact one's wall time")
     ap.add_argument("--mlp", default="auto", help="network evaluation of the learned renders (the flare's mlp option)")
@@ -94,6 +97,16 @@ def main(argv=None):
                     learned_wider_band=sum(b is not None and b > a.boundary_band for b in bands),
                     traced=sum(b is None for b in bands))
 
+    if a.positions is None:
+        from mi_neurallens.flare.verify import lights_within_field
+        from mi_neurallens.neural.model import load_model
+        from mi_neurallens.transport.planning import Domain
+        m = load_model(model)
+        s_max = min(Domain.from_dict(m.map(g, "forward").domain).s_max for g in m.ghost_ids)
+        pts = [tuple(float(v) for v in p.split(":")) for p in POSITIONS]
+        if lights_within_field(pts, s_max, 0.95) != tuple(pts):   # beyond (nearly) the field: scaled, with room
+            pts = lights_within_field(pts, s_max, 0.8)           # for a point light's own spread of angles
+        a.positions = ",".join(f"{x:.4g}:{y:.4g}" for x, y in pts)
     rows = []
     for pos in a.positions.split(","):
         x, y = pos.split(":")
