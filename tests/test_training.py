@@ -540,6 +540,60 @@ def test_edge_weighted_regressor_loss():
     assert ratio[0.0] > 1.3 and ratio[30.0] < 0.8 * ratio[0.0]
 
 
+def test_a_fisheye_camera_map_regresses_its_exit_position_times_dz(tmp_path):
+    """``exit_position = "auto"``: a regressor whose exit rays reach beyond 60° off axis (the bundled fisheye-10mm's
+    camera map: 76°) regresses the exit position times |dz| (``position_cos``), where a ray leaving nearly parallel to
+    the output plane crosses it far away (the Nikon 16 mm fisheye's camera map read 2.4 mm median, 205 m at most, on
+    the plane); its transform and logged validation are in that space, and a model map with ``position_cos`` divides
+    by its predicted |dz| again, the flag kept by the file.  dgauss-50mm (30°) stays on the plane."""
+    pytest.importorskip("torch")
+    import dataclasses
+    from mi_neurallens.neural.mlp import mlp_np
+    from mi_neurallens.neural.model import NeuralLensModel, bundled_model_path, load_model, position_cos
+    from mi_neurallens.training.config import NetConfig
+    from mi_neurallens.training.evaluate import map_outputs_np, regression_errors
+    from mi_neurallens.training.trainer import odd_factor, train_regressor, wants_position_cos
+
+    def camera_rays(name, n):
+        lens = Lens.load(name)
+        s0, _ = plan.sensor_distance_range(lens, "auto")
+        zf, zr = plan.planes(lens, s0)
+        dom = plan.backward_domain(lens, 0, zr, zf, np.random.default_rng(0), n=1 << 17)
+        ps = data.PathSampler(lens, 0, "backward", zr, zf, dom)
+        _, x, y, _ = data.rejection_sample(ps, n, np.random.default_rng(1))
+        return ps, dom, x, y
+
+    assert not wants_position_cos("auto", camera_rays("dgauss-50mm", 4000)[3])
+    ps, dom, x, y = camera_rays("fisheye-10mm", 8000)
+    assert wants_position_cos("auto", y) and not wants_position_cos("plane", y) and wants_position_cos("cos", y[:0])
+    center, scale = dom.norm_center_scale()
+    nc = NetConfig(hidden=2, width=16, batch=1024, pool=30000, refresh_every=100, eval_every=100, max_steps=300,
+                   max_minutes=1.0, warmup_steps=20, lr=1e-2, patience=100)
+    logged = []
+    res = train_regressor(data.RegressorStream(ps, seed=1, bounded=False), (x, y), nc, heading=-1, center=center,
+                          scale_in=scale, seed=0, ckpt=None, threads=1, progress=False, s_max=dom.s_max,
+                          log=lambda d, r: logged.append(r))
+    assert res["position_cos"] and res["state"]["position_cos"]
+    xn = (x - center) / scale
+    M = odd_factor(x[:, 2], dom.s_max)
+    yp = M * (res["out_shift"] + xn @ res["skip"].T) + res["out_scale"] * (M * mlp_np(xn, res["layers"]))
+    got = regression_errors(yp, position_cos(y), -1)["position_um_median"]
+    np.testing.assert_allclose(got, min(logged, key=lambda r: r["val_mse"])["pos_um_med"], rtol=2e-3)
+    # a map with position_cos: its positions are the network's divided by its own |dz|; the file keeps the flag
+    m = load_model(bundled_model_path("dgauss-50mm"))
+    tm = m.map(0, "backward")
+    xs = tm.domain.u_to_x(np.random.default_rng(2).random((500, 4)))
+    _, plane = map_outputs_np(tm, xs)
+    tc = dataclasses.replace(tm, position_cos=True)
+    _, cos = map_outputs_np(tc, xs)
+    dz = np.sqrt(1.0 - plane[:, 2] ** 2 - plane[:, 3] ** 2)
+    np.testing.assert_allclose(cos[:, :2], plane[:, :2] / dz[:, None], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(cos[:, 2:], plane[:, 2:], rtol=0, atol=0)
+    m.maps[tc.key] = tc
+    m.save(tmp_path / "position_cos.model.safetensors")
+    assert NeuralLensModel.load(str(tmp_path / "position_cos.model.safetensors"), None).map(0, "backward").position_cos
+
+
 def test_a_regressor_trained_on_its_input_box_is_returned_in_the_maps_normalisation():
     """With ``input_box`` the regressor trains on its valid rays' bounding box (recorded in its state) and comes
     back folded into the normalisation it was given: evaluated there, it reproduces the held-out position error

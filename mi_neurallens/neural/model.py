@@ -34,7 +34,9 @@ Evaluation of one map on reduced inputs x = (r, ωx, ωy, λ) (see :mod:`mi_neur
 the reduced frame, undone to lens space by :func:`~mi_neurallens.trace.symmetry.undo`.  ``M`` is 1,
 except for maps whose regressor metadata says ``"odd_y": true``: there the y and dy outputs are
 multiplied by ωy / s_max, which makes them exactly odd under the mirror reduction ωy → −ωy (y = dy = 0
-on the mirror plane, as the exact tracer gives), so the undo leaves no seam across that plane.
+on the mirror plane, as the exact tracer gives), so the undo leaves no seam across that plane.  Maps whose
+regressor metadata says ``"position_cos": true`` regress the exit position times |dz| (:func:`position_cos`; a
+fisheye's camera map) and divide by their predicted |dz| after ``M``.
 
 The optional **stop head** (:class:`StopHead`) predicts, from the same normalised inputs, where the ray
 crosses the aperture-stop plane — ``k`` crossings ``(sx, sy)`` in the reduced frame, ``sy`` odd like
@@ -222,6 +224,10 @@ class NeuralMap(TransportMap):
     classifier_activation: str = "tanh"
     regressor_activation: str = "tanh"
     odd_y: bool = False            # y, dy outputs multiplied by ωy / s_max (see the module docstring)
+    #: the x, y outputs are the exit position times |dz| (:func:`position_cos`): a ray leaving the lens nearly
+    #: parallel to the output plane (a fisheye's camera map, 90° off axis) crosses it far away, a number no network
+    #: regresses; its product with |dz| stays within the lens
+    position_cos: bool = False
     training: dict = field(default_factory=dict)
     metrics: dict = field(default_factory=dict)
     stop_head: StopHead | None = None
@@ -292,6 +298,9 @@ class NeuralMap(TransportMap):
         if self.odd_y:
             m = x[2] * number(P, "1/s_max", 1.0 / float(self.domain.s_max), x[2])
             y[1], y[3] = y[1] * m, y[3] * m
+        if self.position_cos:                       # (x, y)·|dz| → (x, y): :func:`position_cos` undone
+            inv = dr.rsqrt(dr.maximum(1.0 - dr.fma(y[2], y[2], y[3] * y[3]), POSITION_COS_MIN ** 2))
+            y[0], y[1] = y[0] * inv, y[1] * inv
         if self.stop_head is not None:
             y = list(y) + self.stop_head.eval_dr(x, xn, self.domain.s_max, P, coopvec=use_packed)
         return logit, y
@@ -306,7 +315,7 @@ class NeuralMap(TransportMap):
             return None
         sh = self.stop_head
         stop = None if sh is None else (tuple(_widths(sh.layers)), sh.activation, int(sh.crossings), bool(sh.odd_y))
-        return ("neural", self.mlp, self.direction, bool(self.odd_y), bool(self.use_classifier),
+        return ("neural", self.mlp, self.direction, bool(self.odd_y), bool(self.position_cos), bool(self.use_classifier),
                 tuple(_widths(self.classifier)), self.classifier_activation,
                 tuple(_widths(self.regressor)), self.regressor_activation, stop, self.iris)
 
@@ -343,7 +352,8 @@ class NeuralMap(TransportMap):
                                "scale": [float(v) for v in self.input_scale]},
                 "classifier": {"layers": _widths(self.classifier), "activation": self.classifier_activation},
                 "regressor": {"layers": _widths(self.regressor), "activation": self.regressor_activation,
-                              "outputs": list(OUTPUTS), "odd_y": bool(self.odd_y)},
+                              "outputs": list(OUTPUTS), "odd_y": bool(self.odd_y),
+                              **({"position_cos": True} if self.position_cos else {})},
                 "training": self.training, "metrics": self.metrics,
                 **({"stop": self.stop_head.meta()} if self.stop_head is not None else {})}
 
@@ -359,6 +369,23 @@ class NeuralMap(TransportMap):
         if self.stop_head is not None:
             t.update(self.stop_head.tensors(self.key))
         return t
+
+
+#: :func:`position_cos` never divides by a |dz| below this (a ray within 0.06° of the output plane)
+POSITION_COS_MIN = 1e-3
+
+
+def position_cos(y: np.ndarray) -> np.ndarray:
+    """Reduced-frame outputs ``y`` (N, 5+) with the exit position (columns 0, 1, on the output plane) times |dz| of
+    the exit direction (columns 2, 3): what a map with ``position_cos`` regresses.  On a plane at distance h from
+    where a ray at angle θ to the axis leaves the lens, the position grows like h·tan θ; times cos θ it is
+    h·sin θ, and an error in it is, to first order, the ray's own offset across its direction — the error a
+    render sees — however steep the ray.  The map divides by its own predicted |dz| again."""
+    y = np.array(y, np.float64, copy=True)
+    dz = np.sqrt(np.maximum(1.0 - y[:, 2] ** 2 - y[:, 3] ** 2, POSITION_COS_MIN ** 2))
+    y[:, 0] *= dz
+    y[:, 1] *= dz
+    return y
 
 
 def _widths(layers):
@@ -521,6 +548,7 @@ def load_model(path, lens=None) -> NeuralLensModel:
                 out_shift=get(f"{key}.regressor.out_shift", (len(OUTPUTS),)),
                 classifier_activation=ac, regressor_activation=ar,
                 odd_y=bool(mm["regressor"].get("odd_y", False)),
+                position_cos=bool(mm["regressor"].get("position_cos", False)),
                 training=mm.get("training", {}), metrics=mm.get("metrics", {}),
                 stop_head=_load_stop_head(path, key, mm.get("stop"), get))
             if tm.direction not in ("forward", "backward") or tm.key != key:

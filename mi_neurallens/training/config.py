@@ -43,6 +43,10 @@ class NetConfig:
     input_box: bool = False             # regressor, stop head: train on inputs normalised over the valid rays' bounding
                                         # box, folded back into the first layer and skip (same file, same kernel;
                                         # training/input_box.py; on for the forward maps: FORWARD_REGRESSOR, FORWARD_STOP)
+    exit_position: str = "auto"         # regressor: "plane" (the exit position on the output plane, the paper's), "cos"
+                                        # (times |dz|: bounded for rays nearly parallel to the plane) or "auto" (cos
+                                        # where the exit rays reach beyond 60° off axis: a fisheye's camera map;
+                                        # trainer.wants_position_cos)
     target: str = "margin"              # classifier: "margin" (regress scale·(aperture margin) inside ±clip, one-sided
                                         # beyond: a sharper boundary) or "label" (BCE on blocked/passed, the paper's)
     margin_scale: float = 40.0          # classifier "margin" target: logit slope per unit margin at the boundary
@@ -294,7 +298,7 @@ def parse_size(size) -> tuple:
 
 #: the allowed values of NetConfig's string options
 CHOICES = {"schedule": ("fast", "paper"), "target": ("margin", "label"), "residual": ("linear", "none"),
-           "loss_weights": ("goals", "uniform")}
+           "loss_weights": ("goals", "uniform"), "exit_position": ("auto", "plane", "cos")}
 
 
 def _apply(nc: NetConfig, d: dict, where: str) -> NetConfig:

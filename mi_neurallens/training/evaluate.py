@@ -122,6 +122,9 @@ def evaluate_map(lens, tm, n: int = 200_000, seed: int = 999, mcmc_threshold: fl
                                  mcmc_threshold, fresnel, stops=k > 0)
     x, y = reg_data
     _, yp = map_outputs_np(tm, x)
+    if getattr(tm, "position_cos", False):     # compared as the map regresses them: a ray's offset, not a plane's
+        from ..neural.model import position_cos
+        yp, y = position_cos(yp), position_cos(y)          # columns 0, 1 only: the stop crossings stay
     m = {"regressor": regression_errors(yp[:, :5], y[:, :5], tm.heading)}
     if k and y.shape[1] >= 5 + 2 * k:
         m["stop"] = stop_errors(yp[:, 5:5 + 2 * k], y[:, 5:5 + 2 * k])

@@ -92,6 +92,22 @@ def odd_factor(x_wy: np.ndarray, s_max: float | None, n_out: int = 5) -> np.ndar
 FIT_BLOCK_ROWS = 1 << 16
 
 
+#: ``exit_position = "auto"``: a regressor regresses its exit position times |dz|
+#: (:func:`~mi_neurallens.neural.model.position_cos`) where its first pool's exit rays reach beyond this angle to the
+#: axis: a fisheye's camera map (rays leaving the front at up to 90°); no bundled lens's maps come near it
+POSITION_COS_FROM_DEG = 60.0
+
+
+def wants_position_cos(setting: str, y: np.ndarray) -> bool:
+    """Whether a regressor with ``NetConfig.exit_position = setting`` regresses position × |dz|, given reduced-frame
+    outputs ``y`` (N, 5) of its first pool: ``"cos"`` yes, ``"plane"`` no, ``"auto"`` where an exit direction lies
+    more than :data:`POSITION_COS_FROM_DEG` off the axis."""
+    if setting in ("cos", "plane"):
+        return setting == "cos"
+    s = np.hypot(y[:, 2], y[:, 3]) if len(y) else np.zeros(1)
+    return bool(s.max() > math.sin(math.radians(POSITION_COS_FROM_DEG)))
+
+
 def fit_output_transform(xn: np.ndarray, y: np.ndarray, residual: str, M: np.ndarray | None = None):
     """(skip (c, k), out_shift (c,), out_scale (c,)) of the regressor's output transform
     ``y = M · (shift + skip·xn + scale·network)`` (``M`` from :func:`odd_factor`; None = ones), for inputs
@@ -296,6 +312,7 @@ def train_regressors(problems, nc: NetConfig, *, ckpt: str | None = None, thread
     transform (what ``--refine`` runs).  Returns one result dict per map (layers, output transform,
     training state), in order."""
     from .stacked import peek_stack, pool_rows, train_stack
+    from ..neural.model import position_cos
     torch = _torch(threads)
     dev = pick_device(torch, device)
     torch.manual_seed(int(problems[0]["seed"]))
@@ -327,6 +344,14 @@ def train_regressors(problems, nc: NetConfig, *, ckpt: str | None = None, thread
                                       "use another work directory or the same setting")
             stream.reseed([int(p["seed"]), state["step"]])
         u0, x0, y0 = stream.sample(n_pool)
+        # position_cos: decided once from the first pool (a refine from its map, a resume from its checkpoint)
+        if start is not None:
+            cos = bool(start[len(fits)].get("position_cos", False))
+        elif resumed:
+            cos = bool(state.get("position_cos", False))
+        else:
+            cos = wants_position_cos(nc.exit_position, y0)
+        state["position_cos"] = cos
         # input_box: train on the valid rays' box (folded back at the end); a checkpoint resumes on the box it had
         if nc.input_box and start is None and not resumed:
             state["input_box"] = [v.tolist() for v in input_box(x0, center, scale_in)]
@@ -334,14 +359,16 @@ def train_regressors(problems, nc: NetConfig, *, ckpt: str | None = None, thread
             center, scale_in = (np.asarray(v, np.float64) for v in state["input_box"])
         xn0 = (x0 - center) / scale_in
         if not resumed:
-            transform = fit_output_transform(xn0, y0, nc.residual, odd_factor(x0[:, 2], odd_s))
+            transform = fit_output_transform(xn0, position_cos(y0) if cos else y0, nc.residual,
+                                             odd_factor(x0[:, 2], odd_s))
             state.update(odd_y=odd_s is not None, skip=transform[0].tolist(), shift=transform[1].tolist(),
                          oscale=transform[2].tolist())
         else:
             transform = tuple(np.asarray(state[n]) for n in ("skip", "shift", "oscale"))
         fits.append(RegressorFit(torch, dev, None, nc, stream, p["val"], (u0, x0, y0),
                                  state=state, heading=p["heading"],
-                                 center=center, scale_in=scale_in, transform=transform, odd_s=odd_s, log=log,
+                                 center=center, scale_in=scale_in, transform=transform, odd_s=odd_s,
+                                 position_cos=cos, log=log,
                                  desc=f"{p['key']} regressor" if len(problems) > 1 else desc))
     if start is None:
         res = train_stack(torch, dev, fits, nc, seeds=[p["seed"] for p in problems], n_in=4, n_out=5, keys=keys,
@@ -359,7 +386,7 @@ def train_regressors(problems, nc: NetConfig, *, ckpt: str | None = None, thread
             layers, skip, shift = fold_input_box(layers, skip, shift, (f.center, f.scale_in),
                                                  (p["center"], p["scale_in"]))
         out.append({"layers": layers, "skip": skip, "out_shift": shift, "out_scale": np.asarray(f.oscale),
-                    "odd_y": f.odd_s is not None, "state": st})
+                    "odd_y": f.odd_s is not None, "position_cos": f.position_cos, "state": st})
     return out
 
 
@@ -375,10 +402,13 @@ class RegressorFit(Problem):
     POOL = {"X": "X", "Y": "Y", "Yraw": "Yraw", "W": "Wedge"}   # inputs, targets, raw outputs, edge weights
 
     def __init__(self, torch, dev, net, nc: NetConfig, stream, val, pool0, *, state, heading: int,
-                 center, scale_in, transform, odd_s, log=None, desc="regressor"):
+                 center, scale_in, transform, odd_s, position_cos=False, log=None, desc="regressor"):
         self.torch, self.dev, self.net, self.nc, self.stream = torch, dev, net, nc, stream
         self.state, self.heading, self.log, self.desc = state, heading, log, desc
         self.center, self.scale_in, self.odd_s = center, scale_in, odd_s
+        #: the map regresses the exit position times |dz| (:func:`~mi_neurallens.neural.model.position_cos`): its
+        #: targets, held-out outputs and validation errors are in that space (a ray's offset, not a plane's)
+        self.position_cos = bool(position_cos)
         self.skip, self.shift, self.oscale = transform
         self.T_skip, self.T_shift, self.T_scale = (self.f32(v) for v in transform)
         u0, x0, y0 = pool0
@@ -388,10 +418,10 @@ class RegressorFit(Problem):
         # M of a batch from its normalised inputs (ωy = center + scale·xn)
         self.wy_c, self.wy_s = float(center[2]), float(scale_in[2])
         self.X = self.f32(xn0)
-        self.Y = self.f32(self.targets(x0, xn0, y0))
+        self.Y = self.f32(self.targets(x0, xn0, self.space(y0)))
         self.Yraw = self.f32(y0)
         self.Wedge = self.f32(edge_weights(stream.ps, u0, nc)) if nc.edge_weight > 0 else None
-        self.xv, self.yv = val
+        self.xv, self.yv = val[0], self.space(val[1])
         self.xvn = (self.xv - center) / scale_in
         self.Xv, self.Yv = self.f32(self.xvn), self.f32(self.targets(self.xv, self.xvn, self.yv))
         # the validation rays within edge_margin of an aperture edge: their error is logged on its own
@@ -400,6 +430,14 @@ class RegressorFit(Problem):
 
     def f32(self, a):
         return self.torch.as_tensor(np.ascontiguousarray(a, dtype=np.float32), device=self.dev)
+
+    def space(self, y):
+        """Reduced-frame outputs ``y`` as this map regresses them: as they are, or with ``position_cos`` the
+        exit position times |dz|."""
+        if not self.position_cos:
+            return y
+        from ..neural.model import position_cos
+        return position_cos(y)
 
     def targets(self, x, xn, y):
         """What the network's output times M should equal: (y − M·(shift + skip·xn)) / scale."""
@@ -423,7 +461,9 @@ class RegressorFit(Problem):
     def dir3(self, dxy):
         """Unit 3-vectors from (dx, dy) (…, 2) with dz of the map's heading."""
         torch = self.torch
-        dz = self.heading * torch.sqrt(torch.clamp(1.0 - (dxy * dxy).sum(-1, keepdim=True), min=0.0))
+        # floored above 0: √ has an infinite slope there, and a fisheye's grazing exit rays (|dz| → 0) turned Adam's
+        # gradient into NaN (a ray within 0.006° of 90° is all this floor changes)
+        dz = self.heading * torch.sqrt(torch.clamp(1.0 - (dxy * dxy).sum(-1, keepdim=True), min=1e-8))
         v = torch.cat([dxy, dz], -1)
         return v / v.norm(dim=-1, keepdim=True)
 
@@ -478,7 +518,7 @@ class RegressorFit(Problem):
         """``k`` fresh pool rows from the stream."""
         ur, xr, yr = self.stream.sample(k)
         xrn = (xr - self.center) / self.scale_in
-        out = {"X": self.f32(xrn), "Y": self.f32(self.targets(xr, xrn, yr)), "Yraw": self.f32(yr)}
+        out = {"X": self.f32(xrn), "Y": self.f32(self.targets(xr, xrn, self.space(yr))), "Yraw": self.f32(yr)}
         if self.nc.edge_weight > 0:
             out["W"] = self.f32(edge_weights(self.stream.ps, ur, self.nc))
         return out
@@ -762,7 +802,8 @@ def _kept(base, network: str) -> dict:
            "activation": getattr(base, f"{network}_activation")}
     if network == "regressor":
         out.update(skip=np.asarray(base.skip), out_shift=np.asarray(base.out_shift),
-                   out_scale=np.asarray(base.out_scale), odd_y=bool(base.odd_y))
+                   out_scale=np.asarray(base.out_scale), odd_y=bool(base.odd_y),
+                   position_cos=bool(base.position_cos))
     return out
 
 
@@ -976,7 +1017,7 @@ def train_maps(lens, specs, cfg: TrainConfig, workdir: str | None = None, progre
                        domain=dom.to_dict(), input_center=center, input_scale=scale_in,
                        classifier=cls["layers"], regressor=reg["layers"], skip=reg["skip"],
                        out_scale=reg["out_scale"], out_shift=reg["out_shift"], odd_y=reg["odd_y"],
-                       classifier_activation=cls.get("activation", cc.activation),
+                       position_cos=bool(reg.get("position_cos", False)), classifier_activation=cls.get("activation", cc.activation),
                        regressor_activation=reg.get("activation", rc.activation), training=training)
         if keep != "classifier":
             calibrate_classifier(lens, tm, min(cfg.heldout, 200_000), seeds[j] + 13, cfg.fresnel)
