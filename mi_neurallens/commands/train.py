@@ -79,9 +79,10 @@ def _focus_text(lens, setting) -> str:
     from ..training import plan
     s0, s1 = plan.sensor_distance_range(lens, setting)
     d = plan.close_focus_mm(lens, setting)
-    near = f"{d / 1000:.3g} m in front of the first vertex" if d else "infinity only"
-    return (f"infinity to {near} (close_focus_mm = {setting!r}; sensor {s0:.4g}–{s1:.4g} mm behind the last "
-            "vertex)" if d else near)
+    if not d:
+        return "infinity only"
+    return (f"infinity to {d / 1000:.3g} m in front of the first vertex (close_focus_mm = {setting!r}; sensor "
+            f"{s0:.4g}–{s1:.4g} mm behind the last vertex)")
 
 
 def run(args):
