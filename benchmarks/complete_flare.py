@@ -8,8 +8,9 @@ positions: the numbers a user decides ``lens_flare``'s mode by.
 
 ``scenes/night_point.xml`` (one point light 5 m away, 240×160 full-frame film) with the light at four places
 across the field (``--positions``, x:y in m; by default :data:`POSITIONS`, scaled toward the axis for a long lens
-whose ghost maps learned a narrower field, which the four must lie within: outside it the learned renders trace).  Per position, the default ghost selection of the flare
-renderer (99 % of the ghost energy, at most 32 ghosts) is rendered
+whose ghost maps learned a narrower field, which the four must lie within: outside it the learned renders trace).
+Per position, the default ghost selection of the flare renderer (99 % of the ghost energy, at most 32 ghosts) is
+rendered
 
 * ``exact`` at 2^samples (seed 1): the test budget's noise floor against the reference;
 * ``neural`` at 2^samples (seed 1), every ghost from ``--model`` (it must hold them all);
