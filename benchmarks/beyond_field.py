@@ -37,13 +37,12 @@ def main(argv=None):
     from mi_neurallens.commands.render import load_scene
     from mi_neurallens.flare.render import FlareOptions, FlareRenderer
     from mi_neurallens.metrics import LUMINANCE, mape_masked
+    from mi_neurallens.flare.verify import learned_field_sine
     from mi_neurallens.neural.model import bundled_model_path, load_model
-    from mi_neurallens.transport.planning import Domain
     rows = []
     for lens in a.lenses.split(","):
         model = a.model or bundled_model_path(lens)
-        m = load_model(model)
-        s_max = min(Domain.from_dict(m.map(g, "forward").domain).s_max for g in m.ghost_ids)
+        s_max = learned_field_sine(load_model(model))
         field = math.degrees(math.asin(s_max))
         theta = math.radians(field + a.beyond)
         r = 5.0 * math.tan(theta)                     # along the 3:2 film's diagonal

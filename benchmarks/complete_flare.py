@@ -99,11 +99,9 @@ def main(argv=None):
                     traced=sum(b is None for b in bands))
 
     if a.positions is None:
-        from mi_neurallens.flare.verify import lights_within_field
+        from mi_neurallens.flare.verify import learned_field_sine, lights_within_field
         from mi_neurallens.neural.model import load_model
-        from mi_neurallens.transport.planning import Domain
-        m = load_model(model)
-        s_max = min(Domain.from_dict(m.map(g, "forward").domain).s_max for g in m.ghost_ids)
+        s_max = learned_field_sine(load_model(model))
         pts = [tuple(float(v) for v in p.split(":")) for p in POSITIONS]
         if lights_within_field(pts, s_max, 0.95) != tuple(pts):   # beyond (nearly) the field: scaled, with room
             pts = lights_within_field(pts, s_max, 0.8)           # for a point light's own spread of angles

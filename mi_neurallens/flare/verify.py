@@ -258,14 +258,21 @@ def lights_within_field(lights, s_max: float, fraction: float = LIGHT_FIELD_FRAC
     return tuple((float(x) * k, float(y) * k) for x, y in lights)
 
 
+def learned_field_sine(model) -> float | None:
+    """The sine of the narrowest field a model's forward ghost maps learned (their domains' ``s_max``), None
+    without ghost maps: beyond it a map answers only "blocked" (``FlareRenderer.beyond_field``)."""
+    from ..transport.planning import Domain
+    sines = [Domain.from_dict(model.map(pid, "forward").domain).s_max for pid in model.ghost_ids]
+    return min(sines) if sines else None
+
+
 def verification_lights(model, lights=LIGHTS) -> tuple:
     """The light positions a model's ghost maps are verified at: :data:`LIGHTS`, scaled toward the axis for a
-    model whose maps learned a narrower field (:func:`lights_within_field`; the narrowest of its forward ghost
-    maps' domains).  A light outside that field would be traced (``FlareRenderer.beyond_field``), so a record
-    measured there would say nothing of the map."""
-    from ..transport.planning import Domain
-    doms = [Domain.from_dict(model.map(pid, "forward").domain).s_max for pid in model.ghost_ids]
-    return tuple(lights) if not doms else lights_within_field(lights, min(doms))
+    model whose maps learned a narrower field (:func:`lights_within_field` of :func:`learned_field_sine`).  A
+    light outside that field would be traced (``FlareRenderer.beyond_field``), so a record measured there would
+    say nothing of the map."""
+    s_max = learned_field_sine(model)
+    return tuple(lights) if s_max is None else lights_within_field(lights, s_max)
 
 
 def verification_scene(lens, model, light=LIGHTS[0], film=FILM):
@@ -423,7 +430,7 @@ def record_flare_errors(model_path, lens=None, *, ghosts=None, bands=BANDS, samp
                 + f", {len(lights)} light positions"
                 + ("" if lights == LIGHTS else " (" + ", ".join(f"({x:.3g}, {y:.3g}, 5) m" for x, y in lights)
                    + ": within the maps' field)"))
-        res = verify_model(model_path, lens, ghosts=run, samples_log2=samples_log2,
+        res = verify_model(model_path, lens, ghosts=run, lights=lights, samples_log2=samples_log2,
                            max_log2=max_log2 if refine else samples_log2, refine_above=gate, boundary_band=band, log=log)
         model = load_model(model_path)
         for pid, rec in res.items():
