@@ -1,9 +1,10 @@
 """Render time of the still-life scene with Mitsuba's ``perspective`` and ``thinlens`` and our
 ``realistic_lens`` and ``neural_lens`` (when the lens has a bundled model) (same scene, resolution, spp, sampler; one process; warm-up excluded;
-``dr.sync_thread()``), plus the camera-ray generation rate of each sensor alone.
+``dr.sync_thread()``), each lens sensor with every ``ray_kernel`` listed (``realistic_lens[separate]``: its camera
+rays in a kernel of their own), plus the camera-ray generation rate of each sensor alone.
 
     python benchmarks/bench_render.py [--res 320x240] [--spp 64] [--repeats 5] [--lens wide-22mm]
-                                      [--pupil-table] [--furnace]
+                                      [--ray-kernels inline,separate] [--pupil-table] [--furnace]
 
 Prints a table and writes ``benchmarks/results/bench_render.json``.  ``--pupil-table`` adds the
 exit-pupil vs rear-element pass fractions of every bundled lens; ``--furnace`` adds the furnace
@@ -50,12 +51,17 @@ def build_scenes(mi, args):
     focus_rel = st.focus_distance_mm / st.scene_unit_mm - d_front
     text = open(path, encoding="utf-8").read()
     text = apply_sensor_overrides(text, resolution=(w, h), spp=args.spp, lens=args.lens)
-    out = {"realistic_lens": real}
+    out = {}
     from mi_neurallens.neural.model import bundled_model_path
-    if args.model or os.path.exists(bundled_model_path(args.lens)):
-        out["neural_lens"] = load_scene(path, variant=args.variant, lens=args.lens, resolution=(w, h),
-                                        spp=args.spp, sensor_type="neural_lens",
-                                        sets=[f"model={args.model or args.lens}"])
+    neural = args.model or os.path.exists(bundled_model_path(args.lens))
+    for rk in args.ray_kernels:
+        tag = "" if rk == "inline" else f"[{rk}]"
+        out["realistic_lens" + tag] = real if rk == "inline" else load_scene(
+            path, variant=args.variant, lens=args.lens, resolution=(w, h), spp=args.spp, sets=[f"ray_kernel={rk}"])
+        if neural:
+            out["neural_lens" + tag] = load_scene(path, variant=args.variant, lens=args.lens, resolution=(w, h),
+                                                  spp=args.spp, sensor_type="neural_lens",
+                                                  sets=[f"model={args.model or args.lens}", f"ray_kernel={rk}"])
     for kind in ("perspective", "thinlens"):
         root = ET.fromstring(text)
         old = root.find("sensor")
@@ -148,11 +154,16 @@ def main(argv=None):
     p.add_argument("--lens", default="wide-22mm")
     p.add_argument("--model", help="neural_lens model file (default: the bundled model of --lens)")
     add_variant_argument(p)
+    p.add_argument("--ray-kernels", default="inline",
+                   help="comma list of the lens sensors' ray_kernel values to time (inline, separate)")
     p.add_argument("--pupil-table", action="store_true", help="also measure pupil-sampling pass fractions")
     p.add_argument("--furnace", action="store_true", help="also render the wide-22mm furnace table")
     p.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "bench_render.json"))
     args = p.parse_args(argv)
     args.res = tuple(int(v) for v in args.res.lower().split("x"))
+    args.ray_kernels = [k.strip() for k in args.ray_kernels.split(",") if k.strip()]
+    if "inline" not in args.ray_kernels:
+        args.ray_kernels.insert(0, "inline")
     import drjit as dr
     import mitsuba as mi
     mi.set_variant(args.variant)
@@ -161,7 +172,8 @@ def main(argv=None):
     scenes = build_scenes(mi, args)
     w, h = args.res
     n_rays = w * h * args.spp
-    names = tuple(n for n in ("perspective", "thinlens", "realistic_lens", "neural_lens") if n in scenes)
+    names = tuple(n for n in ("perspective", "thinlens") if n in scenes) + tuple(
+        n for n in scenes if n not in ("perspective", "thinlens"))
     for name in names:                                   # warm-up: trace + compile, not timed
         mi.render(scenes[name], spp=args.spp, seed=0)
         dr.sync_thread()
@@ -184,10 +196,22 @@ def main(argv=None):
         r["ratio_vs_thinlens"] = r["render_s"] / base
     print(f"still_life {w}x{h}, {args.spp} spp ({n_rays / 1e6:.2f} M camera rays), {args.variant}, "
           f"lens {args.lens}, best of {args.repeats} interleaved runs after warm-up, {dr.thread_count()} threads")
-    print(f"{'sensor':16s} {'render s':>9s} {'x thinlens':>10s} {'Mpaths/s':>9s} {'Mrays/s (sensor only)':>22s}")
+    print(f"{'sensor':26s} {'render s':>9s} {'x thinlens':>10s} {'Mpaths/s':>9s} {'Mrays/s (sensor only)':>22s}")
     for name, r in rows.items():
-        print(f"{name:16s} {r['render_s']:9.3f} {r['ratio_vs_thinlens']:10.2f} {r['paths_per_s'] / 1e6:9.2f} "
+        print(f"{name:26s} {r['render_s']:9.3f} {r['ratio_vs_thinlens']:10.2f} {r['paths_per_s'] / 1e6:9.2f} "
               f"{r['ray_generation_per_s'] / 1e6:22.1f}")
+    best = {}
+    for name, r in rows.items():            # each sensor's fastest ray_kernel: what a user would pick
+        kind = name.split("[")[0]
+        if kind in ("realistic_lens", "neural_lens") and r["render_s"] < best.get(kind, (math.inf,))[0]:
+            best[kind] = (r["render_s"], name)
+    if len(best) == 2:
+        for rk in args.ray_kernels:
+            tag = "" if rk == "inline" else f"[{rk}]"
+            print(f"neural_lens / realistic_lens, ray_kernel={rk}: "
+                  f"{rows['neural_lens' + tag]['render_s'] / rows['realistic_lens' + tag]['render_s']:.3f}")
+        print(f"fastest of each: {best['neural_lens'][1]} / {best['realistic_lens'][1]} = "
+              f"{best['neural_lens'][0] / best['realistic_lens'][0]:.3f}")
     ok = rows["realistic_lens"]["ratio_vs_thinlens"] <= 1.5
     print(f"bar (realistic_lens <= 1.5x thinlens): {'met' if ok else 'NOT met'}")
     res = {"benchmark": "bench_render", "scene": "scenes/still_life.xml", "resolution": [w, h], "spp": args.spp,
@@ -197,6 +221,7 @@ def main(argv=None):
                        "cpus": os.cpu_count(), "python": sys.version.split()[0],
                        "mitsuba": mi.__version__, "drjit": dr.__version__},
            "command": "python benchmarks/bench_render.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+           "ray_kernels": args.ray_kernels, "fastest": {k: v[1] for k, v in best.items()},
            "results": rows, "bar_met": ok}
     if args.pupil_table:
         res["pupil_pass_fractions"] = pupil_table()

@@ -12,7 +12,8 @@
 #   bench   fused literals vs cooperative vectors (bench_mlp.py) and render time thinlens / realistic_lens /
 #           neural_lens (bench_render.py) on the three paper lenses and the 27-surface RF 24 mm, and the RF 24 mm
 #           again with its 16-wide camera map ($RF16: a quarter of the multiply-adds, 2.3x the position error)
-#   render  bench's render times alone, on $PAPER_LENSES (overridable: PAPER_LENSES="canon-ef-24mm-f1.4l")
+#   render  bench's render times alone, on $PAPER_LENSES (overridable: PAPER_LENSES="canon-ef-24mm-f1.4l"), each lens
+#           sensor with its camera rays inline in the integrator's kernel and in a kernel of their own (ray_kernel)
 #   equal   equal render time, neural vs exact (equal_time.py), on every bundled lens
 #   flare   the Canon EF's whole flare, all 32 ghosts learned vs traced (complete_flare.py; again with the fp16
 #           cooperative vectors at one light position), its first render
@@ -144,7 +145,7 @@ stage_bench() {
 stage_render() {   # bench's render times alone (a call with little time left): PAPER_LENSES="…" picks the lenses
     local rc=0
     for lens in $PAPER_LENSES; do
-        py 90 benchmarks/bench_render.py --lens "$lens" --res $FILM --spp $SPP --repeats 3 \
+        py 90 benchmarks/bench_render.py --lens "$lens" --res $FILM --spp $SPP --repeats 3 --ray-kernels inline,separate \
             --out "$RES/render_$lens.json" || rc=1
     done
     return $rc

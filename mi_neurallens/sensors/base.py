@@ -4,7 +4,7 @@
 module was (re-)imported (:func:`mi_neurallens.sensors.register` re-imports it per variant, as
 Mitsuba's own Python plugins are); it reads the shared properties (``lens``, ``focus_distance`` XOR
 ``sensor_distance``, ``fstop``, ``blades``, ``blade_rotation``, ``sensor_width``, ``scene_unit_mm``, ``fresnel``,
-``pupil_sampling``), focuses and stops down the lens (:func:`.common.configure_lens`), samples a film
+``pupil_sampling``, ``ray_kernel``), focuses and stops down the lens (:func:`.common.configure_lens`), samples a film
 point, a point on the exit-pupil bound (:class:`.pupil.PupilBounds`) and one wavelength
 (:mod:`.wavelengths`), and turns the lens-space ray that leaves the front of the lens into a world
 ray with the radiometric weight ``cos⁴θ · A / Δz² · T / (π NA'²)`` (see the ``realistic_lens`` docs).
@@ -30,6 +30,10 @@ from .common import PropertyReader, SensorPropertyError, configure_lens, film_to
 from .pupil import EXIT_PUPIL, MODES, PupilBounds
 from .wavelengths import prepare_shutter, sample_wavelength
 
+#: where the camera rays are computed: inside the integrator's kernel, or in a kernel of their own
+INLINE, SEPARATE = "inline", "separate"
+RAY_KERNELS = (INLINE, SEPARATE)
+
 class LensSensorBase(mi.Sensor):
     PLUGIN = "lens_sensor"
     # the lens, its set-up and its transport map are Python data, not kernel inputs: kept out of Dr.Jit's
@@ -51,6 +55,8 @@ class LensSensorBase(mi.Sensor):
         unit = rd.float("scene_unit_mm", 1000.0, positive=True)
         fresnel = rd.bool("fresnel", True)
         mode = rd.string("pupil_sampling", EXIT_PUPIL, choices=MODES)
+        #: ``separate``: the camera rays are evaluated (``dr.eval``) before the integrator's kernel is recorded
+        self.ray_kernel = rd.string("ray_kernel", INLINE, choices=RAY_KERNELS)
         if focus is not None and sdist is not None:
             raise SensorPropertyError(plugin, "focus_distance",
                                       "give either 'focus_distance' (scene units from the sensor plane) "
@@ -141,6 +147,11 @@ class LensSensorBase(mi.Sensor):
         # invalid rays: weight 0 and a zero-length segment so integrators stop at once
         ray.maxt = dr.select(valid, ray.maxt, 0.0)
         weight = wspec * w if not isinstance(wspec, float) else mi.Spectrum(w)
+        if self.ray_kernel == SEPARATE and dr.is_jit_v(mi.Float) and not dr.flag(dr.JitFlag.SymbolicScope):
+            # the rays in a kernel of their own, stored (≈ 40 bytes a sample); the integrator's kernel reads
+            # them instead of carrying the transport's registers through its whole path loop.  Inside a
+            # symbolic scope (a caller's loop or call) nothing may be evaluated: the rays stay inline there
+            dr.eval(ray, weight)
         return ray, weight
 
     def sample_ray(self, time, sample1, sample2, sample3, active=True):
@@ -207,4 +218,4 @@ class LensSensorBase(mi.Sensor):
                 f"(widest f/{st.max_fnumber:.3g}), focus_distance={fd:g} (sensor_distance="
                 f"{st.sensor_distance_mm:.4f} mm), sensor {st.sensor_width_mm:g}x{st.sensor_height_mm:.4g} mm, "
                 f"scene_unit_mm={st.scene_unit_mm:g}, fresnel={st.fresnel}, "
-                f"pupil_sampling={self.pupil.mode}, film={self.film().size()}]")
+                f"pupil_sampling={self.pupil.mode}, ray_kernel={self.ray_kernel}, film={self.film().size()}]")

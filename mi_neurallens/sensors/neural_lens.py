@@ -70,7 +70,7 @@ Neural lens camera (:monosp:`neural_lens`)
      scene loads, ~20–40 s).  See docs/baselines.md.  (Default: ``neural``)
 
  * - focus_distance, sensor_distance, fstop, blades, blade_rotation, sensor_width, scene_unit_mm,
-     fresnel, pupil_sampling, to_world, film, sampler, shutter_open, shutter_close
+     fresnel, pupil_sampling, ray_kernel, to_world, film, sampler, shutter_open, shutter_close
    - 
    - As for :ref:`realistic_lens <sensor-realistic_lens>`, so the two sensors are interchangeable in a
      scene.  Manual focusing (``sensor_distance`` / ``focus_distance``) moves the sensor with the same

@@ -72,6 +72,13 @@ Realistic lens camera (:monosp:`realistic_lens`)
      the film point's azimuth); ``rear_element``: aim them at the whole rear element (slow, for
      reference).  (Default: ``exit_pupil``)
 
+ * - ray_kernel
+   - |string|
+   - ``inline``: the camera rays are computed inside the integrator's kernel (one kernel a render);
+     ``separate``: in a kernel of their own before it (the rays stored, ≈ 40 bytes a sample), so the
+     integrator's kernel does not carry the transport's registers through its path loop — the same image
+     (docs/results.md, "Camera rays in a kernel of their own").  (Default: ``inline``)
+
  * - to_world
    - |transform|
    - Camera-to-world transform.  The camera origin is the centre of the sensor plane; it looks along
