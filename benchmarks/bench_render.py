@@ -1,7 +1,7 @@
 """Render time of the still-life scene with Mitsuba's ``perspective`` and ``thinlens`` and our
 ``realistic_lens`` and ``neural_lens`` (when the lens has a bundled model) (same scene, resolution, spp, sampler; one process; warm-up excluded;
-``dr.sync_thread()``), each lens sensor with every ``ray_kernel`` listed (``realistic_lens[separate]``: its camera
-rays in a kernel of their own), plus the camera-ray generation rate of each sensor alone.
+``dr.sync_thread()``), each lens sensor with every ``ray_kernel`` listed (the first untagged, the others as
+``realistic_lens[separate]``: its camera rays in a kernel of their own), plus the camera-ray generation rate of each sensor alone.
 
     python benchmarks/bench_render.py [--res 320x240] [--spp 64] [--repeats 5] [--lens wide-22mm]
                                       [--ray-kernels inline,separate] [--pupil-table] [--furnace]
@@ -40,7 +40,8 @@ def build_scenes(mi, args):
     from mi_neurallens.render_utils import apply_sensor_overrides
     path = os.path.join(ROOT, "scenes", "still_life.xml")
     w, h = args.res
-    real = load_scene(path, variant=args.variant, lens=args.lens, resolution=(w, h), spp=args.spp)
+    real = load_scene(path, variant=args.variant, lens=args.lens, resolution=(w, h), spp=args.spp,
+                      sets=[f"ray_kernel={args.ray_kernels[0]}"])
     rl = real.sensors()[0]
     st = rl.setup
     px = st.lens.paraxial()
@@ -55,8 +56,8 @@ def build_scenes(mi, args):
     from mi_neurallens.neural.model import bundled_model_path
     neural = args.model or os.path.exists(bundled_model_path(args.lens))
     for rk in args.ray_kernels:
-        tag = "" if rk == "inline" else f"[{rk}]"
-        out["realistic_lens" + tag] = real if rk == "inline" else load_scene(
+        tag = "" if rk == args.ray_kernels[0] else f"[{rk}]"
+        out["realistic_lens" + tag] = real if rk == args.ray_kernels[0] else load_scene(
             path, variant=args.variant, lens=args.lens, resolution=(w, h), spp=args.spp, sets=[f"ray_kernel={rk}"])
         if neural:
             out["neural_lens" + tag] = load_scene(path, variant=args.variant, lens=args.lens, resolution=(w, h),
@@ -154,16 +155,15 @@ def main(argv=None):
     p.add_argument("--lens", default="wide-22mm")
     p.add_argument("--model", help="neural_lens model file (default: the bundled model of --lens)")
     add_variant_argument(p)
-    p.add_argument("--ray-kernels", default="inline",
-                   help="comma list of the lens sensors' ray_kernel values to time (inline, separate)")
+    p.add_argument("--ray-kernels", default="auto",
+                   help="comma list of the lens sensors' ray_kernel values to time (auto, inline, separate); the "
+                        "first is the plain rows ('realistic_lens'), the others tagged ('realistic_lens[separate]')")
     p.add_argument("--pupil-table", action="store_true", help="also measure pupil-sampling pass fractions")
     p.add_argument("--furnace", action="store_true", help="also render the wide-22mm furnace table")
     p.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "bench_render.json"))
     args = p.parse_args(argv)
     args.res = tuple(int(v) for v in args.res.lower().split("x"))
-    args.ray_kernels = [k.strip() for k in args.ray_kernels.split(",") if k.strip()]
-    if "inline" not in args.ray_kernels:
-        args.ray_kernels.insert(0, "inline")
+    args.ray_kernels = [k.strip() for k in args.ray_kernels.split(",") if k.strip()] or ["auto"]
     import drjit as dr
     import mitsuba as mi
     mi.set_variant(args.variant)
@@ -207,7 +207,7 @@ def main(argv=None):
             best[kind] = (r["render_s"], name)
     if len(best) == 2:
         for rk in args.ray_kernels:
-            tag = "" if rk == "inline" else f"[{rk}]"
+            tag = "" if rk == args.ray_kernels[0] else f"[{rk}]"
             print(f"neural_lens / realistic_lens, ray_kernel={rk}: "
                   f"{rows['neural_lens' + tag]['render_s'] / rows['realistic_lens' + tag]['render_s']:.3f}")
         print(f"fastest of each: {best['neural_lens'][1]} / {best['realistic_lens'][1]} = "

@@ -213,5 +213,22 @@ def test_rays_in_a_kernel_of_their_own_render_the_same_image(kind, variant):
     # 3 493 → 1 954 operations for realistic_lens, 5 921 → 4 382 for neural_lens, where the rays' kernel is the larger)
     assert len(ops_sep) == len(ops_inline) + 1
     assert max(ops_sep) < max(ops_inline)
+    # the default, auto: separate on CUDA (this small pass fits its memory cap), inline on the CPU
+    assert "ray_kernel=auto" in str(mi.load_dict(sensor(kind, **kw)))
+    _, ops_auto = render_kernels(sensor(kind, **kw))
+    assert len(ops_auto) == len(ops_sep if mi.variant().startswith("cuda") else ops_inline)
     with pytest.raises(Exception, match="'ray_kernel'.*must be one of"):
         mi.load_dict(sensor(kind, ray_kernel="elsewhere", **kw))
+
+
+def test_ray_kernel_auto_chooses_by_backend_and_memory():
+    """``auto`` stores the rays (separate) only on CUDA, and only while a pass's rays fit the cap; an explicit
+    choice is kept whatever the size."""
+    from mi_neurallens.sensors.base import SEPARATE_MAX_BYTES, ray_kernel_for
+    full_hd_64spp = 1280 * 960 * 64                   # 3.5 GB of RGB rays: under the cap
+    assert ray_kernel_for("auto", True, full_hd_64spp, 11) == "separate"
+    assert ray_kernel_for("auto", True, SEPARATE_MAX_BYTES // 44 + 1, 11) == "inline"
+    assert ray_kernel_for("auto", True, SEPARATE_MAX_BYTES // 64, 16) == "separate"
+    assert ray_kernel_for("auto", False, 1024, 11) == "inline"
+    assert ray_kernel_for("separate", False, 10 ** 12, 16) == "separate"
+    assert ray_kernel_for("inline", True, 1024, 11) == "inline"

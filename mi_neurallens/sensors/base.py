@@ -31,8 +31,23 @@ from .pupil import EXIT_PUPIL, MODES, PupilBounds
 from .wavelengths import prepare_shutter, sample_wavelength
 
 #: where the camera rays are computed: inside the integrator's kernel, or in a kernel of their own
-INLINE, SEPARATE = "inline", "separate"
-RAY_KERNELS = (INLINE, SEPARATE)
+AUTO, INLINE, SEPARATE = "auto", "inline", "separate"
+RAY_KERNELS = (AUTO, INLINE, SEPARATE)
+#: ``auto``'s cap on the stored rays of one render pass (bytes): above it the rays stay inline, whose
+#: wavefront stores nothing (a 1280×960, 64 spp RGB pass stores 78.6 M × 44 B = 3.5 GB)
+SEPARATE_MAX_BYTES = 4 << 30
+
+
+def ray_kernel_for(mode: str, cuda: bool, samples: int, floats_per_sample: int) -> str:
+    """``inline`` or ``separate`` for a render pass of ``samples`` camera rays, each stored (if separate) as
+    ``floats_per_sample`` 32-bit numbers.  ``auto``: separate on CUDA while the stored rays fit
+    :data:`SEPARATE_MAX_BYTES`, inline otherwise and on the CPU.  Measured, still life at 1280×960, 64 spp
+    (docs/results.md, "Camera rays in a kernel of their own"): on an H200 separate renders 5–19 % faster with
+    the learned map and 4–9 % faster with the tracer on three of four lenses (6 % slower on the 13-surface
+    wide-22mm); on this project's 2-core CPU the two are within 1–3 %, and inline stores nothing."""
+    if mode != AUTO:
+        return mode
+    return SEPARATE if cuda and samples * floats_per_sample * 4 <= SEPARATE_MAX_BYTES else INLINE
 
 class LensSensorBase(mi.Sensor):
     PLUGIN = "lens_sensor"
@@ -55,8 +70,9 @@ class LensSensorBase(mi.Sensor):
         unit = rd.float("scene_unit_mm", 1000.0, positive=True)
         fresnel = rd.bool("fresnel", True)
         mode = rd.string("pupil_sampling", EXIT_PUPIL, choices=MODES)
-        #: ``separate``: the camera rays are evaluated (``dr.eval``) before the integrator's kernel is recorded
-        self.ray_kernel = rd.string("ray_kernel", INLINE, choices=RAY_KERNELS)
+        #: ``separate``: the camera rays are evaluated (``dr.eval``) before the integrator's kernel is recorded;
+        #: ``auto``: per render pass, :func:`ray_kernel_for`
+        self.ray_kernel = rd.string("ray_kernel", AUTO, choices=RAY_KERNELS)
         if focus is not None and sdist is not None:
             raise SensorPropertyError(plugin, "focus_distance",
                                       "give either 'focus_distance' (scene units from the sensor plane) "
@@ -147,10 +163,12 @@ class LensSensorBase(mi.Sensor):
         # invalid rays: weight 0 and a zero-length segment so integrators stop at once
         ray.maxt = dr.select(valid, ray.maxt, 0.0)
         weight = wspec * w if not isinstance(wspec, float) else mi.Spectrum(w)
-        if self.ray_kernel == SEPARATE and dr.is_jit_v(mi.Float) and not dr.flag(dr.JitFlag.SymbolicScope):
-            # the rays in a kernel of their own, stored (≈ 40 bytes a sample); the integrator's kernel reads
-            # them instead of carrying the transport's registers through its whole path loop.  Inside a
-            # symbolic scope (a caller's loop or call) nothing may be evaluated: the rays stay inline there
+        if dr.is_jit_v(mi.Float) and not dr.flag(dr.JitFlag.SymbolicScope) and ray_kernel_for(
+                self.ray_kernel, dr.backend_v(mi.Float) == dr.JitBackend.CUDA, dr.width(fx),
+                8 + dr.size_v(mi.Spectrum) + dr.size_v(type(ray.wavelengths))) == SEPARATE:
+            # the rays in a kernel of their own, stored; the integrator's kernel reads them instead of
+            # carrying the transport's registers through its whole path loop.  Inside a symbolic scope (a
+            # caller's loop or call) nothing may be evaluated: the rays stay inline there
             dr.eval(ray, weight)
         return ray, weight
 

@@ -75,9 +75,11 @@ Realistic lens camera (:monosp:`realistic_lens`)
  * - ray_kernel
    - |string|
    - ``inline``: the camera rays are computed inside the integrator's kernel (one kernel a render);
-     ``separate``: in a kernel of their own before it (the rays stored, ≈ 40 bytes a sample), so the
-     integrator's kernel does not carry the transport's registers through its path loop — the same image
-     (docs/results.md, "Camera rays in a kernel of their own").  (Default: ``inline``)
+     ``separate``: in a kernel of their own before it (the rays stored, 44 bytes a sample in RGB, 64 in
+     spectral variants), so the integrator's kernel does not carry the transport's registers through its
+     path loop — the same image; ``auto``: separate on CUDA while a render pass's rays fit 4 GiB, inline
+     otherwise and on the CPU, as measured (docs/results.md, "Camera rays in a kernel of their own").
+     (Default: ``auto``)
 
  * - to_world
    - |transform|
