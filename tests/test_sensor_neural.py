@@ -187,7 +187,8 @@ def test_method_exact_equals_realistic_lens():
 def test_rays_in_a_kernel_of_their_own_render_the_same_image(kind, variant):
     """``ray_kernel = separate`` evaluates the camera rays before the integrator's kernel is recorded: the
     same rays (same seeds), so the same image to float32 rounding; the integrator's kernel no longer
-    computes the transport (fewer operations in it than inline)."""
+    computes the transport (fewer operations in it than inline).  The default, ``auto``, is one or the other
+    by backend."""
     use(variant)
     kw = dict(focus_distance=1.0, w=24, h=18, spp=16, **({"model": "wide-22mm"} if kind == "neural_lens" else {}))
 
@@ -225,8 +226,8 @@ def test_ray_kernel_auto_chooses_by_backend_and_memory():
     """``auto`` stores the rays (separate) only on CUDA, and only while a pass's rays fit the cap; an explicit
     choice is kept whatever the size."""
     from mi_neurallens.sensors.base import SEPARATE_MAX_BYTES, ray_kernel_for
-    full_hd_64spp = 1280 * 960 * 64                   # 3.5 GB of RGB rays: under the cap
-    assert ray_kernel_for("auto", True, full_hd_64spp, 11) == "separate"
+    frame_64spp = 1280 * 960 * 64                     # 3.5 GB of RGB rays: under the cap
+    assert ray_kernel_for("auto", True, frame_64spp, 11) == "separate"
     assert ray_kernel_for("auto", True, SEPARATE_MAX_BYTES // 44 + 1, 11) == "inline"
     assert ray_kernel_for("auto", True, SEPARATE_MAX_BYTES // 64, 16) == "separate"
     assert ray_kernel_for("auto", False, 1024, 11) == "inline"

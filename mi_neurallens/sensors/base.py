@@ -49,6 +49,7 @@ def ray_kernel_for(mode: str, cuda: bool, samples: int, floats_per_sample: int) 
         return mode
     return SEPARATE if cuda and samples * floats_per_sample * 4 <= SEPARATE_MAX_BYTES else INLINE
 
+
 class LensSensorBase(mi.Sensor):
     PLUGIN = "lens_sensor"
     # the lens, its set-up and its transport map are Python data, not kernel inputs: kept out of Dr.Jit's
