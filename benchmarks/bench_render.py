@@ -35,6 +35,11 @@ def sensor_xml(kind, setup, fov, d_front, aperture, focus_rel):
             '</sensor>')
 
 
+def row_name(sensor: str, ray_kernel: str, args) -> str:
+    """A lens sensor's row: untagged for the first ``--ray-kernels`` value, ``sensor[ray_kernel]`` for the others."""
+    return sensor if ray_kernel == args.ray_kernels[0] else f"{sensor}[{ray_kernel}]"
+
+
 def build_scenes(mi, args):
     from mi_neurallens.commands.render import load_scene
     from mi_neurallens.render_utils import apply_sensor_overrides
@@ -56,11 +61,10 @@ def build_scenes(mi, args):
     from mi_neurallens.neural.model import bundled_model_path
     neural = args.model or os.path.exists(bundled_model_path(args.lens))
     for rk in args.ray_kernels:
-        tag = "" if rk == args.ray_kernels[0] else f"[{rk}]"
-        out["realistic_lens" + tag] = real if rk == args.ray_kernels[0] else load_scene(
+        out[row_name("realistic_lens", rk, args)] = real if rk == args.ray_kernels[0] else load_scene(
             path, variant=args.variant, lens=args.lens, resolution=(w, h), spp=args.spp, sets=[f"ray_kernel={rk}"])
         if neural:
-            out["neural_lens" + tag] = load_scene(path, variant=args.variant, lens=args.lens, resolution=(w, h),
+            out[row_name("neural_lens", rk, args)] = load_scene(path, variant=args.variant, lens=args.lens, resolution=(w, h),
                                                   spp=args.spp, sensor_type="neural_lens",
                                                   sets=[f"model={args.model or args.lens}", f"ray_kernel={rk}"])
     for kind in ("perspective", "thinlens"):
@@ -209,9 +213,8 @@ def main(argv=None):
             best[kind] = (r["render_s"], name)
     if len(best) == 2:
         for rk in args.ray_kernels:
-            tag = "" if rk == args.ray_kernels[0] else f"[{rk}]"
-            print(f"neural_lens / realistic_lens, ray_kernel={rk}: "
-                  f"{rows['neural_lens' + tag]['render_s'] / rows['realistic_lens' + tag]['render_s']:.3f}")
+            n, r = rows[row_name("neural_lens", rk, args)], rows[row_name("realistic_lens", rk, args)]
+            print(f"neural_lens / realistic_lens, ray_kernel={rk}: {n['render_s'] / r['render_s']:.3f}")
         print(f"fastest of each: {best['neural_lens'][1]} / {best['realistic_lens'][1]} = "
               f"{best['neural_lens'][0] / best['realistic_lens'][0]:.3f}")
     ok = rows["realistic_lens"]["ratio_vs_thinlens"] <= 1.5

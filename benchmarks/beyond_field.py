@@ -12,7 +12,6 @@ Run it from another checkout (``PYTHONPATH=/tmp/old``) for the behaviour before 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import sys
@@ -66,9 +65,9 @@ def main(argv=None):
               f"{row['mape']:.4f}, flux {row['flux_ratio']:.4f}, {traced} of {n} ghosts traced beyond the field",
               flush=True)
     if a.json:
-        with open(a.json, "w") as f:
-            json.dump({"command": " ".join(["benchmarks/beyond_field.py"] + (argv or sys.argv[1:])), "rows": rows},
-                      f, indent=1)
+        from mi_neurallens.fileio import atomic_write_json
+        atomic_write_json(a.json, {"command": " ".join(["benchmarks/beyond_field.py"] + (argv or sys.argv[1:])),
+                                   "rows": rows}, indent=1)
 
 
 if __name__ == "__main__":
