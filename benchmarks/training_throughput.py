@@ -11,9 +11,12 @@ does), fixed step counts, goals off.  Samples/s counts
 training samples (batch × steps × maps) per second of the training loop (set-up excluded: building the
 samplers and held-out sets is the same for both).  ``--baseline-tree``: a checkout of the repository
 before the stacked trainer (e.g. ``git worktree add /tmp/old c6c3982``), run in a subprocess with the
-same settings, one map at a time.  Every run also times the batched products alone at a stack's shape
+same settings, one map at a time, before and after the new trainer (ratios against the mean of the two).
+``--steps-kinds``: the new trainer's CPU step, the fused kernel (``fused``, the default) and PyTorch's
+operations (``pytorch``).  Every run also times the batched products alone at a stack's shape
 (:func:`matmul_peak`, fp32 and bf16) and reports the fp32 ceiling: the samples/s a trainer would reach if
-nothing but those products took time.  Writes ``benchmarks/results/training_throughput.json`` (``--out``).
+nothing but those products took time, and the fused kernel's forward and backward alone
+(:func:`fused_kernel_rate`).  Writes ``benchmarks/results/training_throughput.json`` (``--out``).
 """
 from __future__ import annotations
 
@@ -80,8 +83,27 @@ def net_config(kind, steps):
     return dataclasses.replace(nc, **over)
 
 
-def measure_new(k, kind, steps):
+def measure_new(k, kind, steps, step="fused"):
+    """The stacked trainer; ``step``: "fused" (its CPU default where a C compiler is, training/fused_mlp.c) or
+    "pytorch" (PyTorch's batched products and the compiled rational tanh: MI_NEURALLENS_FUSED=0)."""
+    from mi_neurallens.training import fused_cpu, trainer
+    fused_cpu._KERNELS.clear()
+    old_env = os.environ.get("MI_NEURALLENS_FUSED")
+    os.environ["MI_NEURALLENS_FUSED"] = "1" if step == "fused" else "0"
+    try:
+        return _measure_new(k, kind, steps, step)
+    finally:
+        fused_cpu._KERNELS.clear()
+        if old_env is None:
+            os.environ.pop("MI_NEURALLENS_FUSED")
+        else:
+            os.environ["MI_NEURALLENS_FUSED"] = old_env
+
+
+def _measure_new(k, kind, steps, step):
     from mi_neurallens.training import trainer
+    from mi_neurallens.training.stacked import STEP_CHOICE
+    STEP_CHOICE.clear()
     probs = problems(k, kind)
     nc = net_config(kind, steps)
     fn = trainer.train_regressors if kind == "regressor" else trainer.train_classifiers
@@ -92,7 +114,8 @@ def measure_new(k, kind, steps):
     samples = sum(s["samples"] for s in st)
     loop = sum({s["stack"]: s["seconds"] for s in st}.values())      # the stacks run one after the other
     return {"maps": k, "kind": kind, "steps": steps, "samples": samples, "loop_seconds": loop,
-            "stacks": len({s["stack"] for s in st}), "samples_per_s": samples / loop, "wall_seconds": wall}
+            "stacks": len({s["stack"] for s in st}), "samples_per_s": samples / loop, "wall_seconds": wall,
+            "step": step, "how": dict(STEP_CHOICE)}
 
 
 def measure_old(k, kind, steps):
@@ -143,9 +166,43 @@ def matmul_peak(k=4, rows=8192, width=32, repeats=200):
     return out
 
 
-def grid(maps=(1, 2, 4, 8, 16), batches=(1024, 2048, 4096, 8192)):
-    """Step time of one stack of K regressors at batch B (pools in memory, no validation or refresh):
-    what :data:`~mi_neurallens.training.stacked.CPU_STACK_ROWS` is chosen from."""
+def fused_kernel_rate(k=4, rows=8192, repeats=30):
+    """The fused CPU step alone (training/fused_mlp.c: forward and backward of a stack, no loss, optimiser or
+    data) at a stack's shape, for the benchmark's two networks: samples/s and GFLOP/s of its products (the
+    same count as :func:`matmul_peak`'s); None where the kernel does not compile."""
+    import torch
+    from mi_neurallens.training import fused_cpu, stacked
+    torch.set_num_threads(2)
+    out = {}
+    for kind, (hidden, width) in BENCH_NETWORKS.items():
+        n_out = 5 if kind == "regressor" else 1
+        net = stacked.StackedMLP(torch, "cpu", range(k), 4, n_out, hidden, width)
+        if net.fused is None:
+            return None
+        x, g = torch.randn(k, rows, 4), torch.randn(k, rows, n_out)
+        params = [q.detach() for q in net.params]
+
+        def step():
+            _, acts = net.fused.forward(torch, x, params)
+            net.fused.backward(torch, x, params, acts, g)
+        for _ in range(3):
+            step()
+        best = float("inf")
+        for _ in range(3):
+            t = time.perf_counter()
+            for _ in range(repeats):
+                step()
+            best = min(best, (time.perf_counter() - t) / repeats)
+        macs = 4 * width + (hidden - 1) * width * width + width * n_out
+        out[kind] = {"shape": [k, rows], "samples_per_s": k * rows / best,
+                     "gflops": k * rows * 3 * 2 * macs / best / 1e9}
+    return out
+
+
+def grid(maps=(1, 2, 4, 8, 16, 32), batches=(1024, 2048, 4096, 8192), hidden=5, width=32):
+    """Step time of one stack of K regressors (``hidden`` × ``width``) at batch B (pools in memory, no
+    validation or refresh), with the trainer's CPU step (the fused kernel where it compiles): what
+    :data:`~mi_neurallens.training.stacked.CPU_STACK_ROWS` is chosen from."""
     import copy
     import numpy as np
     import torch
@@ -167,7 +224,7 @@ def grid(maps=(1, 2, 4, 8, 16), batches=(1024, 2048, 4096, 8192)):
     for k in maps:
         for b in batches:
             fs = [copy.copy(f) for f in fits[:k]]
-            net = stacked.StackedMLP(torch, "cpu", range(k), 4, 5, 5, 32)
+            net = stacked.StackedMLP(torch, "cpu", range(k), 4, 5, hidden, width)
             opt = stacked.StackedAdam(net.params)
             pools = stacked.PoolStack(torch, fs)
 
@@ -182,7 +239,8 @@ def grid(maps=(1, 2, 4, 8, 16), batches=(1024, 2048, 4096, 8192)):
             for _ in range(n):
                 step()
             dt = (time.perf_counter() - t) / n
-            rows.append({"maps": k, "batch": b, "step_ms": 1e3 * dt, "samples_per_s": k * b / dt})
+            rows.append({"maps": k, "batch": b, "step_ms": 1e3 * dt, "samples_per_s": k * b / dt,
+                         "network": f"{hidden}x{width}", "fused": net.fused is not None})
             print(f"K={k:2d} B={b:5d}: {1e3 * dt:6.1f} ms/step, {k * b / dt / 1e6:.2f} M samples/s", flush=True)
     return rows
 
@@ -193,15 +251,20 @@ def main():
     ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--maps", default="1,4,16")
     ap.add_argument("--kinds", default="regressor,classifier")
+    ap.add_argument("--steps-kinds", default="fused,pytorch",
+                    help="the stacked trainer's CPU steps to measure: fused (the default), pytorch (its operations)")
     ap.add_argument("--grid", action="store_true", help="only the stack-size grid (maps × batch)")
+    ap.add_argument("--grid-network", default="5x32", help="the grid's regressor: hidden layers x width")
     ap.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "training_throughput.json"))
     ap.add_argument("--old", action="store_true", help=argparse.SUPPRESS)   # the subprocess's mode
     args = ap.parse_args()
     if args.grid:
         out = {"machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
-               "command": " ".join(sys.argv), "grid": grid()}
-        with open(os.path.join(ROOT, "benchmarks", "results", "training_stack_grid.json"), "w") as f:
-            json.dump(out, f, indent=1)
+               "command": " ".join(sys.argv),
+               "grid": grid(hidden=int(args.grid_network.split("x")[0]), width=int(args.grid_network.split("x")[1]))}
+        from mi_neurallens.fileio import atomic_write_json
+        atomic_write_json(args.out if args.out != ap.get_default("out") else
+                          os.path.join(ROOT, "benchmarks", "results", "training_stack_grid.json"), out)
         return
     kinds = args.kinds.split(",")
     if args.old:
@@ -209,29 +272,52 @@ def main():
         return
     rows = {"machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
             "command": " ".join(sys.argv), "new": [], "old": []}
-    if args.baseline_tree:
+    def run_old(when):
         env = dict(os.environ, PYTHONPATH=os.path.abspath(args.baseline_tree))
         out = subprocess.run([sys.executable, os.path.abspath(__file__), "--old", "--maps", "2", "--steps",
                               str(args.steps), "--kinds", args.kinds], env=env, cwd=args.baseline_tree,
                              capture_output=True, text=True, check=True)
-        rows["old"] = json.loads(out.stdout.strip().splitlines()[-1])
-        for r in rows["old"]:
-            print(f"old  {r['kind']:10s} one at a time ×{r['maps']}: {r['samples_per_s'] / 1e6:.2f} M samples/s")
+        got = json.loads(out.stdout.strip().splitlines()[-1])
+        for r in got:
+            print(f"old  {r['kind']:10s} one at a time ×{r['maps']} ({when}): {r['samples_per_s'] / 1e6:.2f} M samples/s",
+                  flush=True)
+        return got
+
+    if args.baseline_tree:
+        # The old trainer runs first and again last: this VM's speed drifts by tens of per cent over minutes,
+        # so each ratio is against the mean of the two (both are in the JSON)
+        rows["old"] = run_old("first")
     rows["matmul_peak"] = peak = matmul_peak()
     print(f"batched products {peak['shape']}: fp32 {peak['fp32_gflops']:.0f} GFLOP/s, bf16 {peak['bf16_gflops']:.0f}")
+    rows["fused_kernel"] = fused = fused_kernel_rate()
+    for kind, r in (fused or {}).items():
+        print(f"fused kernel alone {kind:10s} {r['shape']}: {r['samples_per_s'] / 1e6:.2f} M samples/s, "
+              f"{r['gflops']:.0f} GFLOP/s")
     for kind in kinds:
         ceil = peak[f"{kind}_fp32_ceiling_samples_per_s"]
         base = next((o["samples_per_s"] for o in rows["old"] if o["kind"] == kind), None)
         print(f"fp32 ceiling {kind:10s}: {ceil / 1e6:.2f} M samples/s"
               + (f"  {ceil / base:.2f}× the old trainer" if base else ""))
     for kind in kinds:
-        for k in map(int, args.maps.split(",")):
-            r = measure_new(k, kind, args.steps)
-            rows["new"].append(r)
-            base = next((o["samples_per_s"] for o in rows["old"] if o["kind"] == kind), None)
-            ratio = f"  {r['samples_per_s'] / base:.2f}× the old trainer" if base else ""
-            print(f"new  {kind:10s} {k:2d} maps ({r['stacks']} stacks): {r['samples_per_s'] / 1e6:.2f} M samples/s{ratio}",
-                  flush=True)
+        for step in args.steps_kinds.split(","):
+            for k in map(int, args.maps.split(",")):
+                r = measure_new(k, kind, args.steps, step)
+                rows["new"].append(r)
+                base = next((o["samples_per_s"] for o in rows["old"] if o["kind"] == kind), None)
+                ratio = f"  {r['samples_per_s'] / base:.2f}× the old trainer" if base else ""
+                print(f"new  {kind:10s} {step:7s} {k:2d} maps ({r['stacks']} stacks): "
+                      f"{r['samples_per_s'] / 1e6:.2f} M samples/s{ratio}", flush=True)
+    if args.baseline_tree:
+        rows["old_last"] = run_old("last")
+        for kind in kinds:
+            a, b = (next(o["samples_per_s"] for o in rows[w] if o["kind"] == kind) for w in ("old", "old_last"))
+            base = 0.5 * (a + b)
+            for r in rows["new"]:
+                if r["kind"] == kind:
+                    r["vs_old_mean"] = r["samples_per_s"] / base
+            best = max(r["samples_per_s"] for r in rows["new"] if r["kind"] == kind)
+            print(f"{kind}: the old trainer {a / 1e6:.2f} then {b / 1e6:.2f} M samples/s; the best new row is "
+                  f"{best / base:.2f}× their mean")
     from mi_neurallens.fileio import atomic_write_json
     atomic_write_json(args.out, rows)
 

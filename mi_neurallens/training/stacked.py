@@ -8,8 +8,10 @@ inputs ``(K, B, in)``, every layer one ``baddbmm``, a batch one window of the sh
 loss is the *sum* of the maps' losses, so each map's gradient is its own; :class:`StackedAdam` is
 elementwise, hence each map follows exactly the Adam trajectory it would follow alone (same learning-rate
 schedule, same batches).  The activation is Eigen's rational tanh (the one the render-time kernel
-evaluates, :func:`~mi_neurallens.neural.mlp.tanh_eigen`), compiled by ``torch.compile`` into one fused pass when a C++ compiler is present, with the exact
-derivative 1 − y² as its backward; without a compiler, ``torch.tanh``.
+evaluates, :func:`~mi_neurallens.neural.mlp.tanh_eigen`) with the exact derivative 1 − y² as its backward.  On a CPU
+with a C compiler a stack's whole forward and backward is one compiled kernel (:mod:`.fused_cpu`, 2–3× PyTorch's
+operations); otherwise every layer is one ``baddbmm`` and the activation is compiled by ``torch.compile`` into one
+fused pass, or is ``torch.tanh`` where nothing compiles (and on a GPU).
 
 A map leaves the stack when it meets its goals (``NetConfig.goals``), stops improving (``patience``) or
 the group's budget ends; the stack then shrinks, so finished maps cost nothing.  What each network's
@@ -170,6 +172,8 @@ def training_tanh(torch, device=None):
 
 #: what :func:`training_tanh` chose per device type, in words (for the training log)
 TANH_CHOICE = {}
+#: how a CPU stack of each network shape ("4-16-16-16-5") takes its steps, in words (for the training log)
+STEP_CHOICE = {}
 
 
 # ----------------------------------------------------------------------------- K networks
@@ -192,7 +196,16 @@ class StackedMLP:
         self.params = []
         for W, b in zip(Ws, bs):
             self.params += [torch.stack(W).to(dev).requires_grad_(), torch.stack(b).to(dev).requires_grad_()]
-        self.act = training_tanh(torch, dev) if activation == "tanh" else torch.relu
+        self.fused = None           # on a CPU: the forward and backward in one compiled kernel (fused_cpu)
+        if activation == "tanh" and torch.device(dev).type == "cpu":
+            from . import fused_cpu
+            self.fused = fused_cpu.kernel(torch, self.dims)
+            shape = "-".join(map(str, self.dims))
+            STEP_CHOICE[shape] = ("one fused C kernel (training/fused_mlp.c, the render kernel's rational tanh)"
+                                  if self.fused is not None else
+                                  f"PyTorch's operations ({fused_cpu.WHY_NOT.get(tuple(self.dims), '')})")
+        # the activation of PyTorch's operations (compiled on first use: not needed where the kernel runs)
+        self.act = torch.relu if activation != "tanh" else None if self.fused is not None else training_tanh(torch, dev)
 
     @property
     def k(self) -> int:
@@ -201,7 +214,12 @@ class StackedMLP:
     def forward(self, x, params=None):
         """(K, B, in) → (K, B, out)."""
         p = self.params if params is None else params
+        if self.fused is not None and x.dtype == self.torch.float32 and not x.requires_grad:
+            from .fused_cpu import fused_forward
+            return fused_forward(self.torch, self.fused, x, p)
         h, n = x, len(p) // 2
+        if self.act is None:
+            self.act = training_tanh(self.torch, self.dev)
         for i in range(n):
             h = self.torch.baddbmm(p[2 * i + 1], h, p[2 * i])
             if i < n - 1:

@@ -33,7 +33,7 @@ from .config import NETWORK_KINDS, NetConfig, TrainConfig, budget_minutes, minut
 from .data import Domain, PathSampler, RegressorStream, classifier_samples
 from .evaluate import map_outputs_np
 from .input_box import fold_input_box, input_box, is_box
-from .stacked import TANH_CHOICE, Problem
+from .stacked import STEP_CHOICE, TANH_CHOICE, Problem
 
 CLASSIFIER_VALIDATION = 400_000   # rays uniform over the domain that pick the classifier's best weights
 #: the first pool of a network that is only refined (Levenberg–Marquardt draws fresh rows per iteration; the
@@ -1262,6 +1262,10 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
             if dev not in told:
                 told.add(dev)
                 say(f"Adam's tanh on {dev}: {how}")
+        for shape, how in STEP_CHOICE.items():
+            if shape not in told:
+                told.add(shape)
+                say(f"Adam's steps of {shape} networks on the CPU: {how}")
         for tm in tms:
             model.maps[tm.key] = tm
         if base_model is not None:      # the base's order (ghosts: strongest first), new maps after

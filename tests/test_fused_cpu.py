@@ -1,0 +1,125 @@
+"""The fused CPU training step (training/fused_mlp.c) against PyTorch's operations: the same outputs and
+gradients to float32 rounding, for the shapes the trainer uses and for odd ones; and when it is not used."""
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from mi_neurallens.training import fused_cpu, stacked  # noqa: E402
+
+
+def _kernel_or_skip(dims):
+    kern = fused_cpu.kernel(torch, dims)
+    if kern is None:
+        pytest.skip(f"no fused kernel here: {fused_cpu.WHY_NOT.get(tuple(dims))}")
+    return kern
+
+
+def _reference(net, x, gout):
+    """Outputs and parameter gradients of sum(gout · out) through PyTorch's operations (the rational tanh)."""
+    fused, net.fused = net.fused, None
+    try:
+        for q in net.params:
+            q.grad = None
+        out = net.forward(x)
+        (out * gout).sum().backward()
+        return out.detach(), [q.grad.clone() for q in net.params]
+    finally:
+        net.fused = fused
+        for q in net.params:
+            q.grad = None
+
+
+@pytest.mark.parametrize("n_in,hidden,width,n_out,K,B", [
+    (4, 5, 32, 5, 3, 1000),     # the benchmark's regressor; B not a multiple of the tile or the row block
+    (4, 3, 16, 5, 2, 4096),     # the defaults' ghost regressor
+    (4, 2, 16, 1, 4, 37),       # the defaults' classifier, a batch smaller than a tile
+    (5, 3, 48, 17, 1, 300),     # three vectors wide, more outputs than one vector holds
+    (3, 1, 16, 2, 2, 8),        # one hidden layer
+])
+def test_forward_and_gradients_match_pytorch(n_in, hidden, width, n_out, K, B):
+    net = stacked.StackedMLP(torch, "cpu", range(K), n_in, n_out, hidden, width)
+    _kernel_or_skip(net.dims)
+    assert net.fused is not None
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn(K, B, n_in, generator=g) * 2.0
+    gout = torch.randn(K, B, n_out, generator=g)
+    ref_out, ref_grads = _reference(net, x, gout)
+    out = net.forward(x)
+    assert out.shape == (K, B, n_out)
+    (out * gout).sum().backward()
+    np.testing.assert_allclose(out.detach().numpy(), ref_out.numpy(), rtol=0, atol=2e-6 * float(ref_out.abs().max()))
+    for q, r in zip(net.params, ref_grads):
+        scale = float(r.abs().max())
+        np.testing.assert_allclose(q.grad.numpy(), r.numpy(), rtol=0, atol=2e-5 * scale)
+
+
+def test_each_map_its_own_gradient():
+    """Map j's gradient depends only on map j's rows: changing map 1's targets leaves map 0's gradient."""
+    net = stacked.StackedMLP(torch, "cpu", range(2), 4, 5, 3, 16)
+    _kernel_or_skip(net.dims)
+    x = torch.randn(2, 500, 4)
+    grads = []
+    for scale in (1.0, 7.0):
+        gout = torch.ones(2, 500, 5)
+        gout[1] *= scale
+        for q in net.params:
+            q.grad = None
+        (net.forward(x) * gout).sum().backward()
+        grads.append([q.grad.clone() for q in net.params])
+    for a, b in zip(*grads):
+        assert torch.equal(a[0], b[0])
+        assert not torch.allclose(a[1], b[1])
+
+
+def test_views_of_a_pool_are_read_as_their_rows():
+    """A batch is a window of the stacked pools, a non-contiguous view: the kernel reads its rows."""
+    net = stacked.StackedMLP(torch, "cpu", range(3), 4, 5, 3, 16)
+    _kernel_or_skip(net.dims)
+    pool = torch.randn(3, 2000, 4)
+    view = pool[:, 700:1212]
+    assert not view.is_contiguous()
+    with torch.no_grad():
+        assert torch.equal(net.forward(view), net.forward(view.contiguous()))
+
+
+def test_not_used_where_it_cannot_run(monkeypatch):
+    """Widths that are not whole vectors, and MI_NEURALLENS_FUSED=0, keep PyTorch's operations, with the reason."""
+    assert fused_cpu.kernel(torch, [4, 24, 24, 5]) is None
+    assert "multiple of 16" in fused_cpu.WHY_NOT[(4, 24, 24, 5)]
+    net = stacked.StackedMLP(torch, "cpu", range(2), 4, 5, 2, 24)
+    assert net.fused is None and "multiple of 16" in stacked.STEP_CHOICE["4-24-24-5"]
+    monkeypatch.setenv("MI_NEURALLENS_FUSED", "0")
+    monkeypatch.setattr(fused_cpu, "_KERNELS", {})
+    assert fused_cpu.kernel(torch, [4, 16, 16, 5]) is None
+    assert fused_cpu.WHY_NOT[(4, 16, 16, 5)] == "MI_NEURALLENS_FUSED=0"
+
+
+def test_no_compiler_falls_back(monkeypatch):
+    monkeypatch.setattr(fused_cpu, "_KERNELS", {})
+    monkeypatch.setattr(fused_cpu, "_compiler", lambda: None)
+    monkeypatch.setattr(fused_cpu, "_cache_dir", lambda: __import__("pathlib").Path("/nonexistent-cache"))
+    assert fused_cpu.kernel(torch, [4, 16, 16, 5]) is None
+    assert "no C compiler" in fused_cpu.WHY_NOT[(4, 16, 16, 5)]
+
+
+def test_a_stack_trains_the_same_with_and_without_the_kernel():
+    """Fifty Adam steps of a stack: the fused step and PyTorch's reach the same weights to float32 drift."""
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(2, 2048, 4, generator=g)
+    y = torch.sin(x.sum(-1, keepdim=True) * torch.tensor([1.0, 0.5, -0.7]))
+    finals = []
+    for use in (True, False):
+        net = stacked.StackedMLP(torch, "cpu", range(2), 4, 3, 3, 16)
+        if not use:
+            net.fused = None
+        elif net.fused is None:
+            pytest.skip("no fused kernel here")
+        opt = stacked.StackedAdam(net.params)
+        for _ in range(50):
+            ((net.forward(x) - y) ** 2).mean(dim=(1, 2)).sum().backward()
+            opt.step(net.params, 3e-3)
+        finals.append([q.detach().clone() for q in net.params])
+    for a, b in zip(*finals):
+        np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=0, atol=1e-4)
+
