@@ -26,6 +26,7 @@ separable per output, so the chain rule is a column scale), and ``validate`` / `
 from __future__ import annotations
 
 import math
+import os
 import time
 
 import numpy as np
@@ -229,7 +230,13 @@ class FlatMLP:
         # the hidden layers' columns, and r as one more column: the Gram matrix of [J | r] holds JᵀJ and Jᵀr, and
         # as a product of many columns it sums in the same order whatever the stack's size (a product with one
         # column does not), so a stacked network takes the steps it would take alone (tests/test_levenberg.py)
-        Jh = torch.empty(lead + (n, no, Ph + 1), dtype=hs[0].dtype, device=hs[0].device)
+        onednn = _onednn_gram(torch, hs[0])
+        if onednn:     # J stored column by column (Ph + 1, out, n): its Gram is then a product oneDNN takes as it is
+            Jb = torch.empty(lead + (Ph + 1, no, n), dtype=hs[0].dtype, device=hs[0].device)
+            nl = len(lead)
+            Jh = Jb.permute(*range(nl), nl + 2, nl + 1, nl)                      # (…, n, out, Ph + 1), a view
+        else:
+            Jh = torch.empty(lead + (n, no, Ph + 1), dtype=hs[0].dtype, device=hs[0].device)
         Jh[..., Ph] = r
         # ∂ output o / ∂ (pre-activation of the last hidden layer), scaled: s[n, o] · W_L[o, :] · (1 − h²)
         G = (s[..., None] * L[-1][0][..., None, :, :]) * (1.0 - hs[-2] * hs[-2])[..., None, :]
@@ -238,13 +245,21 @@ class FlatMLP:
             W, _ = L[k]
             o_, i_ = W.shape[-2], W.shape[-1]
             off -= o_ * i_ + o_
-            torch.mul(G[..., :, :, None], hs[k][..., None, None, :],
-                      out=Jh[..., off:off + o_ * i_].unflatten(-1, (o_, i_)))
-            Jh[..., off + o_ * i_:off + o_ * i_ + o_] = G
+            if onednn:      # written along the rows, as Jb lies: (o_, i_, out, n) = G (o_, ·, out, n) · h (·, i_, ·, n)
+                Gt = G.permute(*range(nl), nl + 2, nl + 1, nl).contiguous()           # (…, o_, out, n)
+                ht = hs[k].transpose(-1, -2).contiguous()                             # (…, i_, n)
+                torch.mul(Gt[..., :, None, :, :], ht[..., None, :, None, :],
+                          out=Jb[..., off:off + o_ * i_, :, :].unflatten(-3, (o_, i_)))
+                Jb[..., off + o_ * i_:off + o_ * i_ + o_, :, :] = Gt
+            else:
+                torch.mul(G[..., :, :, None], hs[k][..., None, None, :],
+                          out=Jh[..., off:off + o_ * i_].unflatten(-1, (o_, i_)))
+                Jh[..., off + o_ * i_:off + o_ * i_ + o_] = G
             if k > 0:
                 G = (G @ W[..., None, :, :]) * (1.0 - hs[k] * hs[k])[..., None, :]
-        Gr = _gram(Jh.reshape(lead + (n * no, Ph + 1)),
-                   torch.empty(lead + (Ph + 1, Ph + 1), dtype=hs[0].dtype, device=hs[0].device))
+        gram_out = torch.empty(lead + (Ph + 1, Ph + 1), dtype=hs[0].dtype, device=hs[0].device)
+        Gr = (_gram_columns(torch, Jb.reshape(lead + (Ph + 1, no * n)), gram_out) if onednn else
+              _gram(Jh.reshape(lead + (n * no, Ph + 1)), gram_out))
         A = torch.zeros(lead + (self.P, self.P), dtype=hs[0].dtype, device=hs[0].device)
         A[..., :Ph, :Ph] = Gr[..., :Ph, :Ph]
         g = torch.empty(lead + (self.P,), dtype=hs[0].dtype, device=hs[0].device)
@@ -281,6 +296,45 @@ def _gram(J, out):
             out[..., c[i]:c[i + 1], c[j]:c[j + 1]] = B
             if j != i:
                 out[..., c[j]:c[j + 1], c[i]:c[i + 1]] = B.transpose(-1, -2)
+    return out
+
+
+def _onednn_gram(torch, like) -> bool:
+    """Whether :func:`_gram_columns` serves a Gram matrix of ``like``'s dtype and device: float32 on a CPU whose
+    PyTorch has oneDNN's linear (``torch.ops.mkldnn._linear_pointwise``); ``MI_NEURALLENS_ONEDNN=0`` turns it off."""
+    if like.device.type != "cpu" or like.dtype != torch.float32 or os.environ.get("MI_NEURALLENS_ONEDNN", "1") == "0":
+        return False
+    if "ok" not in _ONEDNN:
+        try:
+            a = torch.arange(6.0).reshape(2, 3)
+            got = torch.ops.mkldnn._linear_pointwise(a, a, None, "none", [], "")
+            _ONEDNN["ok"] = bool(torch.equal(got, a @ a.T))
+        except (AttributeError, RuntimeError, NotImplementedError):
+            _ONEDNN["ok"] = False
+    return _ONEDNN["ok"]
+
+
+_ONEDNN = {}
+
+
+def _gram_columns(torch, JT, out):
+    """``out`` (…, P, P) ← JᵀJ from ``JT`` = Jᵀ (…, P, rows), contiguous, by oneDNN's products: the same
+    blocks as :func:`_gram`.  PyTorch's own CPU product (MKL) runs AVX2 code on AMD processors; oneDNN's uses the
+    full vector width: the Gram of a 3×16 regressor's 40 960 × 625 Jacobian took 116 ms through MKL and ≈ 60 here
+    (2 Zen 5 cores, docs/results.md "One kernel a step")."""
+    P = JT.shape[-2]
+    nb = max(1, round(P / GRAM_BLOCK))
+    c = [P * i // nb for i in range(nb + 1)]
+    lin = torch.ops.mkldnn._linear_pointwise
+    for idx in np.ndindex(*JT.shape[:-2]):
+        J1, o1 = JT[idx], out[idx]
+        for i in range(nb):
+            Ji = J1[c[i]:c[i + 1]]
+            for j in range(i, nb):
+                B = lin(Ji, J1[c[j]:c[j + 1]], None, "none", [], "")
+                o1[c[i]:c[i + 1], c[j]:c[j + 1]] = B
+                if j != i:
+                    o1[c[j]:c[j + 1], c[i]:c[i + 1]] = B.transpose(-1, -2)
     return out
 
 
