@@ -29,7 +29,10 @@ import sys
 import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, ROOT)
+if "--old" not in sys.argv:
+    # the --old subprocess imports the baseline checkout (its PYTHONPATH and cwd), not this tree: before
+    # 2026-11-28 this line ran there too, so its "old trainer" was this tree's trainer one map at a time
+    sys.path.insert(0, ROOT)
 
 LENS = "wide-22mm"
 BENCH_NETWORKS = {"regressor": (5, 32), "classifier": (3, 32)}     # (hidden layers, width)
@@ -70,7 +73,8 @@ def problems(k, kind, heldout=20_000):
 
 def net_config(kind, steps):
     from mi_neurallens.training.config import load_config
-    cfg = load_config(os.path.join(ROOT, "training", f"{LENS}.toml"))
+    # the recipe of the tree being measured (the --old subprocess runs in the baseline checkout)
+    cfg = load_config(os.path.join(os.getcwd() if "--old" in sys.argv else ROOT, "training", f"{LENS}.toml"))
     nc = cfg.net(kind, "forward")
     # The networks the recorded rates were measured with (the recipe has since moved its ghost regressors to
     # 3 x 16), and no Levenberg-Marquardt finish: its wall-clock budget would count as loop time.
@@ -80,7 +84,8 @@ def net_config(kind, steps):
     if hasattr(nc, "stop_at_goals"):
         over["stop_at_goals"] = False
     import dataclasses
-    return dataclasses.replace(nc, **over)
+    known = {f.name for f in dataclasses.fields(nc)}        # the baseline's NetConfig has no finish
+    return dataclasses.replace(nc, **{k: v for k, v in over.items() if k in known})
 
 
 def measure_new(k, kind, steps, step="fused"):
@@ -134,8 +139,9 @@ def measure_old(k, kind, steps):
                                          scale_in=p["scale_in"], seed=p["seed"], ckpt=None, progress=False)
         samples += r["state"]["samples"]
         seconds += r["state"]["seconds"]
+    import mi_neurallens
     return {"maps": k, "kind": kind, "steps": steps, "samples": samples, "loop_seconds": seconds,
-            "samples_per_s": samples / seconds}
+            "samples_per_s": samples / seconds, "package": os.path.dirname(mi_neurallens.__file__)}
 
 
 def matmul_peak(k=4, rows=8192, width=32, repeats=200):
@@ -278,6 +284,8 @@ def main():
                               str(args.steps), "--kinds", args.kinds], env=env, cwd=args.baseline_tree,
                              capture_output=True, text=True, check=True)
         got = json.loads(out.stdout.strip().splitlines()[-1])
+        if any(not os.path.abspath(r["package"]).startswith(os.path.abspath(args.baseline_tree)) for r in got):
+            raise SystemExit(f"the baseline run imported {got[0]['package']}, not {args.baseline_tree}")
         for r in got:
             print(f"old  {r['kind']:10s} one at a time ×{r['maps']} ({when}): {r['samples_per_s'] / 1e6:.2f} M samples/s",
                   flush=True)
