@@ -123,3 +123,85 @@ def test_a_stack_trains_the_same_with_and_without_the_kernel():
     for a, b in zip(*finals):
         np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=0, atol=1e-4)
 
+
+
+def _regressor_problem(direction_loss, odd, heading):
+    """A RegressorFit with just what its loss reads (no tracer): random transform, weights and constants."""
+    from mi_neurallens.training.config import NetConfig
+    from mi_neurallens.training.trainer import RegressorFit
+    fit = RegressorFit.__new__(RegressorFit)
+    rng = np.random.default_rng(11)
+    fit.torch, fit.dev, fit.heading = torch, "cpu", heading
+    fit.nc = NetConfig(direction_loss=direction_loss, cosine_weight=0.7)
+    fit.odd_s = 3.0 if odd else None
+    fit.wy_c, fit.wy_s = 0.2, 1.3
+    fit.W = torch.as_tensor(rng.uniform(0.5, 2.0, 5), dtype=torch.float32)
+    fit.T_shift = torch.as_tensor(rng.normal(0, 0.05, 5), dtype=torch.float32)
+    fit.T_skip = torch.as_tensor(rng.normal(0, 0.1, (5, 4)), dtype=torch.float32)
+    fit.T_scale = torch.as_tensor(rng.uniform(0.05, 0.2, 5), dtype=torch.float32)
+    fit.sig_d2 = 0.013
+    return fit
+
+
+@pytest.mark.parametrize("direction_loss,odd,edge,heading", [
+    ("mse+cosine", True, False, 1), ("cosine", False, True, 1), ("none", True, True, -1), ("mse+cosine", False, True, -1)])
+def test_regressor_loss_and_gradient_match_autograd(direction_loss, odd, edge, heading):
+    """The kernel's regressor loss (fused_mlp.c loss_regressor) against RegressorFit.rows_loss and autograd, on a
+    window of stacked pools (strided rows), with exit directions near grazing (the dz clamp) among them."""
+    net = stacked.StackedMLP(torch, "cpu", range(3), 4, 5, 3, 16)
+    kern = _kernel_or_skip(net.dims)
+    fit = _regressor_problem(direction_loss, odd, heading)
+    g = torch.Generator().manual_seed(2)
+    K, n, B = 3, 900, 700
+    pools = {"X": torch.rand(K, n, 4, generator=g) * 2 - 1, "Y": torch.randn(K, n, 5, generator=g) * 0.3,
+             "Yraw": torch.randn(K, n, 5, generator=g) * 0.4}
+    pools["Yraw"][:, :50, 2] = 0.9999                  # grazing targets: 1 - |d|² below the clamp
+    if edge:
+        pools["W"] = torch.rand(K, n, generator=g) + 0.5
+    batch = {k: v[:, 100:100 + B] for k, v in pools.items()}
+    const = {k: torch.stack([v] * K) for k, v in fit.constants().items()}
+    out = (torch.randn(K, B, 5, generator=g) * 0.5).requires_grad_()
+    ref = fit.rows_loss(out, batch, const)
+    ref.sum().backward()
+    loss, gout = fit.fused_loss(kern, out.detach(), batch, const)
+    np.testing.assert_allclose(loss.numpy(), ref.detach().numpy(), rtol=2e-5, atol=1e-7)
+    np.testing.assert_allclose(gout.numpy(), out.grad.numpy(), rtol=0, atol=1e-4 * float(out.grad.abs().max()))
+
+
+def test_margin_loss_and_gradient_match_autograd():
+    from mi_neurallens.training.config import NetConfig
+    from mi_neurallens.training.trainer import ClassifierFit
+    net = stacked.StackedMLP(torch, "cpu", range(2), 4, 1, 2, 16)
+    kern = _kernel_or_skip(net.dims)
+    fit = ClassifierFit.__new__(ClassifierFit)
+    fit.torch, fit.margin, fit.nc = torch, True, NetConfig(target="margin", margin_clip=2.5)
+    assert fit.has_fused_loss()
+    g = torch.Generator().manual_seed(4)
+    t = torch.randn(2, 3000, generator=g) * 3.0                       # inside, beyond both clips
+    batch = {"L": t[:, 500:2500]}
+    out = (torch.randn(2, 2000, 1, generator=g) * 3.0).requires_grad_()
+    ref = fit.rows_loss(out, batch, {})
+    ref.sum().backward()
+    loss, gout = fit.fused_loss(kern, out.detach(), batch, {})
+    np.testing.assert_allclose(loss.numpy(), ref.detach().numpy(), rtol=1e-5)
+    np.testing.assert_allclose(gout.numpy(), out.grad.numpy(), rtol=0, atol=1e-6 * float(out.grad.abs().max()))
+
+
+def test_a_fused_step_leaves_the_gradients_autograd_would():
+    """stacked.fused_step (network and loss in C, no autograd) against forward + rows_loss + backward."""
+    net = stacked.StackedMLP(torch, "cpu", range(3), 4, 5, 3, 16)
+    _kernel_or_skip(net.dims)
+    fit = _regressor_problem("mse+cosine", True, 1)
+    g = torch.Generator().manual_seed(6)
+    batch = {"X": torch.rand(3, 512, 4, generator=g) * 2 - 1, "Y": torch.randn(3, 512, 5, generator=g) * 0.3,
+             "Yraw": torch.randn(3, 512, 5, generator=g) * 0.4}
+    const = {k: torch.stack([v] * 3) for k, v in fit.constants().items()}
+    loss = stacked.fused_step(net, fit, batch, const)
+    got = [q.grad.clone() for q in net.params]
+    for q in net.params:
+        q.grad = None
+    ref = fit.rows_loss(net.forward(batch["X"]), batch, const)      # the fused network, autograd's loss
+    ref.sum().backward()
+    np.testing.assert_allclose(loss.numpy(), ref.detach().numpy(), rtol=2e-5)
+    for a, q in zip(got, net.params):
+        np.testing.assert_allclose(a.numpy(), q.grad.numpy(), rtol=0, atol=1e-4 * float(q.grad.abs().max()))

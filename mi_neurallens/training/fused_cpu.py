@@ -5,7 +5,10 @@ Why.  PyTorch's CPU products for these shapes (MKL's batched ``sgemm``) run its 
 about 185 GFLOP/s on two Zen 5 cores whose AVX-512 units reach 517; and between the products, every
 activation, its derivative and each layer's gradient is a separate pass over ``(K, B, width)`` arrays that
 leave the cache.  Here one thread takes 128 rows of one map through every layer and back, in registers and
-L1, with the render kernel's rational tanh in between (docs/results.md, "Training many maps at once").
+L1, with the render kernel's rational tanh in between (docs/results.md, "One kernel a step").  The losses
+of the regressors and margin classifiers are there too, value and gradient in one pass
+(:meth:`FusedKernel.loss_regressor`, :meth:`FusedKernel.loss_margin`; ``stacked.fused_step`` runs a step
+with them and no autograd).
 
 Layout (what :class:`StackedMLP` holds): ``params`` = [W₀ (K, in, w), b₀ (K, 1, w), …, W_H (K, w, out),
 b_H (K, 1, out)], each contiguous float32; inputs ``(K, B, in)``.  :func:`fused_forward` is an autograd
@@ -86,6 +89,10 @@ class FusedKernel:
         lib.fused_backward.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p,
                                        ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p]
         lib.fused_set_threads.argtypes = [ctypes.c_int]
+        P, L, I, F = ctypes.c_void_p, ctypes.c_long, ctypes.c_int, ctypes.c_float
+        lib.loss_regressor.argtypes = [I, I, P, P, L, L, P, L, L, P, L, L, P, L, L, P, P, P, P, P, P, P, P,
+                                       I, I, F, F, P, P]
+        lib.loss_margin.argtypes = [I, I, P, P, L, L, F, P, P]
         lib.fused_set_threads(int(threads))
 
     @staticmethod
@@ -120,6 +127,56 @@ class FusedKernel:
         self.lib.fused_backward(K, B, x.data_ptr(), self._ptrs(trans), acts.data_ptr(), gout.data_ptr(),
                                 self._ptrs(grads))
         return grads
+
+
+    # -- the losses, value and gradient in one pass (fused_mlp.c, "The losses of training/trainer.py") ----------
+    @staticmethod
+    def _rows(a):
+        """(pointer, map stride, row stride) of a (K, B, c) batch view whose rows are contiguous."""
+        if a.stride(-1) != 1:
+            a = a.contiguous()
+        return a, a.data_ptr(), a.stride(0), a.stride(1)
+
+    def loss_regressor(self, torch, out, batch, const, *, odd: bool, cos_mode: int, cosine_weight: float,
+                       heading: float):
+        """(loss (K,) float32, ∂ΣK loss / ∂out (K, B, 5)) of :meth:`RegressorFit.rows_loss
+        <mi_neurallens.training.trainer.RegressorFit.rows_loss>`; ``cos_mode`` 0: MSE, 1: cosine, 2: both."""
+        K, B = out.shape[0], out.shape[1]
+        out = out.detach().contiguous()
+        keep = []
+        rows = []
+        for name in ("X", "Y", "Yraw"):
+            a, ptr, ks, rs = self._rows(batch[name])
+            keep.append(a)
+            rows += [ptr, ks, rs]
+        w = batch.get("W")
+        if w is not None:
+            a, ptr, ks, rs = self._rows(w)
+            keep.append(a)
+            rows += [ptr, ks, rs]
+        else:
+            rows += [None, 0, 0]
+        c = {n: const[n].detach().to(torch.float32).contiguous() for n in
+             ("W", "shift", "skip", "scale", "sig_d2", "wy_c", "wy_s", "odd_s")}
+        loss = torch.empty(K, dtype=torch.float64)
+        gout = torch.empty((K, B, 5), dtype=torch.float32)
+        self.lib.loss_regressor(K, B, out.data_ptr(), *rows, *[c[n].data_ptr() for n in
+                                ("W", "shift", "skip", "scale", "sig_d2", "wy_c", "wy_s", "odd_s")],
+                                int(odd), int(cos_mode), float(cosine_weight), float(heading),
+                                loss.data_ptr(), gout.data_ptr())
+        return loss.to(torch.float32), gout
+
+    def loss_margin(self, torch, out, target, clip: float):
+        """(loss (K,) float32, ∂ΣK loss / ∂out (K, B, 1)) of :meth:`ClassifierFit.margin_loss
+        <mi_neurallens.training.trainer.ClassifierFit.margin_loss>`."""
+        K, B = out.shape[0], out.shape[1]
+        out = out.detach().contiguous()
+        t = target if target.stride(-1) == 1 else target.contiguous()
+        loss = torch.empty(K, dtype=torch.float64)
+        gout = torch.empty((K, B, 1), dtype=torch.float32)
+        self.lib.loss_margin(K, B, out.data_ptr(), t.data_ptr(), t.stride(0), t.stride(1), float(clip),
+                             loss.data_ptr(), gout.data_ptr())
+        return loss.to(torch.float32), gout
 
 
 def kernel(torch, dims) -> FusedKernel | None:

@@ -216,3 +216,102 @@ void fused_backward(int K, int B, const float *x, const float *const *T, const f
 }
 
 void fused_set_threads(int n) { omp_set_num_threads(n); }
+
+/* ---------------------------------------------------------------------------------------------------------------
+ * The losses of training/trainer.py, value and gradient with respect to the network's outputs in one pass (what
+ * RegressorFit.rows_loss / ClassifierFit.margin_loss compute through some forty PyTorch operations).  Rows are
+ * read through strides: a batch is a window of the stacked pools, (K, B, ·) with map stride ks and row stride
+ * rs floats.  loss (K) in double; gout (K, B, nout) contiguous.
+ * ------------------------------------------------------------------------------------------------------------- */
+
+static inline void dir3(float dx, float dy, float heading, float v[3], float *norm, float *s) {
+    const float q = 1.0f - dx * dx - dy * dy;
+    *s = sqrtf(q > 1e-8f ? q : 1e-8f);
+    v[0] = dx; v[1] = dy; v[2] = heading * *s;
+    *norm = sqrtf(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
+}
+
+/* The regressor's loss (RegressorFit.rows_loss): weighted standardised MSE of p = out * M against t over the
+ * columns `cols` (all five, or 0, 1, 4 with the cosine loss), divided by 5, plus cosine_weight * (2/5) *
+ * |dir3(d_pred) - dir3(yraw[2:4])|^2 / (2 sig_d2), each a mean over the rows (weighted by wedge when given).
+ * Per map constants, each (K, ·) contiguous: W (5), shift (5), skip (5 x 4), scale (5), sig_d2, wy_c, wy_s,
+ * odd_s.  odd: M's odd columns (1 and 3) are (wy_c + wy_s x[2]) / odd_s, else M = 1.  cos_mode: 0 none,
+ * 1 the cosine loss (directions left out of the MSE), 2 MSE and cosine. */
+void loss_regressor(int K, int B, const float *out,
+                    const float *x, long xks, long xrs, const float *t, long tks, long trs,
+                    const float *yraw, long yks, long yrs, const float *wedge, long wks, long wrs,
+                    const float *W, const float *shift, const float *skip, const float *scale,
+                    const float *sig_d2, const float *wy_c, const float *wy_s, const float *odd_s,
+                    int odd, int cos_mode, float cosine_weight, float heading, double *loss, float *gout) {
+#pragma omp parallel for schedule(static)
+    for (int k = 0; k < K; k++) {
+        double acc = 0.0;
+        const float *Wk = W + 5 * k, *sh = shift + 5 * k, *sk = skip + 20 * k, *sc = scale + 5 * k;
+        const float cos_c = cos_mode ? cosine_weight * 0.4f / (2.0f * sig_d2[k]) : 0.0f;
+        for (int r = 0; r < B; r++) {
+            const float *xr = x + k * xks + r * xrs, *tr = t + k * tks + r * trs, *o = out + ((long)k * B + r) * 5;
+            const float wr = wedge ? wedge[k * wks + r * wrs] : 1.0f;
+            float M[5] = {1.0f, 1.0f, 1.0f, 1.0f, 1.0f};
+            if (odd) M[1] = M[3] = (wy_c[k] + wy_s[k] * xr[2]) / odd_s[k];
+            float p[5], g[5];
+            double lr = 0.0;
+            for (int j = 0; j < 5; j++) {
+                p[j] = o[j] * M[j];
+                const int used = cos_mode != 1 || j == 0 || j == 1 || j == 4;
+                const float e = p[j] - tr[j];
+                lr += used ? (double)(e * e * Wk[j]) / 5.0 : 0.0;
+                g[j] = used ? 2.0f * e * Wk[j] / 5.0f : 0.0f;
+            }
+            if (cos_mode) {
+                const float *yr = yraw + k * yks + r * yrs;
+                float d[2];
+                for (int c = 0; c < 2; c++) {
+                    float lin = sh[2 + c];
+                    for (int i = 0; i < 4; i++) lin += xr[i] * sk[(2 + c) * 4 + i];
+                    d[c] = M[2 + c] * lin + sc[2 + c] * p[2 + c];
+                }
+                float a[3], b[3], na, nb, sa, sb;
+                dir3(d[0], d[1], heading, a, &na, &sa);
+                dir3(yr[2], yr[3], heading, b, &nb, &sb);
+                float diff[3], dot = 0.0f, term = 0.0f;
+                for (int c = 0; c < 3; c++) {
+                    a[c] /= na; b[c] /= nb;
+                }
+                for (int c = 0; c < 3; c++) {
+                    diff[c] = a[c] - b[c];
+                    term += diff[c] * diff[c];
+                    dot += a[c] * diff[c];
+                }
+                lr += (double)cos_c * term;
+                /* d term / d v = (I - a a^T) 2 (a - b) / |v|; dz/dd = -heading d / s while 1 - |d|^2 > 1e-8 */
+                float gv[3];
+                for (int c = 0; c < 3; c++) gv[c] = 2.0f * (diff[c] - a[c] * dot) / na;
+                const float q = 1.0f - d[0] * d[0] - d[1] * d[1];
+                const float dzd = q > 1e-8f ? -heading / sa : 0.0f;
+                for (int c = 0; c < 2; c++) g[2 + c] += cos_c * (gv[c] + gv[2] * dzd * d[c]) * sc[2 + c];
+            }
+            acc += wr * lr;
+            float *go = gout + ((long)k * B + r) * 5;
+            for (int j = 0; j < 5; j++) go[j] = g[j] * M[j] * wr / (float)B;
+        }
+        loss[k] = acc / B;
+    }
+}
+
+/* The classifier's margin interval loss (ClassifierFit.margin_loss): the mean over the rows of relu(lo - z)^2 +
+ * relu(z - hi)^2, lo = t unless t <= -clip (then -inf), hi = t unless t >= clip (then +inf); z = out[..., 0]. */
+void loss_margin(int K, int B, const float *out, const float *t, long tks, long trs, float clip, double *loss,
+                 float *gout) {
+#pragma omp parallel for schedule(static)
+    for (int k = 0; k < K; k++) {
+        double acc = 0.0;
+        for (int r = 0; r < B; r++) {
+            const float z = out[(long)k * B + r], tr = t[k * tks + r * trs];
+            float g = 0.0f;
+            if (tr > -clip && z < tr) { acc += (double)(tr - z) * (tr - z); g = -2.0f * (tr - z); }
+            if (tr < clip && z > tr) { acc += (double)(z - tr) * (z - tr); g = 2.0f * (z - tr); }
+            gout[(long)k * B + r] = g / (float)B;
+        }
+        loss[k] = acc / B;
+    }
+}

@@ -34,7 +34,8 @@ import numpy as np
 
 CHECKPOINT_SECONDS = 60.0
 #: rows per step (maps × batch) of a CPU stack: measured fastest on a 2-core AVX-512 machine (1.37 M
-#: samples/s at 4 × 8192, against 1.03 M at 16 × 8192: benchmarks/training_throughput.py --grid)
+#: samples/s at 4 × 8192, against 1.03 M at 16 × 8192: benchmarks/training_throughput.py --grid); with the fused
+#: step (fused_cpu) the stack size matters less (1, 4 and 16 regressors within 7 %: docs/results.md)
 CPU_STACK_ROWS = 32768
 #: memory the sample pools of one stack may take (bytes); a larger stack gets smaller pools per map
 POOL_BYTES = 3 << 30
@@ -56,7 +57,10 @@ class Problem:
       (score, postfix), lower is better, with ``self.net`` the map's own network, appending to
       ``self.state["history"]``; :meth:`goals_met` → whether the last validation met the goals;
     * :meth:`lm_residual` ``(z, batch)`` → (r, ∂r/∂z), residuals whose mean square is the loss: what the
-      Levenberg–Marquardt finish (:mod:`~mi_neurallens.training.levenberg`) minimises.
+      Levenberg–Marquardt finish (:mod:`~mi_neurallens.training.levenberg`) minimises;
+    * optionally :meth:`fused_loss` ``(kern, out, batch, const)`` → (loss ``(K,)``, ∂Σloss/∂out): :meth:`rows_loss`
+      and its gradient in one pass of the CPU kernel (:mod:`.fused_cpu`), where :meth:`has_fused_loss` says so;
+      the loop then runs a step without autograd (:func:`fused_step`).
     """
 
     POOL: dict = {}
@@ -86,6 +90,28 @@ class Problem:
 
     def lm_residual(self, z, batch):
         raise NotImplementedError
+
+    def has_fused_loss(self) -> bool:
+        return False
+
+    def fused_loss(self, kern, out, batch, const):
+        raise NotImplementedError
+
+
+def fused_step(net, fit, batch, const):
+    """One step's forward, loss and backward with neither autograd nor PyTorch's operations: the network through
+    the fused kernel and the loss through the problem's :meth:`Problem.fused_loss`, each parameter's gradient left
+    in ``.grad`` as ``loss.sum().backward()`` leaves it.  Returns the per-map loss ``(K,)``, or None where the
+    stack has no kernel or the problem no fused loss (then the caller differentiates :meth:`Problem.rows_loss`)."""
+    kern = net.fused
+    if kern is None or not fit.has_fused_loss() or batch["X"].dtype != net.torch.float32:
+        return None
+    X = batch["X"]
+    out, acts = kern.forward(net.torch, X, net.params)
+    loss, gout = fit.fused_loss(kern, out, batch, const)
+    for q, g in zip(net.params, kern.backward(net.torch, X, net.params, acts, gout)):
+        q.grad = g
+    return loss
 
 
 def lr_at(step: int, nc, seconds: float = 0.0) -> float:
@@ -427,8 +453,10 @@ def _train_one_stack(torch, dev, fits, nc, *, seeds, n_in: int, n_out: int, keys
         seconds = time.perf_counter() - t0
         lr = lr_at(step, nc, seconds / K)       # the schedule's clock: the stack's budget is K × max_minutes
         batch = pools.batch(int(rng.integers(0, pools.n - nc.batch + 1)), nc.batch)
-        loss = fits[active[0]].rows_loss(net.forward(batch["X"]), batch, pools.const)
-        loss.sum().backward()
+        loss = fused_step(net, fits[active[0]], batch, pools.const)
+        if loss is None:
+            loss = fits[active[0]].rows_loss(net.forward(batch["X"]), batch, pools.const)
+            loss.sum().backward()
         opt.step(net.params, lr)
         step += 1
         for i in active:

@@ -503,6 +503,18 @@ class RegressorFit(Problem):
             l = l + nc.cosine_weight * cos_term * (2.0 / 5.0)
         return l
 
+    #: RegressorFit's direction losses as the fused kernel's loss_regressor numbers them (else: MSE alone)
+    FUSED_COS_MODE = {"cosine": 1, "mse+cosine": 2}
+
+    def has_fused_loss(self) -> bool:
+        return self.T_skip.shape == (5, 4)
+
+    def fused_loss(self, kern, out, batch, const):
+        """:meth:`rows_loss` and its gradient in one pass of ``kern`` (:mod:`~mi_neurallens.training.fused_cpu`)."""
+        return kern.loss_regressor(self.torch, out, batch, const, odd=self.odd_s is not None,
+                                   cos_mode=self.FUSED_COS_MODE.get(self.nc.direction_loss, 0),
+                                   cosine_weight=self.nc.cosine_weight, heading=float(self.heading))
+
     def lm_residual(self, z, batch):
         """Levenberg–Marquardt's residuals of the network's outputs ``z`` (n, 5) on ``batch`` and their
         derivative ∂r/∂z (:mod:`~mi_neurallens.training.levenberg`): the weighted standardised errors whose mean
@@ -693,6 +705,14 @@ class ClassifierFit(Problem):
         if self.margin:
             return self.margin_loss(logit, t)
         return self.torch.nn.functional.binary_cross_entropy_with_logits(logit, t, reduction="none").mean(-1)
+
+    def has_fused_loss(self) -> bool:
+        return self.margin
+
+    def fused_loss(self, kern, out, batch, const):
+        """:meth:`margin_loss` of the logits and its gradient in one pass of ``kern``
+        (:mod:`~mi_neurallens.training.fused_cpu`)."""
+        return kern.loss_margin(self.torch, out, batch["L"], self.nc.margin_clip)
 
     def fresh_rows(self, k):
         X, L = self.samples(k)
