@@ -205,3 +205,34 @@ def test_a_fused_step_leaves_the_gradients_autograd_would():
     np.testing.assert_allclose(loss.numpy(), ref.detach().numpy(), rtol=2e-5)
     for a, q in zip(got, net.params):
         np.testing.assert_allclose(a.numpy(), q.grad.numpy(), rtol=0, atol=1e-4 * float(q.grad.abs().max()))
+
+
+def test_a_maps_gradient_is_the_same_alone_and_in_a_stack():
+    """Each map's tiles are shared among the threads the same way whatever the stack's size: map 1 of a stack of
+    three has, bit for bit, the gradient it has alone (the stacked trainer's promise of the Adam trajectory a map
+    would follow alone)."""
+    net = stacked.StackedMLP(torch, "cpu", range(3), 4, 5, 3, 16)
+    kern = _kernel_or_skip(net.dims)
+    g = torch.Generator().manual_seed(9)
+    x, gout = torch.randn(3, 8192, 4, generator=g), torch.randn(3, 8192, 5, generator=g)
+    params = [q.detach() for q in net.params]
+    _, acts = kern.forward(torch, x, params)
+    stack = kern.backward(torch, x, params, acts, gout)
+    one = [q[1:2].contiguous() for q in params]
+    _, acts1 = kern.forward(torch, x[1:2].contiguous(), one)
+    alone = kern.backward(torch, x[1:2].contiguous(), one, acts1, gout[1:2].contiguous())
+    for a, b in zip(stack, alone):
+        assert torch.equal(a[1:2], b)
+
+
+def test_shapes_and_dtypes_are_checked_before_the_kernel_reads_them():
+    net = stacked.StackedMLP(torch, "cpu", range(2), 4, 5, 3, 16)
+    kern = _kernel_or_skip(net.dims)
+    params = [q.detach() for q in net.params]
+    with pytest.raises(ValueError):
+        kern.forward(torch, torch.randn(2, 10, 3), params)                       # 3 inputs, not 4
+    with pytest.raises(ValueError):
+        kern.forward(torch, torch.randn(3, 10, 4), params)                       # 3 maps, parameters of 2
+    with pytest.raises(ValueError):
+        kern.forward(torch, torch.randn(2, 10, 4), [q.double() for q in params])
+    assert fused_cpu.kernel(torch, [4, 272, 272, 5]) is None                      # wider than the registers hold

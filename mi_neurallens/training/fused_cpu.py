@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+import math
 import os
 import platform
 import shutil
@@ -35,6 +36,8 @@ _SOURCE = Path(__file__).with_name("fused_mlp.c")
 _KERNELS: dict = {}
 #: floats a kernel vector holds (its widths are multiples of it)
 VECTOR = 16
+#: the widest hidden layer (and most outputs) the kernel takes: 16 vectors of sums are its registers' worth
+MAX_WIDTH = 16 * VECTOR
 #: why the last :func:`kernel` call returned None, in words (for the training log)
 WHY_NOT = {}
 
@@ -48,10 +51,12 @@ def _cpu_id() -> str:
     """What ``-march=native`` compiles for: the processor's model and feature flags."""
     try:
         text = Path("/proc/cpuinfo").read_text()
-        lines = [ln for ln in text.splitlines() if ln.startswith(("model name", "flags"))][:2]
-        return "\n".join(lines)
+        keys = ("model name", "flags", "Features", "CPU implementer", "CPU part")
+        lines = sorted({ln.split(":", 1)[0].strip() + ":" + ln.split(":", 1)[-1] for ln in text.splitlines()
+                        if ln.startswith(keys)})
+        return "\n".join([platform.machine()] + lines)
     except OSError:
-        return platform.processor()
+        return platform.machine() + platform.processor()
 
 
 def _compiler() -> str | None:
@@ -108,8 +113,21 @@ class FusedKernel:
             ps[-1] = torch.nn.functional.pad(ps[-1], (0, pad)).contiguous()
         return ps
 
+    def _check(self, torch, x, params):
+        """What the kernel reads through raw pointers, checked: float32 CPU tensors of this network's shapes."""
+        K = x.shape[0]
+        want = []
+        for a, b in zip(self.dims[:-1], self.dims[1:]):
+            want += [(K, a, b), (K, 1, b)]
+        if x.dim() != 3 or x.shape[2] != self.dims[0] or len(params) != len(want) or any(
+                tuple(p.shape) != w for p, w in zip(params, want)) or any(
+                t.dtype != torch.float32 or t.device.type != "cpu" for t in (x, *params)):
+            raise ValueError(f"fused kernel {self.dims}: inputs {tuple(x.shape)} {x.dtype} and parameters "
+                             f"{[tuple(p.shape) for p in params]} are not its float32 CPU shapes")
+
     def forward(self, torch, x, params):
         """x (K, B, in) float32 → (out (K, B, out), acts (K, H, B, w): the hidden layers' outputs)."""
+        self._check(torch, x, params)
         K, B = x.shape[0], x.shape[1]
         x = x.contiguous()
         ps = self._padded_out(torch, params)
@@ -120,16 +138,32 @@ class FusedKernel:
 
     def backward(self, torch, x, params, acts, gout):
         """Gradients of ``sum(gout · out)`` for every parameter, shaped as ``params``."""
+        self._check(torch, x, params)
         K, B = x.shape[0], x.shape[1]
-        x, gout = x.contiguous(), gout.contiguous()
+        if tuple(gout.shape) != (K, B, self.dims[-1]) or gout.dtype != torch.float32 or \
+                tuple(acts.shape) != (K, len(self.dims) - 2, B, self.dims[1]):
+            raise ValueError(f"fused kernel {self.dims}: gout {tuple(gout.shape)} or acts {tuple(acts.shape)}")
+        x, gout, acts = x.contiguous(), gout.contiguous(), acts.contiguous()
         trans = [w.detach().transpose(1, 2).contiguous() for w in params[0::2]]
-        grads = [torch.empty_like(p) for p in params]
+        grads = [torch.full_like(p, math.nan, memory_format=torch.contiguous_format) for p in params]
         self.lib.fused_backward(K, B, x.data_ptr(), self._ptrs(trans), acts.data_ptr(), gout.data_ptr(),
                                 self._ptrs(grads))
+        if math.isnan(float(grads[0].reshape(-1)[0])):       # its scratch could not be allocated
+            raise MemoryError(f"fused kernel {self.dims}: no memory for {K} maps' gradient sums")
         return grads
 
 
     # -- the losses, value and gradient in one pass (fused_mlp.c, "The losses of training/trainer.py") ----------
+    @staticmethod
+    def _check_rows(torch, out, n_out, *rows):
+        """A loss's outputs (K, B, n_out) and its batch's arrays (K, B, ·): float32 on the CPU."""
+        K, B = out.shape[0], out.shape[1]
+        if out.dim() != 3 or out.shape[2] != n_out or any(
+                r is not None and (tuple(r.shape[:2]) != (K, B) or r.dtype != torch.float32 or r.device.type != "cpu")
+                for r in (out, *rows)):
+            raise ValueError(f"fused loss: outputs {tuple(out.shape)} and rows "
+                             f"{[None if r is None else (tuple(r.shape), r.dtype) for r in rows]}")
+
     @staticmethod
     def _rows(a):
         """(pointer, map stride, row stride) of a (K, B, c) batch view whose rows are contiguous."""
@@ -142,6 +176,9 @@ class FusedKernel:
         """(loss (K,) float32, ∂ΣK loss / ∂out (K, B, 5)) of :meth:`RegressorFit.rows_loss
         <mi_neurallens.training.trainer.RegressorFit.rows_loss>`; ``cos_mode`` 0: MSE, 1: cosine, 2: both."""
         K, B = out.shape[0], out.shape[1]
+        self._check_rows(torch, out, 5, batch["X"], batch["Y"], batch["Yraw"], batch.get("W"))
+        if batch["X"].shape[-1] != 4:
+            raise ValueError(f"fused regressor loss: inputs {tuple(batch['X'].shape)}, not (K, B, 4)")
         out = out.detach().contiguous()
         keep = []
         rows = []
@@ -170,6 +207,7 @@ class FusedKernel:
         """(loss (K,) float32, ∂ΣK loss / ∂out (K, B, 1)) of :meth:`ClassifierFit.margin_loss
         <mi_neurallens.training.trainer.ClassifierFit.margin_loss>`."""
         K, B = out.shape[0], out.shape[1]
+        self._check_rows(torch, out, 1, target)
         out = out.detach().contiguous()
         t = target if target.stride(-1) == 1 else target.contiguous()
         loss = torch.empty(K, dtype=torch.float64)
@@ -188,8 +226,9 @@ def kernel(torch, dims) -> FusedKernel | None:
     got = None
     if os.environ.get("MI_NEURALLENS_FUSED", "1") == "0":
         WHY_NOT[key] = "MI_NEURALLENS_FUSED=0"
-    elif len(key) < 3 or len(set(key[1:-1])) != 1 or key[1] % VECTOR:
-        WHY_NOT[key] = f"hidden layers {key[1:-1]}: one width, a multiple of {VECTOR}"
+    elif len(key) < 3 or len(set(key[1:-1])) != 1 or key[1] % VECTOR or not 0 < key[1] <= MAX_WIDTH \
+            or not 0 < key[-1] <= MAX_WIDTH or key[0] < 1:
+        WHY_NOT[key] = f"hidden layers {key[1:-1]}: one width, a multiple of {VECTOR} up to {MAX_WIDTH}"
     else:
         try:
             got = FusedKernel(ctypes.CDLL(str(_build(key))), key, torch.get_num_threads())
@@ -214,14 +253,15 @@ def _build(dims) -> Path:
     if out.exists():
         return out
     out.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory() as tmp:
+    # built beside its final name and renamed into place: another process sees the whole library or none
+    with tempfile.TemporaryDirectory(dir=out.parent) as tmp:
         src = Path(tmp) / "fused_mlp.c"
         src.write_text(header + source)
         lib = Path(tmp) / out.name
         proc = subprocess.run([cc, *flags, str(src), "-o", str(lib)], capture_output=True, text=True, timeout=120)
         if proc.returncode != 0:
             raise RuntimeError(f"{cc} failed: {proc.stderr.strip()[-400:]}")
-        os.replace(lib, out) if Path(tmp).stat().st_dev == out.parent.stat().st_dev else shutil.move(lib, out)
+        os.replace(lib, out)
     return out
 
 

@@ -163,14 +163,18 @@ void fused_backward(int K, int B, const float *x, const float *const *T, const f
     const long np = w_off(NL);
     const int nth = omp_get_max_threads();
     float *sums = (float *)calloc((size_t)nth * K * np, sizeof(float));
+    if (!sums) return;             /* the caller checks G's first value (NaN-filled before the call) */
+    /* Each map's tiles are split among the threads the same way whatever K is (one work-sharing loop per map),
+     * and the threads' sums are added in thread order: a map's gradient does not depend on the stack around it. */
 #pragma omp parallel
     {
         float *mine = sums + (long)omp_get_thread_num() * K * np;
         float go[TILE * NOP], da[TILE * NW], dp[TILE * NW];  /* padded gout; a layer's input and pre-activation gradients */
         for (int i = 0; i < TILE * NOP; i++) go[i] = 0.0f;
-#pragma omp for schedule(static)
-        for (int t = 0; t < K * tiles; t++) {
-            const int k = t / tiles, r0 = (t % tiles) * TILE, n = B - r0 < TILE ? B - r0 : TILE;
+        for (int k = 0; k < K; k++) {
+#pragma omp for schedule(static) nowait
+        for (int tt = 0; tt < tiles; tt++) {
+            const int r0 = tt * TILE, n = B - r0 < TILE ? B - r0 : TILE;
             float *g = mine + (long)k * np;
             const float *hk = acts + ((long)k * NH * B + r0) * NW;   /* hidden layer l's output: hk + l * B * NW */
             const float *src = gout + ((long)k * B + r0) * NOUT;
@@ -191,6 +195,7 @@ void fused_backward(int K, int B, const float *x, const float *const *T, const f
                 for (int i = 0; i < n * NW; i++) dp[i] = da[i] * (1.0f - h[i] * h[i]);
                 d = dp;
             }
+        }
         }
     }
     /* add the threads' sums into G, unpadded */

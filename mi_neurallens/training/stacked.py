@@ -9,7 +9,7 @@ loss is the *sum* of the maps' losses, so each map's gradient is its own; :class
 elementwise, hence each map follows exactly the Adam trajectory it would follow alone (same learning-rate
 schedule, same batches).  The activation is Eigen's rational tanh (the one the render-time kernel
 evaluates, :func:`~mi_neurallens.neural.mlp.tanh_eigen`) with the exact derivative 1 − y² as its backward.  On a CPU
-with a C compiler a stack's whole forward and backward is one compiled kernel (:mod:`.fused_cpu`, 2–3× PyTorch's
+with a C compiler a stack's whole forward and backward is one compiled kernel (:mod:`.fused_cpu`, 2.5–3× PyTorch's
 operations); otherwise every layer is one ``baddbmm`` and the activation is compiled by ``torch.compile`` into one
 fused pass, or is ``torch.tanh`` where nothing compiles (and on a GPU).
 
