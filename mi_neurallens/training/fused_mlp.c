@@ -10,6 +10,7 @@
  *
  * The activation is the render kernel's clamped 13/6 rational tanh (mi_neurallens.neural.mlp.tanh_eigen),
  * its derivative 1 - y^2, as in training/stacked.py. */
+#include <math.h>
 #include <stdlib.h>
 #include <string.h>
 #include <omp.h>
