@@ -3,7 +3,6 @@ residuals against the losses Adam minimises, what it buys over Adam, and the tra
 from __future__ import annotations
 
 import math
-import os
 import types
 
 import numpy as np
@@ -44,19 +43,26 @@ def test_jacobian_is_autograds():
 
 
 
+def gauss_newton_problem(dims, lead, *, rows, seed, net_seed):
+    """A (stacked, when ``lead``) random network of ``dims`` in float64 and a Gauss–Newton system on ``rows``
+    random rows: (net, θ (…, P), X (…, rows, in), s and r (…, rows, out))."""
+    rng = np.random.default_rng(seed)
+    nets = [random_layers(dims, seed=net_seed + k) for k in range(max(int(np.prod(lead)), 1))]
+    net = FlatMLP(torch, nets[0])
+    theta = torch.stack([net.flatten(lay) for lay in nets]).reshape(lead + (net.P,))
+    X = torch.as_tensor(rng.normal(size=lead + (rows, dims[0])))
+    s = torch.as_tensor(rng.uniform(0.2, 2.0, lead + (rows, dims[-1])))
+    r = torch.as_tensor(rng.normal(size=lead + (rows, dims[-1])))
+    return net, theta, X, s, r
+
+
 @pytest.mark.parametrize("dims, lead", [([4, 7, 6, 3], ()), ([4, 16, 16, 16, 6], (2,)), ([3, 300, 1], (1,))])
 def test_normal_equations_are_the_jacobians(dims, lead):
     """JᵀJ and Jᵀr formed from the hidden layers' columns and the output layer's per-output blocks (what the
     finish solves each iteration) equal those of the whole scaled Jacobian J[n, o, :] = s[n, o] · ∂z_o/∂θ —
     unstacked and stacked, with one output, and with more hidden columns than one Gram block
     (levenberg.GRAM_BLOCK) — and the activations end in the network's outputs."""
-    rng = np.random.default_rng(3)
-    nets = [random_layers(dims, seed=4 + k) for k in range(max(int(np.prod(lead)), 1))]
-    net = FlatMLP(torch, nets[0])
-    theta = torch.stack([net.flatten(lay) for lay in nets]).reshape(lead + (net.P,))
-    X = torch.as_tensor(rng.normal(size=lead + (37, dims[0])))
-    s = torch.as_tensor(rng.uniform(0.2, 2.0, lead + (37, dims[-1])))
-    r = torch.as_tensor(rng.normal(size=lead + (37, dims[-1])))
+    net, theta, X, s, r = gauss_newton_problem(dims, lead, rows=37, seed=3, net_seed=4)
     z, J = net.jacobian(theta, X)
     Js = (J * s[..., None]).reshape(lead + (-1, net.P))
     want_A = Js.transpose(-1, -2) @ Js
@@ -67,30 +73,22 @@ def test_normal_equations_are_the_jacobians(dims, lead):
     np.testing.assert_allclose(A.numpy(), want_A.numpy(), rtol=1e-10, atol=1e-10 * float(want_A.abs().max()))
     np.testing.assert_allclose(g.numpy(), want_g.numpy(), rtol=1e-10, atol=1e-10 * float(want_g.abs().max()))
 
+
 @pytest.mark.parametrize("dims, lead", [([4, 16, 16, 16, 5], ()), ([4, 16, 16, 16, 6], (2,)), ([3, 300, 1], (1,))])
-def test_float32_normal_equations_through_onednn(dims, lead):
+def test_float32_normal_equations_through_onednn(dims, lead, monkeypatch):
     """In float32 on a CPU the Jacobian is stored column by column and its Gram taken by oneDNN
     (levenberg._gram_columns): the same JᵀJ and Jᵀr as the float64 closed form, to float32 rounding, and as the
     row-major MKL path (MI_NEURALLENS_ONEDNN=0)."""
     if not levenberg._onednn_gram(torch, torch.zeros(1)):
         pytest.skip("no oneDNN linear in this PyTorch")
-    rng = np.random.default_rng(5)
-    nets = [random_layers(dims, seed=8 + k) for k in range(max(int(np.prod(lead)), 1))]
-    net = FlatMLP(torch, nets[0])
-    theta = torch.stack([net.flatten(lay) for lay in nets]).reshape(lead + (net.P,))
-    X = torch.as_tensor(rng.normal(size=lead + (300, dims[0])))
-    s = torch.as_tensor(rng.uniform(0.2, 2.0, lead + (300, dims[-1])))
-    r = torch.as_tensor(rng.normal(size=lead + (300, dims[-1])))
+    net, theta, X, s, r = gauss_newton_problem(dims, lead, rows=300, seed=5, net_seed=8)
     A64, g64 = net.normal_equations(theta, net.activations(theta, X), s, r)
     hs32 = net.activations(theta, X.float())
     A32, g32 = net.normal_equations(theta, hs32, s.float(), r.float())
     for got, want in ((A32, A64), (g32, g64)):
         np.testing.assert_allclose(got.double().numpy(), want.numpy(), rtol=0, atol=2e-5 * float(want.abs().max()))
-    os.environ["MI_NEURALLENS_ONEDNN"] = "0"
-    try:
-        A_mkl, g_mkl = net.normal_equations(theta, hs32, s.float(), r.float())
-    finally:
-        del os.environ["MI_NEURALLENS_ONEDNN"]
+    monkeypatch.setenv("MI_NEURALLENS_ONEDNN", "0")
+    A_mkl, g_mkl = net.normal_equations(theta, hs32, s.float(), r.float())
     np.testing.assert_allclose(A32.numpy(), A_mkl.numpy(), rtol=0, atol=2e-6 * float(A_mkl.abs().max()))
     np.testing.assert_allclose(g32.numpy(), g_mkl.numpy(), rtol=0, atol=2e-6 * float(g_mkl.abs().max()))
 
