@@ -283,20 +283,24 @@ class FlatMLP:
 GRAM_BLOCK = 208
 
 
-def _gram(J, out):
-    """``out`` (…, P, P) ← JᵀJ of ``J`` (…, rows, P), by blocks of :data:`GRAM_BLOCK` columns: the blocks on
-    and above the diagonal as products, those below as their transposes (JᵀJ is symmetric)."""
-    P = J.shape[-1]
+def _gram_blocks(P: int, product, out):
+    """``out`` (…, P, P) ← a symmetric Gram matrix by blocks of :data:`GRAM_BLOCK` columns: the blocks on and
+    above the diagonal as ``product(i0, i1, j0, j1)`` (columns i0:i1 against j0:j1), those below as their
+    transposes."""
     nb = max(1, round(P / GRAM_BLOCK))
     c = [P * i // nb for i in range(nb + 1)]
     for i in range(nb):
-        Ji = J[..., c[i]:c[i + 1]].transpose(-1, -2)
         for j in range(i, nb):
-            B = Ji @ J[..., c[j]:c[j + 1]]
+            B = product(c[i], c[i + 1], c[j], c[j + 1])
             out[..., c[i]:c[i + 1], c[j]:c[j + 1]] = B
             if j != i:
                 out[..., c[j]:c[j + 1], c[i]:c[i + 1]] = B.transpose(-1, -2)
     return out
+
+
+def _gram(J, out):
+    """``out`` (…, P, P) ← JᵀJ of ``J`` (…, rows, P), by :func:`_gram_blocks`."""
+    return _gram_blocks(J.shape[-1], lambda i0, i1, j0, j1: J[..., i0:i1].transpose(-1, -2) @ J[..., j0:j1], out)
 
 
 def _onednn_gram(torch, like) -> bool:
@@ -319,22 +323,13 @@ _ONEDNN = {}
 
 def _gram_columns(torch, JT, out):
     """``out`` (…, P, P) ← JᵀJ from ``JT`` = Jᵀ (…, P, rows), contiguous, by oneDNN's products: the same
-    blocks as :func:`_gram`.  PyTorch's own CPU product (MKL) runs AVX2 code on AMD processors; oneDNN's uses the
+    blocks (:func:`_gram_blocks`).  PyTorch's own CPU product (MKL) runs AVX2 code on AMD processors; oneDNN's uses the
     full vector width: the Gram of a 3×16 regressor's 40 960 × 625 Jacobian took 116 ms through MKL and ≈ 60 here
     (2 Zen 5 cores, docs/results.md "One kernel a step")."""
-    P = JT.shape[-2]
-    nb = max(1, round(P / GRAM_BLOCK))
-    c = [P * i // nb for i in range(nb + 1)]
     lin = torch.ops.mkldnn._linear_pointwise
     for idx in np.ndindex(*JT.shape[:-2]):
-        J1, o1 = JT[idx], out[idx]
-        for i in range(nb):
-            Ji = J1[c[i]:c[i + 1]]
-            for j in range(i, nb):
-                B = lin(Ji, J1[c[j]:c[j + 1]], None, "none", [], "")
-                o1[c[i]:c[i + 1], c[j]:c[j + 1]] = B
-                if j != i:
-                    o1[c[j]:c[j + 1], c[i]:c[i + 1]] = B.transpose(-1, -2)
+        J1 = JT[idx]
+        _gram_blocks(JT.shape[-2], lambda i0, i1, j0, j1: lin(J1[i0:i1], J1[j0:j1], None, "none", [], ""), out[idx])
     return out
 
 

@@ -32,6 +32,8 @@ import time
 
 import numpy as np
 
+from . import fused_cpu
+
 CHECKPOINT_SECONDS = 60.0
 #: rows per step (maps × batch) of a CPU stack: measured fastest on a 2-core AVX-512 machine (1.37 M
 #: samples/s at 4 × 8192, against 1.03 M at 16 × 8192: benchmarks/training_throughput.py --grid); with the fused
@@ -224,7 +226,6 @@ class StackedMLP:
             self.params += [torch.stack(W).to(dev).requires_grad_(), torch.stack(b).to(dev).requires_grad_()]
         self.fused = None           # on a CPU: the forward and backward in one compiled kernel (fused_cpu)
         if activation == "tanh" and torch.device(dev).type == "cpu":
-            from . import fused_cpu
             self.fused = fused_cpu.kernel(torch, self.dims)
             shape = "-".join(map(str, self.dims))
             STEP_CHOICE[shape] = ("one fused C kernel (training/fused_mlp.c, the render kernel's rational tanh)"
@@ -241,8 +242,7 @@ class StackedMLP:
         """(K, B, in) → (K, B, out)."""
         p = self.params if params is None else params
         if self.fused is not None and x.dtype == self.torch.float32 and not x.requires_grad:
-            from .fused_cpu import fused_forward
-            return fused_forward(self.torch, self.fused, x, p)
+            return fused_cpu.fused_forward(self.torch, self.fused, x, p)
         h, n = x, len(p) // 2
         if self.act is None:
             self.act = training_tanh(self.torch, self.dev)
