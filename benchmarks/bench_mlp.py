@@ -1,6 +1,8 @@
 """Standalone evaluation speed of a learned lens map: classifier + regressor on 2^k rays, fused with
-literal weights (the default) vs Dr.Jit cooperative vectors (``drjit.nn``), beside the exact
-tracer on the same rays, in one run.  Also the kernel compile time of each (cold, in-process).
+literal weights (the default, in the backend's evaluation style and in the other one: neural/mlp.py
+``MLP_STYLES``) vs Dr.Jit cooperative vectors (``drjit.nn``), beside the exact tracer on the same rays, in
+one run; each neural path's outputs against the CPU style's.  Also the kernel compile time of each (cold,
+in-process).
 
     python benchmarks/bench_mlp.py [--lens wide-22mm] [--model FILE] [--rays 22] [--repeats 5]
 
@@ -36,6 +38,7 @@ def main(argv=None):
     import mitsuba as mi
     mi.set_variant(default_variant())
     from mi_neurallens import Lens
+    from mi_neurallens.neural.mlp import STYLE_ENV, mlp_style
     from mi_neurallens.neural.model import bundled_model_path, load_model
     from mi_neurallens.trace.tracer import LensTracer
 
@@ -56,6 +59,15 @@ def main(argv=None):
         logit, y = tm.eval_reduced_dr(X, mlp="fused")
         return [logit] + list(y)
 
+    def styled(style):          # the fused literals in one evaluation style (neural/mlp.py MLP_STYLES)
+        def fn():
+            os.environ[STYLE_ENV] = style
+            try:
+                return fused()
+            finally:
+                os.environ.pop(STYLE_ENV, None)
+        return fn
+
     def coop():
         logit, y = tm.eval_reduced_dr(X, mlp="coopvec")
         return [logit] + list(y)
@@ -73,9 +85,13 @@ def main(argv=None):
         r = tr.trace((ox, oy, ox * 0 + zi), (dxn, dyn, dzn), lam, "transmit", "backward")
         return [*r.position, *r.direction, r.throughput, r.valid]
 
+    default_style = mlp_style(X[0])
+    other = "gpu" if default_style == "cpu" else "cpu"
+    FUSED, OTHER, COOP = ("neural, fused literals (default)", f"neural, fused literals, {other} style",
+                          "neural, cooperative vectors")
+    runs = {"exact tracer": exact, FUSED: styled(default_style), OTHER: styled(other), COOP: coop}
     rows = {}
-    for name, fn in (("exact tracer", exact), ("neural, fused literals (default)", fused),
-                     ("neural, cooperative vectors", coop)):
+    for name, fn in runs.items():
         t0 = time.perf_counter()
         out = fn()
         dr.eval(out)
@@ -89,22 +105,23 @@ def main(argv=None):
             dr.sync_thread()
             best = min(best, time.perf_counter() - t0)
         rows[name] = {"mrays_per_s": n / best / 1e6, "first_call_s": first, "best_s": best}
-    # agreement of the two neural paths
-    f = np.stack([v.numpy() for v in fused()], 1)
-    c = np.stack([v.numpy() for v in coop()], 1)
-    rows["neural, cooperative vectors"]["max_abs_diff_vs_fused"] = float(np.abs(f - c).max())
-    # per output, on the rays the fused classifier passes (logit: all rays); outputs in the map's units
-    # (positions mm, direction cosines, throughput); fp16 on CUDA is where they part
+    # agreement of the neural paths with the fused literals in the CPU style (rational tanh, float32 exact
+    # to ~1e-6), per output, on the rays the reference classifier passes (logit: all rays); outputs in the
+    # map's units (positions mm, direction cosines, throughput): fp16 on CUDA is where they part
     from mi_neurallens.neural.model import OUTPUTS
-    names = ["logit"] + list(OUTPUTS) + [f"stop{i}" for i in range(f.shape[1] - 1 - len(OUTPUTS))]
-    ok = f[:, 0] > 0
-    per = {}
-    for i, nm in enumerate(names):
-        sel = slice(None) if i == 0 else ok
-        d = np.abs(f[sel, i] - c[sel, i])
-        per[nm] = {"max": float(d.max()) if d.size else 0.0, "p99": float(np.percentile(d, 99)) if d.size else 0.0}
-    rows["neural, cooperative vectors"]["diff_vs_fused_per_output"] = per
-    rows["neural, cooperative vectors"]["validity_flips"] = float(np.mean((f[:, 0] > 0) != (c[:, 0] > 0)))
+    ref = np.stack([v.numpy() for v in styled("cpu")()], 1)
+    names = ["logit"] + list(OUTPUTS) + [f"stop{i}" for i in range(ref.shape[1] - 1 - len(OUTPUTS))]
+    ok = ref[:, 0] > 0
+    for name in (FUSED, OTHER, COOP):
+        f = np.stack([v.numpy() for v in runs[name]()], 1)
+        per = {}
+        for i, nm in enumerate(names):
+            d = np.abs(f[slice(None) if i == 0 else ok, i] - ref[slice(None) if i == 0 else ok, i])
+            per[nm] = {"max": float(d.max()) if d.size else 0.0,
+                       "p99": float(np.percentile(d, 99)) if d.size else 0.0}
+        rows[name]["max_abs_diff_vs_cpu_style"] = float(np.abs(f - ref).max())
+        rows[name]["diff_vs_cpu_style_per_output"] = per
+        rows[name]["validity_flips"] = float(np.mean((f[:, 0] > 0) != ok))
     widths = [[np.shape(W)[0] for W, _ in net][:-1] for net in (tm.classifier, tm.regressor)]
     print(f"{a.lens}, backward transmit map (classifier {widths[0]}, regressor {widths[1]}, tanh"
           f"{', stop head' if tm.stop_head is not None else ''}), 2^{a.rays} rays, "
@@ -113,11 +130,14 @@ def main(argv=None):
     print("|---|---|---|")
     for k, r in rows.items():
         print(f"| {k} | {r['mrays_per_s']:.1f} | {r['first_call_s']:.2f} |")
-    cv = rows["neural, cooperative vectors"]
-    print(f"cooperative vectors vs fused: max |diff| = {cv['max_abs_diff_vs_fused']:.2e}; validity flips "
-          f"{cv['validity_flips']:.2e}; per output max / p99 (passing rays): "
-          + ", ".join(f"{k} {v['max']:.2e} / {v['p99']:.2e}" for k, v in cv["diff_vs_fused_per_output"].items()))
+    for name in (OTHER, COOP) if default_style == "cpu" else (FUSED, COOP):
+        cv = rows[name]
+        print(f"{name} vs the CPU style: max |diff| = {cv['max_abs_diff_vs_cpu_style']:.2e}; validity flips "
+              f"{cv['validity_flips']:.2e}; per output max / p99 (passing rays): "
+              + ", ".join(f"{k} {v['max']:.2e} / {v['p99']:.2e}"
+                          for k, v in cv["diff_vs_cpu_style_per_output"].items()))
     res = {"lens": a.lens, "model": a.model or "bundled", "hidden_widths": widths, "rays": n,
+           "variant": mi.variant(), "default_style": default_style,
            "threads": dr.thread_count(), "machine": platform.processor() or platform.machine(),
            "cpus": os.cpu_count(), "rows": rows}
     atomic_write_json(a.out, res, indent=2)

@@ -14,6 +14,7 @@ exit-pupil vs rear-element pass fractions of every bundled lens; ``--furnace`` a
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
 import platform
@@ -103,6 +104,38 @@ def time_rays(mi, dr, sensor, n, repeats):
     return n / min(ts)
 
 
+@contextlib.contextmanager
+def mlp_style_env(style):
+    """The learned maps traced in evaluation ``style`` (neural/mlp.py ``MLP_STYLES``) within the block; None: as
+    the backend chooses."""
+    from mi_neurallens.neural.mlp import STYLE_ENV
+    old = os.environ.get(STYLE_ENV)
+    if style is not None:
+        os.environ[STYLE_ENV] = style
+    try:
+        yield
+    finally:
+        if style is not None:
+            if old is None:
+                os.environ.pop(STYLE_ENV, None)
+            else:
+                os.environ[STYLE_ENV] = old
+
+
+def kernel_times(mi, dr, scene, spp):
+    """One more render with Dr.Jit's kernel history on: each kernel launched (size, operations, execution ms),
+    in order: where a frame's time goes (the camera-ray kernel of ray_kernel=separate, the path tracer's)."""
+    dr.kernel_history()                                  # drop what came before
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        img = mi.render(scene, spp=spp, seed=99)
+        dr.eval(img)
+        dr.sync_thread()
+        hist = dr.kernel_history()
+    return [{"size": int(k["size"]), "operations": int(k["operation_count"]),
+             "execution_ms": float(k.get("execution_time", float("nan")))}
+            for k in hist if k["type"] == dr.KernelType.JIT]
+
+
 def pupil_table():
     import time as _t
     import mi_neurallens as nl
@@ -162,12 +195,18 @@ def main(argv=None):
     p.add_argument("--ray-kernels", default="auto",
                    help="comma list of the lens sensors' ray_kernel values to time (auto, inline, separate); the "
                         "first is the plain rows ('realistic_lens'), the others tagged ('realistic_lens[separate]')")
+    p.add_argument("--mlp-styles", default="",
+                   help="comma list of evaluation styles of the learned maps (cpu, gpu: neural/mlp.py MLP_STYLES) to "
+                        "time beside the backend's own, as rows neural_lens{style}")
+    p.add_argument("--kernel-history", action="store_true",
+                   help="record each sensor's kernels of one more frame (size, operations, execution ms)")
     p.add_argument("--pupil-table", action="store_true", help="also measure pupil-sampling pass fractions")
     p.add_argument("--furnace", action="store_true", help="also render the wide-22mm furnace table")
     p.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "bench_render.json"))
     args = p.parse_args(argv)
     args.res = tuple(int(v) for v in args.res.lower().split("x"))
     args.ray_kernels = [k.strip() for k in args.ray_kernels.split(",") if k.strip()] or ["auto"]
+    args.mlp_styles = [k.strip() for k in args.mlp_styles.split(",") if k.strip()]
     import drjit as dr
     import mitsuba as mi
     mi.set_variant(args.variant)
@@ -178,25 +217,38 @@ def main(argv=None):
     n_rays = w * h * args.spp
     names = tuple(n for n in ("perspective", "thinlens") if n in scenes) + tuple(
         n for n in scenes if n not in ("perspective", "thinlens"))
-    for name in names:                                   # warm-up: trace + compile, not timed
-        mi.render(scenes[name], spp=args.spp, seed=0)
-        dr.sync_thread()
-    times = {n: [] for n in names}
-    for r in range(args.repeats):                        # interleaved, so load changes hit all alike
-        for name in names:
-            t = time.perf_counter()
-            img = mi.render(scenes[name], spp=args.spp, seed=r + 1)
-            dr.eval(img)
+    # rows: name -> (scene, evaluation style of the learned maps or None for the backend's own); --mlp-styles adds
+    # each neural_lens scene again in the styles listed, tagged neural_lens{style}
+    entries = {n: (n, None) for n in names}
+    for style in args.mlp_styles:
+        for n in names:
+            if n.startswith("neural_lens"):
+                entries[n.replace("neural_lens", f"neural_lens{{{style}}}", 1)] = (n, style)
+    for name, (scene, style) in entries.items():         # warm-up: trace + compile, not timed
+        with mlp_style_env(style):
+            mi.render(scenes[scene], spp=args.spp, seed=0)
             dr.sync_thread()
-            times[name].append(time.perf_counter() - t)
+    times = {n: [] for n in entries}
+    for r in range(args.repeats):                        # interleaved, so load changes hit all alike
+        for name, (scene, style) in entries.items():
+            with mlp_style_env(style):
+                t = time.perf_counter()
+                img = mi.render(scenes[scene], spp=args.spp, seed=r + 1)
+                dr.eval(img)
+                dr.sync_thread()
+                times[name].append(time.perf_counter() - t)
     rows = {}
-    for name in names:
+    for name, (scene, style) in entries.items():
         best = min(times[name])
-        # 2^20 rays are launch-bound on a GPU (an H200 read 461 M/s for a map that runs 1.9 G/s at 2^24)
-        gen = time_rays(mi, dr, scenes[name].sensors()[0], 1 << (24 if args.variant.startswith("cuda") else 20),
-                        args.repeats)
+        with mlp_style_env(style):
+            # 2^20 rays are launch-bound on a GPU (an H200 read 461 M/s for a map that runs 1.9 G/s at 2^24)
+            gen = time_rays(mi, dr, scenes[scene].sensors()[0], 1 << (24 if args.variant.startswith("cuda") else 20),
+                            args.repeats)
+            history = kernel_times(mi, dr, scenes[scene], args.spp) if args.kernel_history else None
         rows[name] = {"render_s": best, "render_all_s": times[name], "paths_per_s": n_rays / best,
                       "ray_generation_per_s": gen}
+        if history is not None:
+            rows[name]["kernels"] = history
     base = rows["thinlens"]["render_s"]
     for r in rows.values():
         r["ratio_vs_thinlens"] = r["render_s"] / base
@@ -206,6 +258,10 @@ def main(argv=None):
     for name, r in rows.items():
         print(f"{name:26s} {r['render_s']:9.3f} {r['ratio_vs_thinlens']:10.2f} {r['paths_per_s'] / 1e6:9.2f} "
               f"{r['ray_generation_per_s'] / 1e6:22.1f}")
+        if "kernels" in r:
+            ks = r["kernels"]
+            print(f"{'':26s} {len(ks)} kernels, {sum(k['execution_ms'] for k in ks):.1f} ms: "
+                  + ", ".join(f"{k['size']}x{k['operations']} ops {k['execution_ms']:.1f} ms" for k in ks))
     best = {}
     for name, r in rows.items():            # each sensor's fastest ray_kernel: what a user would pick
         kind = name.split("[")[0]
@@ -215,6 +271,9 @@ def main(argv=None):
         for rk in args.ray_kernels:
             n, r = rows[row_name("neural_lens", rk, args)], rows[row_name("realistic_lens", rk, args)]
             print(f"neural_lens / realistic_lens, ray_kernel={rk}: {n['render_s'] / r['render_s']:.3f}")
+            for style in args.mlp_styles:
+                ns = rows[row_name("neural_lens", rk, args).replace("neural_lens", f"neural_lens{{{style}}}", 1)]
+                print(f"neural_lens{{{style}}} / realistic_lens, ray_kernel={rk}: {ns['render_s'] / r['render_s']:.3f}")
         print(f"fastest of each: {best['neural_lens'][1]} / {best['realistic_lens'][1]} = "
               f"{best['neural_lens'][0] / best['realistic_lens'][0]:.3f}")
     ok = rows["realistic_lens"]["ratio_vs_thinlens"] <= 1.5
@@ -226,7 +285,7 @@ def main(argv=None):
                        "cpus": os.cpu_count(), "python": sys.version.split()[0],
                        "mitsuba": mi.__version__, "drjit": dr.__version__},
            "command": "python benchmarks/bench_render.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-           "ray_kernels": args.ray_kernels, "fastest": {k: v[1] for k, v in best.items()},
+           "ray_kernels": args.ray_kernels, "mlp_styles": args.mlp_styles, "fastest": {k: v[1] for k, v in best.items()},
            "results": rows, "bar_met": ok}
     if args.pupil_table:
         res["pupil_pass_fractions"] = pupil_table()

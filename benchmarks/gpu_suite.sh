@@ -12,8 +12,14 @@
 #   bench   fused literals vs cooperative vectors (bench_mlp.py) and render time thinlens / realistic_lens /
 #           neural_lens (bench_render.py) on the three paper lenses and the 27-surface RF 24 mm, and the RF 24 mm
 #           again with its 16-wide camera map ($RF16: a quarter of the multiply-adds, 2.3x the position error)
+#   mlp     bench's learned-map speeds alone (bench_mlp.py on $PAPER_LENSES: both evaluation styles, cooperative vectors,
+#           the tracer; each neural path's outputs against the CPU style's)
 #   render  bench's render times alone, on $PAPER_LENSES (overridable: PAPER_LENSES="canon-ef-24mm-f1.4l"), each lens
-#           sensor with its camera rays inline in the integrator's kernel and in a kernel of their own (ray_kernel)
+#           sensor with its camera rays inline in the integrator's kernel and in a kernel of their own (ray_kernel),
+#           neural_lens also in the other backend's evaluation style (neural/mlp.py MLP_STYLES), each frame's kernels
+#           timed (Dr.Jit's kernel history)
+#   sass    each lens sensor's camera-ray kernel compiled by ptxas: SASS instructions by opcode, registers, spills
+#           (ray_kernel_sass.py; ptxas from Triton's wheel)
 #   equal   equal render time, neural vs exact (equal_time.py), on every bundled lens
 #   flare   the Canon EF's whole flare, all 32 ghosts learned vs traced (complete_flare.py; again with the fp16
 #           cooperative vectors at one light position), its first render
@@ -73,6 +79,7 @@ else
     FIRST=22; FROZEN=16,20,24; TRAIN="--paths transmit,ghosts"; EVAL_N=100000; THROUGHPUT="--steps 300 --maps 1,16"
     COST=22; COST_LENSES="${COST_LENSES:-$(echo $ALL_LENSES | tr , ' ')}"
 fi
+case "$MI_NEURALLENS_VARIANT" in cuda*) OTHER_STYLE=cpu ;; *) OTHER_STYLE=gpu ;; esac   # the learned maps' other style
 status=0
 
 left() {   # seconds left before SUITE_DEADLINE (a large number without one)
@@ -129,9 +136,7 @@ EOF
 
 stage_bench() {
     local rc=0
-    for lens in $PAPER_LENSES; do
-        py 60 benchmarks/bench_mlp.py --lens "$lens" --rays $RAYS --out "$RES/mlp_$lens.json" || rc=1
-    done
+    stage_mlp || rc=1
     stage_render || rc=1
     if [ -z "${GPU_SUITE_QUICK:-}" ] && [ -f "$RF16" ]; then   # a 4x cheaper camera map: does it beat the tracer?
         py 60 benchmarks/bench_mlp.py --lens canon-rf-24mm-f1.4l-vcm --model "$RF16" --rays $RAYS \
@@ -142,13 +147,25 @@ stage_bench() {
     return $rc
 }
 
+stage_mlp() {      # the learned maps alone, both evaluation styles and cooperative vectors, against the tracer
+    local rc=0
+    for lens in $PAPER_LENSES; do
+        py 60 benchmarks/bench_mlp.py --lens "$lens" --rays $RAYS --out "$RES/mlp_$lens.json" || rc=1
+    done
+    return $rc
+}
+
 stage_render() {   # bench's render times alone (a call with little time left): PAPER_LENSES="…" picks the lenses
     local rc=0
     for lens in $PAPER_LENSES; do
-        py 90 benchmarks/bench_render.py --lens "$lens" --res $FILM --spp $SPP --repeats 3 --ray-kernels inline,separate \
-            --out "$RES/render_$lens.json" || rc=1
+        py 120 benchmarks/bench_render.py --lens "$lens" --res $FILM --spp $SPP --repeats 3 --ray-kernels inline,separate \
+            --mlp-styles $OTHER_STYLE --kernel-history --out "$RES/render_$lens.json" || rc=1
     done
     return $rc
+}
+
+stage_sass() {     # each lens sensor's camera-ray kernel in machine code: instructions by opcode, registers, spills
+    py 120 benchmarks/ray_kernel_sass.py --lens $PAPER_LENSES --keep "$RES/sass" --out "$RES/ray_kernel_sass.json"
 }
 
 stage_equal() {

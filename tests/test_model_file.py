@@ -9,7 +9,7 @@ import pytest
 
 from mi_neurallens import Lens, ModelError
 from mi_neurallens.neural import NeuralLensModel, NeuralMap, bundled_model_path, load_model
-from mi_neurallens.neural.mlp import mlp_dr, mlp_np, tanh_eigen
+from mi_neurallens.neural.mlp import STYLE_ENV, mlp_dr, mlp_np, mlp_style, tanh_eigen, tanh_exp2
 from mi_neurallens.trace.api import float_type
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -173,16 +173,50 @@ def test_tanh_eigen():
     assert np.max(np.abs(y - np.tanh(x))) < 1e-6
 
 
+def test_tanh_exp2():
+    """The GPU style's tanh, 1 − 2/(1 + 2^(2x/ln 2)): here with Dr.Jit's software exp2 and a division (on CUDA the
+    hardware's approximations, 2 and 1 ulp: measured there by benchmarks/bench_mlp.py), saturating without a
+    clamp and odd to rounding."""
+    x = np.concatenate([np.linspace(-12, 12, 100001), [-200.0, -90.0, 0.0, 1e-30, 90.0, 200.0]])
+    F = float_type("float32")
+    y = tanh_exp2(F(x.astype(np.float32))).numpy()
+    assert np.all(np.isfinite(y))
+    assert np.max(np.abs(y - np.tanh(x.astype(np.float32).astype(np.float64)))) < 5e-7
+    assert y[-1] == 1.0 and y[-6] == -1.0
+
+
+def test_mlp_style_by_backend_and_override(monkeypatch):
+    F = float_type("float32")
+    like = F(0.0)
+    monkeypatch.delenv(STYLE_ENV, raising=False)
+    import drjit as dr
+    assert mlp_style(like) == ("gpu" if dr.backend_v(like) == dr.JitBackend.CUDA else "cpu")
+    monkeypatch.setenv(STYLE_ENV, "gpu")
+    assert mlp_style(like) == "gpu"
+    monkeypatch.setenv(STYLE_ENV, "auto")
+    assert mlp_style(like) in ("cpu", "gpu")
+    monkeypatch.setenv(STYLE_ENV, "tpu")
+    with pytest.raises(ValueError, match="MI_NEURALLENS_MLP_STYLE"):
+        mlp_style(like)
+
+
+@pytest.mark.parametrize("style", ["cpu", "gpu"])
 @pytest.mark.parametrize("activation", ["tanh", "relu"])
-def test_mlp_drjit_equals_numpy(activation):
+def test_mlp_drjit_equals_numpy(activation, style, monkeypatch):
+    """Both evaluation styles (4 partial sums and the rational tanh; one chain from the bias and the exp2 tanh), with
+    literals and with kernel parameters, equal the float64 reference to float32 precision."""
+    from mi_neurallens.neural.mlp import KernelParams
+    monkeypatch.setenv(STYLE_ENV, style)
     rng = np.random.default_rng(5)
     layers = _layers(rng, [4, 32, 32, 32, 5], scale=0.4)
+    layers[1][0][3, :7] = 0.0                        # zero weights: left out of the literal kernel
     x = rng.uniform(-1, 1, (4096, 4))
     ref = mlp_np(x, layers, activation)
     F = float_type("float32")
-    out = mlp_dr([F(x[:, i].astype(np.float32)) for i in range(4)], layers, activation)
-    got = np.stack([o.numpy() for o in out], 1)
-    np.testing.assert_allclose(got, ref, atol=5e-5 * np.abs(ref).max())
+    for params in (None, KernelParams()):
+        out = mlp_dr([F(x[:, i].astype(np.float32)) for i in range(4)], layers, activation, params)
+        got = np.stack([o.numpy() for o in out], 1)
+        np.testing.assert_allclose(got, ref, atol=5e-5 * np.abs(ref).max())
 
 
 @pytest.mark.parametrize("direction", ["backward", "forward"])

@@ -47,11 +47,58 @@ def tanh_eigen(x):
     return x * p / q
 
 
-def _tanh(x):
-    """tanh for :func:`mlp_dr`: the rational approximation in float32 (exact to float32 rounding, and
-    the fast path), Dr.Jit's own tanh in float64 (the numpy reference path of the maps)."""
+#: 2/ln 2: tanh(x) = 1 − 2 / (1 + 2^(x · 2/ln 2))
+_TWO_OVER_LN2 = 2.8853900817779268
+
+
+def tanh_exp2(x):
+    """tanh from an exponential and a reciprocal: ``1 − 2 / (1 + 2^(2x/ln 2))`` on Dr.Jit floats.
+
+    On CUDA in float32 (fast math, Dr.Jit's default) ``dr.exp2`` and ``dr.rcp`` are the hardware's
+    ``ex2.approx.ftz`` and ``rcp.approx.ftz`` (2 and 1 ulp), which run on the special-function units beside
+    the FMA pipes: 3 FMA-pipe instructions a tanh against 13 (and a division) for :func:`tanh_eigen`.  No
+    clamp is needed: 2^(big) is inf and 1/inf is 0, 2^(−big) flushes to 0.  The error is absolute, about
+    1e-7 near 0 (where 1 − 2·½ cancels), which the next layer's sum sees the same as the rational's 2.6e-7.
+    On the CPU ``exp2`` is a polynomial and ``rcp`` a division, which makes it slower than the rational
+    there (:func:`mlp_style`)."""
     import drjit as dr
-    return dr.tanh(x) if dr.type_v(x) == dr.VarType.Float64 else tanh_eigen(x)
+    t = dr.exp2(x * _TWO_OVER_LN2)
+    return dr.fma(dr.rcp(t + 1.0), -2.0, 1.0)
+
+
+#: how :func:`mlp_dr` spends a network's operations, per style: (partial sums per neuron, tanh in float32)
+MLP_STYLES = {
+    # CPU (LLVM): one SIMD lane per ray, so an FMA chain's latency is the ray's; 4 interleaved partial
+    # sums (measured on 2 AVX-512 cores, classifier + regressor: 1 chain 9.1, 2 chains 10.8, 4 chains
+    # 11.5 M rays/s) and the rational tanh (exp2 is a polynomial on the CPU)
+    "cpu": (4, tanh_eigen),
+    # GPU (CUDA): other warps hide an FMA's latency, so the partial sums' pairwise adds are only extra
+    # instructions (one chain per neuron), and tanh from the special-function units (tanh_exp2)
+    "gpu": (1, tanh_exp2),
+}
+
+#: the environment variable that overrides :func:`mlp_style` (``cpu`` or ``gpu``; benchmarks compare them)
+STYLE_ENV = "MI_NEURALLENS_MLP_STYLE"
+
+
+def mlp_style(like) -> str:
+    """``"gpu"`` for a CUDA Dr.Jit array ``like``, ``"cpu"`` otherwise, unless :data:`STYLE_ENV` names one
+    of :data:`MLP_STYLES`.  Read each time a kernel is traced, so a process can time both."""
+    import os
+    import drjit as dr
+    forced = os.environ.get(STYLE_ENV, "").strip().lower()
+    if forced and forced != "auto":
+        if forced not in MLP_STYLES:
+            raise ValueError(f"{STYLE_ENV}={forced!r}: use one of {sorted(MLP_STYLES)} or auto")
+        return forced
+    return "gpu" if dr.backend_v(like) == dr.JitBackend.CUDA else "cpu"
+
+
+def _tanh(x, style: str = "cpu"):
+    """tanh for :func:`mlp_dr`: in float32 the ``style``'s approximation (:data:`MLP_STYLES`; both exact to
+    a few 1e-7), Dr.Jit's own tanh in float64 (the numpy reference path of the maps)."""
+    import drjit as dr
+    return dr.tanh(x) if dr.type_v(x) == dr.VarType.Float64 else MLP_STYLES[style][1](x)
 
 
 def mlp_np(x: np.ndarray, layers, activation: str = "tanh") -> np.ndarray:
@@ -65,10 +112,8 @@ def mlp_np(x: np.ndarray, layers, activation: str = "tanh") -> np.ndarray:
     return h
 
 
-#: independent partial sums per neuron in :func:`mlp_dr`: breaks the serial FMA dependency chain
-#: (measured on 2 AVX-512 cores, classifier + regressor: 1 chain 9.1, 2 chains 10.8, 4 chains
-#: 11.5 M rays/s)
-ACCUMULATORS = 4
+#: independent partial sums per neuron in :func:`mlp_dr` on the CPU (:data:`MLP_STYLES`)
+ACCUMULATORS = MLP_STYLES["cpu"][0]
 
 
 def mlp_cost(layers) -> tuple:
@@ -120,35 +165,42 @@ def mlp_dr(xs, layers, activation: str = "tanh", params: KernelParams | None = N
     Weights become kernel literals (a kernel per weight set, cached by Dr.Jit), or with ``params`` kernel
     parameters named ``(tag, layer, row, column)`` (one kernel per architecture; zero weights then stay in,
     so that the source does not depend on the values).  Each neuron's dot
-    product is split into :data:`ACCUMULATORS` interleaved partial sums added pairwise at the end, so
-    the multiply-adds do not form one long dependency chain."""
+    product is split into the style's interleaved partial sums added pairwise at the end (on the CPU, so
+    the multiply-adds do not form one long dependency chain), and tanh is the style's (:func:`mlp_style`:
+    per backend)."""
     import drjit as dr
     h = list(xs)
     like = h[0]
+    style = mlp_style(like)
+    accumulators = MLP_STYLES[style][0]
     for li, (W, b) in enumerate(layers):
         W = np.asarray(W, dtype=np.float64).tolist()
         b = np.asarray(b, dtype=np.float64).tolist()
         out = []
         for j in range(len(b)):
-            parts = [None] * ACCUMULATORS
+            bj = number(params, (tag, li, j, "b"), b[j], like)
+            parts = [None] * accumulators
+            seeded = accumulators == 1             # one chain: it starts from the bias (no add at the end)
+            if seeded:
+                parts[0] = bj
             for i in range(len(h)):
                 w = float(W[j][i])
                 if w == 0.0 and params is None:
                     continue
                 w = number(params, (tag, li, j, i), w, like)
-                k = i % ACCUMULATORS
+                k = i % accumulators
                 parts[k] = h[i] * w if parts[k] is None else dr.fma(h[i], w, parts[k])
-            bj = number(params, (tag, li, j, "b"), b[j], like)
-            parts = [p for p in parts if p is not None]
+            parts = [p for p in parts if p is not None and not isinstance(p, float)]
             if not parts:
                 out.append(h[0] * 0.0 + bj)
                 continue
-            parts[0] = parts[0] + bj
+            if not seeded:
+                parts[0] = parts[0] + bj
             while len(parts) > 1:
                 parts = [parts[a] + parts[a + 1] if a + 1 < len(parts) else parts[a]
                          for a in range(0, len(parts), 2)]
             out.append(parts[0])
         if li < len(layers) - 1:
-            out = [_tanh(v) for v in out] if activation == "tanh" else [dr.maximum(v, 0.0) for v in out]
+            out = [_tanh(v, style) for v in out] if activation == "tanh" else [dr.maximum(v, 0.0) for v in out]
         h = out
     return h
