@@ -56,7 +56,8 @@ def ray_kernel_ir(mi, dr, sensor, n=1 << 20):
         dr.sync_thread()
         hist = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
     k = max(hist, key=lambda k: k["operation_count"])
-    return int(k["operation_count"]), k.get("ir", "")
+    ir = k.get("ir", "")
+    return int(k["operation_count"]), ir.getvalue() if hasattr(ir, "getvalue") else str(ir)   # io.StringIO on CUDA
 
 
 def sass_report(ptx, arch, ptxas, disasm, work, tag):

@@ -170,3 +170,36 @@ def test_flare_neural_on_a_realistic_lens_scene_takes_the_lens_bundled_model(tmp
                "--samples", "65536", "--resolution", "48x32", "-o", str(tmp_path / "g.png")])
     err = capsys.readouterr().err
     assert rc != 0 and "no forward map for path 2560" in err and "mi-neurallens train canon-rf-24mm-f1.4l-vcm" in err
+
+
+def _benchmark(name):
+    import importlib.util
+    spec = importlib.util.spec_from_file_location(name, os.path.join(ROOT, "benchmarks", f"{name}.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_gpu_suite_measures_both_mlp_styles_and_each_frames_kernels(tmp_path):
+    """What benchmarks/gpu_suite.sh's `render` and `sass` stages run, here on the CPU at a tiny size: bench_render
+    times neural_lens also in the other evaluation style (rows neural_lens{gpu}) with each frame's kernels (the
+    separate ray kernel one kernel more than inline), and ray_kernel_sass finds each sensor's camera-ray kernel
+    (Dr.Jit operations; machine code only on CUDA).  The suite's script parses."""
+    import json
+    import subprocess
+    assert subprocess.run(["bash", "-n", os.path.join(ROOT, "benchmarks", "gpu_suite.sh")]).returncode == 0
+    out = tmp_path / "render.json"
+    _benchmark("bench_render").main(["--res", "32x24", "--spp", "2", "--repeats", "1", "--ray-kernels",
+                                     "inline,separate", "--mlp-styles", "gpu", "--kernel-history", "--out", str(out)])
+    rows = json.loads(out.read_text())["results"]
+    assert {"neural_lens{gpu}", "neural_lens{gpu}[separate]", "realistic_lens[separate]"} <= set(rows)
+    for name in ("realistic_lens", "neural_lens", "neural_lens{gpu}"):
+        inline, sep = rows[name]["kernels"], rows[f"{name}[separate]"]["kernels"]
+        assert len(sep) == len(inline) + 1 and all(k["execution_ms"] >= 0 for k in sep)
+    # the two styles trace different kernels (the integrator's, inline, holds the network)
+    assert rows["neural_lens"]["kernels"][0]["operations"] != rows["neural_lens{gpu}"]["kernels"][0]["operations"]
+    sass = tmp_path / "sass.json"
+    _benchmark("ray_kernel_sass").main(["--lens", "wide-22mm", "--out", str(sass)])
+    got = {(r["sensor"], r["style"]): r["drjit_operations"] for r in json.loads(sass.read_text())["rows"]}
+    assert set(got) == {("realistic_lens", None), ("neural_lens", "cpu"), ("neural_lens", "gpu")}
+    assert got["neural_lens", "cpu"] != got["neural_lens", "gpu"] and min(got.values()) > 500

@@ -204,7 +204,7 @@ def test_rays_in_a_kernel_of_their_own_render_the_same_image(kind, variant):
             ops = [k["operation_count"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
         return np.array(img, dtype=np.float64), ops
 
-    inline, ops_inline = render_kernels(sensor(kind, **kw))
+    inline, ops_inline = render_kernels(sensor(kind, ray_kernel="inline", **kw))
     sensor_sep = sensor(kind, ray_kernel="separate", **kw)
     assert "ray_kernel=separate" in str(mi.load_dict(sensor_sep))
     sep, ops_sep = render_kernels(sensor_sep)

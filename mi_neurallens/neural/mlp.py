@@ -6,10 +6,13 @@ A network is a list of ``(W, b)`` layers, ``W`` of shape (out, in) (PyTorch's ``
 The Dr.Jit evaluation (:func:`mlp_dr`) unrolls every multiply-add with the weights as Python-float
 **literals** (notes §4: the fastest fp32-exact way on the LLVM backend; the kernel is cached per
 weight set) — or, given a :class:`KernelParams` pool, as opaque scalars (kernel parameters), so that
-every network of one architecture compiles to the same kernel — and uses Eigen's 13/6 rational tanh
-(:func:`tanh_eigen`), clamped to ±7.90531, whose maximum error is 2.6e-7 (float64 inputs get the exact
-tanh: that is the maps' numpy reference path).  It is plain Dr.Jit arithmetic on the float type of its
-inputs, so it runs in any Mitsuba variant (``mi.Float``) and on CUDA.
+every network of one architecture compiles to the same kernel.  How it spends the operations is the
+backend's **style** (:data:`MLP_STYLES`, :func:`mlp_style`): on the CPU four interleaved partial sums per
+neuron and Eigen's 13/6 rational tanh (:func:`tanh_eigen`), clamped to ±7.90531, maximum error 2.6e-7; on
+CUDA one multiply-add chain per neuron and tanh from the GPU's exp2 and reciprocal (:func:`tanh_exp2`): a
+third fewer instructions there (docs/results.md, "The sixth GPU session").  Float64 inputs get the exact
+tanh: that is the maps' numpy reference path.  It is plain Dr.Jit arithmetic on the float type of its
+inputs, so it runs in any Mitsuba variant (``mi.Float``).
 """
 from __future__ import annotations
 

@@ -202,7 +202,8 @@ class NeuralMap(TransportMap):
     inside the trained opening, tested on the stop head's crossings; None: the trained aperture),
     ``use_classifier`` (``False``: the paper's ablation,
     every in-domain ray is valid and the classifier is not evaluated at all) and ``mlp`` (``"fused"``:
-    weights as kernel literals, rational tanh in float32, exact tanh in float64; ``"shared"``: every number
+    weights as kernel literals, the backend's tanh in float32 (:func:`~mi_neurallens.neural.mlp.mlp_style`),
+    exact tanh in float64; ``"shared"``: every number
     of the map a kernel input, so that all maps of one architecture share one compiled kernel — the
     normalisation, skip, domain and planes as opaque scalars (:class:`~mi_neurallens.neural.mlp.KernelParams`),
     the networks' weights in packed cooperative-vector buffers on LLVM, as opaque scalars on CUDA

@@ -4,7 +4,8 @@ Same conventions, properties and sampling as ``realistic_lens`` (both derive fro
 :mod:`.base`); only the transport differs: instead of tracing the prescription, the backward
 transmit map of a trained model (:mod:`mi_neurallens.neural.model`) is evaluated inside the Dr.Jit
 kernel — the symmetry reduction, the classifier (is the ray blocked?), the regressor (exit ray and
-Fresnel throughput) with literal weights and a rational tanh, and the undo of the reduction.
+Fresnel throughput) with literal weights and a float32 tanh (per backend: ``neural/mlp.py``), and the undo of
+the reduction.
 """
 from __future__ import annotations
 
@@ -53,9 +54,9 @@ Neural lens camera (:monosp:`neural_lens`)
  * - mlp
    - |string|
    - How the networks are evaluated in the kernel.  ``fused`` (default): every weight is a literal in
-     the generated kernel and tanh is a rational approximation accurate to float32 — the fastest on
-     the CPU (16 M rays/s for the 3×16 + 2×16 camera map of wide-22mm on 2 cores vs 11 M for
-     ``coopvec``), but a new weight set compiles a new kernel (1–7 s on 2 cores).  ``shared``: every number
+     the generated kernel and tanh is accurate to float32 (a rational approximation on the CPU, the GPU's
+     exp2 and reciprocal on CUDA) — the fastest on the CPU (16 M rays/s for the 3×16 + 2×16 camera map of
+     wide-22mm on 2 cores vs 11 M for ``coopvec``), but a new weight set compiles a new kernel (1–7 s on 2 cores).  ``shared``: every number
      of the map a kernel input — on the CPU the networks through packed cooperative-vector buffers
      (fp32, equal to ``fused`` to ~1e-6), on CUDA fp32 kernel parameters — so maps of one architecture
      share one compiled kernel (docs/results.md, "One compilation"; ``lens_flare`` uses it for its
