@@ -38,7 +38,7 @@ def main(argv=None):
     import mitsuba as mi
     mi.set_variant(default_variant())
     from mi_neurallens import Lens
-    from mi_neurallens.neural.mlp import STYLE_ENV, mlp_style
+    from mi_neurallens.neural.mlp import forced_style, mlp_style
     from mi_neurallens.neural.model import bundled_model_path, load_model
     from mi_neurallens.trace.tracer import LensTracer
 
@@ -61,11 +61,8 @@ def main(argv=None):
 
     def styled(style):          # the fused literals in one evaluation style (neural/mlp.py MLP_STYLES)
         def fn():
-            os.environ[STYLE_ENV] = style
-            try:
+            with forced_style(style):
                 return fused()
-            finally:
-                os.environ.pop(STYLE_ENV, None)
         return fn
 
     def coop():

@@ -14,7 +14,6 @@ exit-pupil vs rear-element pass fractions of every bundled lens; ``--furnace`` a
 from __future__ import annotations
 
 import argparse
-import contextlib
 import math
 import os
 import platform
@@ -23,6 +22,7 @@ import time
 import xml.etree.ElementTree as ET
 
 from mi_neurallens.fileio import atomic_write_json
+from mi_neurallens.neural.mlp import forced_style
 from mi_neurallens.render_utils import add_variant_argument, default_variant
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -102,24 +102,6 @@ def time_rays(mi, dr, sensor, n, repeats):
         if r:
             ts.append(time.perf_counter() - t)
     return n / min(ts)
-
-
-@contextlib.contextmanager
-def mlp_style_env(style):
-    """The learned maps traced in evaluation ``style`` (neural/mlp.py ``MLP_STYLES``) within the block; None: as
-    the backend chooses."""
-    from mi_neurallens.neural.mlp import STYLE_ENV
-    old = os.environ.get(STYLE_ENV)
-    if style is not None:
-        os.environ[STYLE_ENV] = style
-    try:
-        yield
-    finally:
-        if style is not None:
-            if old is None:
-                os.environ.pop(STYLE_ENV, None)
-            else:
-                os.environ[STYLE_ENV] = old
 
 
 def kernel_times(mi, dr, scene, spp):
@@ -225,13 +207,13 @@ def main(argv=None):
             if n.startswith("neural_lens"):
                 entries[n.replace("neural_lens", f"neural_lens{{{style}}}", 1)] = (n, style)
     for name, (scene, style) in entries.items():         # warm-up: trace + compile, not timed
-        with mlp_style_env(style):
+        with forced_style(style):
             mi.render(scenes[scene], spp=args.spp, seed=0)
             dr.sync_thread()
     times = {n: [] for n in entries}
     for r in range(args.repeats):                        # interleaved, so load changes hit all alike
         for name, (scene, style) in entries.items():
-            with mlp_style_env(style):
+            with forced_style(style):
                 t = time.perf_counter()
                 img = mi.render(scenes[scene], spp=args.spp, seed=r + 1)
                 dr.eval(img)
@@ -240,7 +222,7 @@ def main(argv=None):
     rows = {}
     for name, (scene, style) in entries.items():
         best = min(times[name])
-        with mlp_style_env(style):
+        with forced_style(style):
             # 2^20 rays are launch-bound on a GPU (an H200 read 461 M/s for a map that runs 1.9 G/s at 2^24)
             gen = time_rays(mi, dr, scenes[scene].sensors()[0], 1 << (24 if args.variant.startswith("cuda") else 20),
                             args.repeats)

@@ -19,7 +19,7 @@
 #           neural_lens also in the other backend's evaluation style (neural/mlp.py MLP_STYLES), each frame's kernels
 #           timed (Dr.Jit's kernel history)
 #   sass    each lens sensor's camera-ray kernel compiled by ptxas: SASS instructions by opcode, registers, spills
-#           (ray_kernel_sass.py; ptxas from Triton's wheel)
+#           (ray_kernel_sass.py; ptxas from the CUDA toolkit, or Triton's wheel where there is none)
 #   equal   equal render time, neural vs exact (equal_time.py), on every bundled lens
 #   flare   the Canon EF's whole flare, all 32 ghosts learned vs traced (complete_flare.py; again with the fp16
 #           cooperative vectors at one light position), its first render

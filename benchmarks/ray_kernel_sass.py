@@ -5,7 +5,7 @@
 For each lens: ``realistic_lens`` and ``neural_lens`` (each evaluation style of the learned map in ``--styles``:
 neural/mlp.py ``MLP_STYLES``) make 2^20 camera rays with ``ray_kernel = separate``, so the rays are one kernel
 of their own; Dr.Jit's kernel history gives that kernel's source (PTX on CUDA).  Where ``ptxas`` is found (on
-``PATH``, in ``$CUDA_HOME/bin`` or in Triton's wheel, which PyTorch's CUDA builds install) the PTX is compiled
+``PATH``, in ``$CUDA_HOME/bin`` or ``/usr/local/cuda/bin``, or in Triton's wheel, which PyTorch's CUDA builds install) the PTX is compiled
 for the GPU's architecture (``ptxas -v``: registers, spills) and ``nvdisasm`` / ``cuobjdump`` counts its
 instructions by opcode (FFMA, MOV, MUFU, ...).  On the CPU (LLVM) only the Dr.Jit operation counts are
 reported.  Issue 18: the learned map's instruction count and register use against the tracer's, per lens.
@@ -85,7 +85,7 @@ def sass_report(ptx, arch, ptxas, disasm, work, tag):
             if m:
                 ops[m.group(1)] += 1
         out["instructions"] = sum(ops.values())
-        out["opcodes"] = dict(ops.most_common(14))
+        out["opcodes"] = dict(ops.most_common())
     return out
 
 
@@ -102,16 +102,18 @@ def main(argv=None):
     mi.set_variant(default_variant())
     import mi_neurallens
     from mi_neurallens.fileio import atomic_write_json
-    from mi_neurallens.neural.mlp import STYLE_ENV
+    from mi_neurallens.neural.mlp import forced_style
     mi_neurallens.register()
     cuda = mi.variant().startswith("cuda")
     ptxas = find_tool("ptxas") if cuda else None
     disasm = (find_tool("nvdisasm") or find_tool("cuobjdump")) if ptxas else None
     arch = None
     if ptxas:
-        import subprocess as sp
-        cc = sp.run(["nvidia-smi", "--query-gpu=compute_cap", "--format=csv,noheader"], capture_output=True,
-                    text=True).stdout.split()
+        try:
+            cc = subprocess.run(["nvidia-smi", "--query-gpu=compute_cap", "--format=csv,noheader"],
+                                capture_output=True, text=True).stdout.split()
+        except OSError:
+            cc = []
         arch = "sm_" + cc[0].replace(".", "") if cc else "sm_90"
     print(f"variant {mi.variant()}; ptxas {ptxas}; disassembler {disasm}; arch {arch}")
     work = a.keep or tempfile.mkdtemp()
@@ -123,13 +125,9 @@ def main(argv=None):
         base = {"lens": lens, "ray_kernel": "separate", "film": film}
         cases = [("realistic_lens", None)] + [("neural_lens", s) for s in styles]
         for kind, style in cases:
-            if style:
-                os.environ[STYLE_ENV] = style
-            try:
+            with forced_style(style):
                 sensor = mi.load_dict({"type": kind, **base})
                 ops, ir = ray_kernel_ir(mi, dr, sensor)
-            finally:
-                os.environ.pop(STYLE_ENV, None)
             tag = f"{lens}_{kind}" + (f"_{style}" if style else "")
             row = {"lens": lens, "sensor": kind, "style": style, "drjit_operations": ops}
             if ptxas and ir:

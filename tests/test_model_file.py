@@ -217,6 +217,9 @@ def test_mlp_drjit_equals_numpy(activation, style, monkeypatch):
         out = mlp_dr([F(x[:, i].astype(np.float32)) for i in range(4)], layers, activation, params)
         got = np.stack([o.numpy() for o in out], 1)
         np.testing.assert_allclose(got, ref, atol=5e-5 * np.abs(ref).max())
+    # plain Python floats (Mitsuba's scalar variants): every term kept, not only the biases
+    got = np.array(mlp_dr([float(v) for v in x[7]], layers, activation), dtype=np.float64)
+    np.testing.assert_allclose(got, ref[7], atol=5e-5 * np.abs(ref).max())
 
 
 @pytest.mark.parametrize("direction", ["backward", "forward"])

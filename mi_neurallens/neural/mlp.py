@@ -16,6 +16,9 @@ inputs, so it runs in any Mitsuba variant (``mi.Float``).
 """
 from __future__ import annotations
 
+import contextlib
+import os
+
 import numpy as np
 
 TANH_CLAMP = 7.90531110763549805
@@ -84,10 +87,26 @@ MLP_STYLES = {
 STYLE_ENV = "MI_NEURALLENS_MLP_STYLE"
 
 
+@contextlib.contextmanager
+def forced_style(style: str | None):
+    """Within the block, kernels traced use ``style`` (a key of :data:`MLP_STYLES`; None: as the backend
+    chooses); the environment is restored after.  For benchmarks that time both styles in one process."""
+    old = os.environ.get(STYLE_ENV)
+    if style is not None:
+        os.environ[STYLE_ENV] = style
+    try:
+        yield
+    finally:
+        if style is not None:
+            if old is None:
+                os.environ.pop(STYLE_ENV, None)
+            else:
+                os.environ[STYLE_ENV] = old
+
+
 def mlp_style(like) -> str:
     """``"gpu"`` for a CUDA Dr.Jit array ``like``, ``"cpu"`` otherwise, unless :data:`STYLE_ENV` names one
     of :data:`MLP_STYLES`.  Read each time a kernel is traced, so a process can time both."""
-    import os
     import drjit as dr
     forced = os.environ.get(STYLE_ENV, "").strip().lower()
     if forced and forced != "auto":
@@ -181,11 +200,11 @@ def mlp_dr(xs, layers, activation: str = "tanh", params: KernelParams | None = N
         b = np.asarray(b, dtype=np.float64).tolist()
         out = []
         for j in range(len(b)):
-            bj = number(params, (tag, li, j, "b"), b[j], like)
             parts = [None] * accumulators
             seeded = accumulators == 1             # one chain: it starts from the bias (no add at the end)
             if seeded:
-                parts[0] = bj
+                parts[0] = bj = number(params, (tag, li, j, "b"), b[j], like)
+            terms = 0
             for i in range(len(h)):
                 w = float(W[j][i])
                 if w == 0.0 and params is None:
@@ -193,10 +212,13 @@ def mlp_dr(xs, layers, activation: str = "tanh", params: KernelParams | None = N
                 w = number(params, (tag, li, j, i), w, like)
                 k = i % accumulators
                 parts[k] = h[i] * w if parts[k] is None else dr.fma(h[i], w, parts[k])
-            parts = [p for p in parts if p is not None and not isinstance(p, float)]
-            if not parts:
+                terms += 1
+            if not seeded:                          # created after the weights, as always on the CPU (same kernel)
+                bj = number(params, (tag, li, j, "b"), b[j], like)
+            if not terms:
                 out.append(h[0] * 0.0 + bj)
                 continue
+            parts = [p for p in parts if p is not None]
             if not seeded:
                 parts[0] = parts[0] + bj
             while len(parts) > 1:

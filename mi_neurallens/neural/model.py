@@ -268,7 +268,7 @@ class NeuralMap(TransportMap):
         return self._fold
 
     def flops(self) -> int:
-        """Per ray: the multiply-adds of both networks, 24 per tanh (the rational tanh), 40 for the
+        """Per ray: the multiply-adds of both networks, 24 per tanh (the CPU's rational tanh), 40 for the
         symmetry reduction, domain test and undo, 40 for the skip connection."""
         f = 0
         for layers in (self.classifier, self.regressor):
