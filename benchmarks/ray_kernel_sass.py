@@ -5,9 +5,9 @@
 For each lens: ``realistic_lens`` and ``neural_lens`` (each evaluation style of the learned map in ``--styles``:
 neural/mlp.py ``MLP_STYLES``) make 2^20 camera rays with ``ray_kernel = separate``, so the rays are one kernel
 of their own; Dr.Jit's kernel history gives that kernel's source (PTX on CUDA).  Where ``ptxas`` is found (on
-``PATH``, in ``$CUDA_HOME/bin`` or ``/usr/local/cuda/bin``, or in Triton's wheel, which PyTorch's CUDA builds install) the PTX is compiled
-for the GPU's architecture (``ptxas -v``: registers, spills) and ``nvdisasm`` / ``cuobjdump`` counts its
-instructions by opcode (FFMA, MOV, MUFU, ...).  On the CPU (LLVM) only the Dr.Jit operation counts are
+``PATH``, in ``$CUDA_HOME/bin`` or ``/usr/local/cuda/bin``, or in Triton's wheel, which PyTorch's CUDA builds
+install) the PTX is compiled for the GPU's architecture (``ptxas -v``: registers, spills) and ``nvdisasm`` /
+``cuobjdump`` counts its instructions by opcode (FFMA, MOV, MUFU, ...).  On the CPU (LLVM) only the Dr.Jit operation counts are
 reported.  Issue 18: the learned map's instruction count and register use against the tracer's, per lens.
 """
 from __future__ import annotations
