@@ -127,7 +127,8 @@ def main(argv=None):
         X = [mi.Float(x[:, i].astype(np.float32)) for i in range(4)]
         dr.eval(X)
         for name, (act, _, xc) in cands.items():
-            mlp._tanh = act                                # the activation mlp_dr applies (restored below)
+            # the activation mlp_dr applies (restored below); a candidate replaces it in either style
+            mlp._tanh = act if act is trained else (lambda x, style=None, f=act: f(x))
             try:
                 def run():
                     logit, y = tm.eval_reduced_dr(X, mlp="fused")

@@ -134,10 +134,6 @@ def mlp_np(x: np.ndarray, layers, activation: str = "tanh") -> np.ndarray:
     return h
 
 
-#: independent partial sums per neuron in :func:`mlp_dr` on the CPU (:data:`MLP_STYLES`)
-ACCUMULATORS = MLP_STYLES["cpu"][0]
-
-
 def mlp_cost(layers) -> tuple:
     """(multiply-adds, activations) of one evaluation of the network ``layers`` ([(W (out, in), b), ...]):
     the weight matrices' sizes, and the hidden layers' widths (the output layer is linear)."""
