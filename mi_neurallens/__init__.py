@@ -32,6 +32,8 @@ def _auto_register():
         mi = sys.modules.get("mitsuba")
         if mi is not None and mi.variant() is not None:
             register()
+    except NeuralLensError:     # e.g. an LLVM too old for Dr.Jit: say so now, not as "unknown plugin" later
+        raise
     except Exception:  # pragma: no cover - registration problems surface on load instead
         pass
 

@@ -8,10 +8,11 @@ import sys
 
 #: sub-command name -> module in mi_neurallens.commands
 COMMANDS = {
+    "demo": "demo",
     "lens": "lens",
     "render": "render",
     "compare": "compare",
-    "train": "train", "evaluate": "evaluate",
+    "train": "train", "evaluate": "evaluate", "merge": "merge",
     "accuracy": "accuracy",
     "flare": "flare",
 }

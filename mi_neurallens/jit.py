@@ -11,6 +11,29 @@ from __future__ import annotations
 
 import numpy as np
 
+#: the oldest LLVM whose code generation Dr.Jit 1.5's kernels survive (LLVM 15 aborts the process with
+#: "Cannot select: ... fmaximum/fminimum" on the first kernel that uses dr.minimum/dr.maximum)
+MIN_LLVM = 16
+
+
+def check_llvm() -> None:
+    """Raise a :class:`~mi_neurallens.errors.NeuralLensError` that says what to install when the LLVM library
+    Dr.Jit loaded is older than :data:`MIN_LLVM`: LLVM 15 does not fail cleanly, it aborts the whole Python
+    process inside the first kernel compilation.  Nothing happens when Dr.Jit found no LLVM at all (its own
+    error says so when an LLVM variant is used) or found a recent one."""
+    import drjit as dr
+    major = dr.detail.llvm_version()[0]
+    if 0 < major < MIN_LLVM:
+        from .errors import NeuralLensError
+        found = ".".join(str(v) for v in dr.detail.llvm_version())
+        raise NeuralLensError(
+            f"Dr.Jit loaded LLVM {found}, which aborts the process while compiling its kernels; mi-neurallens "
+            f"needs LLVM >= {MIN_LLVM} for Mitsuba's llvm_* variants. On Debian or Ubuntu: `sudo apt-get install "
+            f"libllvm19`, then `export DRJIT_LIBLLVM_PATH=/usr/lib/$(uname -m)-linux-gnu/libLLVM.so.19.1` if "
+            f"Dr.Jit still finds the old one (elsewhere: any LLVM >= {MIN_LLVM} shared library, named by "
+            f"DRJIT_LIBLLVM_PATH). A cuda_* variant needs no LLVM.")
+
+
 #: byte alignment of the buffers :func:`from_numpy` hands to Dr.Jit (a cache line, ≥ any vector width)
 ALIGNMENT = 64
 

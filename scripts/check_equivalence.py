@@ -36,7 +36,12 @@ sys.path.insert(0, ROOT)
 
 def _scene(path, sensor_type, **params):
     import mitsuba as mi
-    with open(os.path.join(ROOT, path)) as f:
+    try:                                       # bundled scenes are package data since the product's shape
+        from mi_neurallens.resources import scene_path
+        path = str(scene_path(os.path.basename(path)))
+    except ImportError:
+        path = os.path.join(ROOT, path)
+    with open(path) as f:
         xml = f.read()
     if sensor_type != "realistic_lens":
         xml = xml.replace('type="realistic_lens"', f'type="{sensor_type}"')
@@ -59,6 +64,7 @@ def record(out: str) -> None:
     import mitsuba as mi
     mi.set_variant("llvm_ad_rgb")
     import mi_neurallens as nl
+    from mi_neurallens.neural.model import bundled_model_path
     nl.register()
     res: dict[str, np.ndarray] = {}
     t0 = time.perf_counter()
@@ -75,7 +81,7 @@ def record(out: str) -> None:
     from mi_neurallens.flare.render import render_flare
     for mode in ("exact", "auto"):
         sc = _scene("scenes/night_point.xml", "realistic_lens", width=96, height=64)
-        model = os.path.join(ROOT, "lenses", "models", "wide-22mm.model.safetensors")
+        model = bundled_model_path("wide-22mm")
         fr = render_flare(sc, 0, seed=3, per_ghost=True, mode=mode, samples=1 << 17, model=model)
         res[f"flare.{mode}.total"] = np.asarray(fr.total, np.float64)
         for pid, img in sorted(fr.ghosts.items()):
@@ -86,7 +92,7 @@ def record(out: str) -> None:
     from mi_neurallens.neural.model import load_model
     from mi_neurallens.training.evaluate import evaluate_map
     lens = nl.Lens.load("wide-22mm")
-    model = load_model(os.path.join(ROOT, "lenses", "models", "wide-22mm.model.safetensors"), lens)
+    model = load_model(bundled_model_path("wide-22mm"), lens)
     keys = ["backward.0", f"forward.{model.ghost_ids[0]}"]
     for k in keys:
         tm = model.maps[k]

@@ -13,7 +13,9 @@ import pytest
 from mi_neurallens.constants import LAMBDA_D
 from mi_neurallens.neural.model import bundled_model_path, load_model
 from mi_neurallens.optics.prescription import Lens
-from mi_neurallens.render_utils import bokeh_scene, default_variant, disc_mask, mask_iou
+from bokeh import bokeh_scene, disc_mask, mask_iou  # noqa: E402
+from mi_neurallens.render_utils import default_variant
+from mi_neurallens.resources import scene_path
 from mi_neurallens.trace.iris import Iris
 from mi_neurallens.transport.exact import ExactMap
 
@@ -266,7 +268,7 @@ def test_neural_ghosts_take_the_iris(tmp_path):
     from mi_neurallens.flare.render import FlareError, render_flare
     from mi_neurallens.metrics import mape_masked
     N = 2.0 * Lens.load("wide-22mm").paraxial(LAMBDA_D).fnumber
-    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "scenes", "night_point.xml")
+    path = str(scene_path("night_point"))
 
     def scene(model="wide-22mm", rotation=0.0):
         return load_scene(path, variant=default_variant(), lens="wide-22mm", sensor_type="neural_lens",
@@ -302,7 +304,7 @@ def test_neural_and_exact_flares_select_the_same_ghosts():
     _mitsuba()
     from mi_neurallens.commands.render import load_scene
     from mi_neurallens.flare.render import FlareOptions, FlareRenderer
-    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "scenes", "night_point.xml")
+    path = str(scene_path("night_point"))
     N0 = Lens.load("wide-22mm").paraxial(LAMBDA_D).fnumber
     picked = {}
     for k in (1.0, 4.0):
@@ -332,16 +334,12 @@ def test_neural_and_exact_flares_select_the_same_ghosts():
 def test_the_camera_map_focuses_where_the_lens_does(lens_name):
     """Stopped down to 8× the widest f-number and focused as near as its model goes, a pencil of rays from the
     sensor's centre converges, through the learned camera map, within 1 % of where the tracer's converges
-    (``benchmarks/conjugate.py``; the bundled maps: −0.15 %, +0.78 %, −0.46 %).  Ray by ray a map can meet its
+    (``tests/conjugate.py``; the bundled maps: −0.15 %, +0.78 %, −0.46 %).  Ray by ray a map can meet its
     goals and still focus elsewhere: the Canon's 3×16 camera map was −2.2 % here, its bokeh at 8× off by 4 % of
-    the disc's area (docs/results.md, "The aperture goals on today's camera maps")."""
-    import sys
+    the disc's area."""
     mi = _mitsuba()
     import drjit as dr
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    sys.path.insert(0, os.path.join(root, "benchmarks"))
-    from aperture import closest_focus_m
-    from conjugate import conjugates
+    from conjugate import closest_focus_m, conjugates
     N = 8.0 * Lens.load(lens_name).paraxial(LAMBDA_D).fnumber
     (row,) = conjugates(mi, dr, lens_name, N, closest_focus_m(lens_name), field_mm=(0.0,), n=1 << 18)
     dist = row["sensor_z"] - row["exact"][2]

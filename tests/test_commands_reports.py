@@ -190,8 +190,8 @@ def test_a_ghost_that_misses_the_gate_at_every_band_is_refined_after_its_verific
                           "2": {"paired_mape": 0.5, "boundary_band": 2.0}}
     out = str(tmp_path / "wide-22mm.model.safetensors")
     m.save(out)
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    cfg = load_config(os.path.join(root, "training", "wide-22mm.toml"), overrides={
+    from mi_neurallens.resources import find_recipe
+    cfg = load_config(find_recipe("wide-22mm"), overrides={
         "heldout": 5000, "verify_flare_samples": 14, "verify_flare_max_samples": 14, "verify_flare_cost": False,
         "verify_flare_refine_minutes": 0.02, "forward_classifier": {"lm_minutes": 0.01}})
     said = []

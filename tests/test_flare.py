@@ -16,6 +16,7 @@ import drjit as dr  # noqa: E402
 import mi_neurallens as nl  # noqa: E402
 from mi_neurallens.errors import ModelError, NeuralLensError  # noqa: E402
 from mi_neurallens.flare.render import FlareOptions, FlareRenderer, render_flare  # noqa: E402
+from mi_neurallens.neural.model import bundled_model_path  # noqa: E402
 
 nl.register()
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -269,7 +270,7 @@ def test_flare_model_takes_a_bundled_name():
     ``model`` does; an unknown name is an error that lists the bundled ones."""
     from mi_neurallens.flare.options import FlareOptions
     from mi_neurallens.flare.render import sensor_model
-    if not os.path.exists(os.path.join(ROOT, "lenses", "models", "wide-22mm.model.safetensors")):
+    if not os.path.exists(bundled_model_path("wide-22mm")):
         pytest.skip("no bundled wide-22mm model")
     m = sensor_model(None, FlareOptions(model="wide-22mm"))
     assert m.lens_name == "wide-22mm" and m.maps
@@ -278,7 +279,7 @@ def test_flare_model_takes_a_bundled_name():
 
 
 # ------------------------------------------------------------------------------------------ neural
-MODEL = os.path.join(ROOT, "lenses", "models", "wide-22mm.model.safetensors")
+MODEL = bundled_model_path("wide-22mm")
 
 
 def _model_with_ghost():
@@ -418,7 +419,7 @@ def test_a_light_beyond_the_field_the_maps_learned_is_traced_not_lost():
     Now a learned ghost whose light arrives steeper than its map's field is traced for that light, the same image
     as mode exact's, and says why; a light inside the field stays learned.  A directional light's bound is its
     own angle's sine exactly."""
-    model = os.path.join(ROOT, "lenses", "models", "dgauss-50mm.model.safetensors")
+    model = bundled_model_path("dgauss-50mm")
     ghosts = [20, 80, 2560]
     for theta, inside in ((27.0, False), (24.0, True)):
         sc = make_scene(directional(theta), lens="dgauss-50mm", w=120, h=80)
@@ -446,7 +447,7 @@ def test_auto_renders_a_ghost_with_the_band_its_record_needs():
     from mi_neurallens.flare.verify import flare_records, store_flare_record
     from mi_neurallens.training.evaluate import markdown_table
     lens, pid = "canon-rf-24mm-f1.4l-vcm", 18432
-    m = nl.neural.model.load_model(os.path.join(ROOT, "lenses", "models", f"{lens}.model.safetensors"))
+    m = nl.neural.model.load_model(bundled_model_path(lens))
     base = {k: v for k, v in m.map(pid, "forward").metrics.items() if k not in ("flare", "flare_bands", "flare_cost")}
 
     def rec(err, band=0.0):
@@ -638,21 +639,6 @@ def test_direct_image_gets_one_share_of_the_budget():
     assert min(v for k, v in by.items() if k != 0) > N // 10
 
 
-def test_flare_edges_attribution_runs_on_the_evaluators_as_they_are(tmp_path):
-    """``benchmarks/flare_edges.py --attribute`` wraps the renderer's evaluators (tracer and learned halves); it
-    must follow their outputs (``(valid, x, y, T, near)``): each half's error is reported."""
-    import importlib.util
-    import json
-    spec = importlib.util.spec_from_file_location("flare_edges", os.path.join(ROOT, "benchmarks", "flare_edges.py"))
-    fe = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(fe)
-    out = tmp_path / "edges.json"
-    fe.main(["wide-22mm", "2560", "--samples", "16", "--attribute", "--boundary-band", "1", "--json", str(out)])
-    row = json.loads(out.read_text())["rows"][0]
-    assert row["pixels"] > 0 and row["boundary_band"] == 1.0
-    assert 0 <= row["regressor"]["mape"] < 1 and 0 <= row["classifier"]["mape"] < 1
-
-
 def test_iris_band_traces_the_iris_edges_exactly():
     """``iris_band``: a learned ghost rendered through another iris than the trained one tests the iris on its
     predicted stop-plane crossings; a sample whose crossing lies within iris_band × 3 × its stop head's p99 error of
@@ -665,7 +651,7 @@ def test_iris_band_traces_the_iris_edges_exactly():
     from mi_neurallens.flare.verify import paired_renders
     from mi_neurallens.metrics import flare_error_map
     pid = 66048
-    scene = load_scene(os.path.join(ROOT, "scenes", "night_point.xml"), variant=mi.variant(), lens="wide-22mm",
+    scene = load_scene("night_point", variant=mi.variant(), lens="wide-22mm",
                        sensor_type="neural_lens", sets=["model=wide-22mm", "fstop=10.74", "blades=6"])
     err, imgs = {}, {}
     for band in (0.0, 1.0):

@@ -218,13 +218,21 @@ def _assert_same_document(a, b, where):
         assert a == b, where
 
 
-def test_lenses_dir_env_override(tmp_path, monkeypatch):
-    (tmp_path / "mine.json").write_text(json.dumps(small_doc()))
-    monkeypatch.setenv(F.LENSES_ENV, str(tmp_path))
-    assert F.bundled_lenses() == ["mine"]
+def test_user_lens_libraries_come_before_the_bundled_one(tmp_path, monkeypatch):
+    """$MI_NEURALLENS_LENSES (a path list) is searched before the library inside the package: its lenses join
+    the bundled ones, and its copy of a bundled name wins; a name nowhere is an error listing the names."""
+    a, b = tmp_path / "a", tmp_path / "b"
+    a.mkdir(), b.mkdir()
+    (a / "mine.json").write_text(json.dumps(small_doc()))
+    (b / "wide-22mm.json").write_text(json.dumps(small_doc()))
+    monkeypatch.setenv(F.LENSES_ENV, os.pathsep.join([str(a), str(b)]))
+    assert "mine" in F.bundled_lenses() and "ood-59mm" in F.bundled_lenses()
     assert F.load_lens("mine").name == "singlet"
-    with pytest.raises(LensError, match="bundled lenses: mine"):
-        F.load_lens("wide-22mm")
+    assert F.load_lens("wide-22mm").name == "singlet"          # the user's copy, not the bundled lens
+    with pytest.raises(LensError, match="lenses: .*mine"):
+        F.load_lens("no-such-lens")
+    monkeypatch.delenv(F.LENSES_ENV)
+    assert F.load_lens("wide-22mm").name == "wide-22mm"
 
 
 def test_unknown_bundled_name_lists_names_and_formats():

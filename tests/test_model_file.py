@@ -294,15 +294,12 @@ def test_bundled_22mm_backward_map_matches_tracer():
     np.testing.assert_allclose(nn.throughput[both], ex.throughput[both], rtol=0.01)
 
 
-def test_merge_maps_script(tmp_path):
-    """training/merge_maps.py: copies maps between model files of one lens, keeps the ghost list in
+def test_merge_command(tmp_path):
+    """``mi-neurallens merge``: copies maps between model files of one lens, keeps the ghost list in
     ranking order, refuses another lens's model."""
-    import importlib.util
+    from mi_neurallens.commands import merge as mm
     from mi_neurallens.errors import ModelError
     from mi_neurallens.neural.model import bundled_model_path, load_model
-    spec = importlib.util.spec_from_file_location("merge_maps", os.path.join(ROOT, "training", "merge_maps.py"))
-    mm = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mm)
     src = bundled_model_path("wide-22mm")
     dst = load_model(src)
     dst.maps = {k: v for k, v in dst.maps.items() if k == "backward.0"}

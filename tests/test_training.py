@@ -366,12 +366,11 @@ def test_budget_is_the_sum_of_the_networks_wall_budgets():
 
 
 def test_bundled_recipes_load():
-    """Every recipe in training/ parses (tomllib refuses a repeated key) and names a bundled lens."""
-    import glob
+    """Every bundled recipe parses (tomllib refuses a repeated key) and names a bundled lens."""
     import os
     from mi_neurallens.optics.formats import bundled_lenses
-    root = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "training")
-    recipes = sorted(glob.glob(os.path.join(root, "*.toml")))
+    from mi_neurallens.resources import bundled_library
+    recipes = sorted(str(p) for p in (bundled_library().path / "recipes").glob("*.toml"))
     assert len(recipes) >= 3
     for r in recipes:
         c = load_config(r)

@@ -25,7 +25,7 @@ from ..render_utils import add_variant_argument
 def add_parser(subparsers):
     p = subparsers.add_parser("compare", help="realistic_lens vs neural_lens side by side (PNG + MAPE table)",
                               description=__doc__.split("\n\n", 1)[1])
-    p.add_argument("scene", help="Mitsuba XML scene using realistic_lens (e.g. scenes/still_life.xml)")
+    p.add_argument("scene", help="Mitsuba XML scene using realistic_lens, or a bundled scene's name (e.g. still_life)")
     p.add_argument("--lens", help="lens (bundled name or file); default: the scene's")
     p.add_argument("--model", help="neural model file (default: the bundled model of the lens)")
     p.add_argument("--spp", type=int, default=64, help="samples per pixel of the two test renders (64)")
@@ -102,7 +102,8 @@ def compare_panel(images: dict, errors: dict, path: str, title: str, exposure: f
 def run(args) -> int:
     from ..metrics import EPSILON, error_map, mape, rel_mse
     from ..render_utils import write_exr, write_png
-    scene = args.scene
+    from ..resources import scene_path
+    scene = str(scene_path(args.scene))
     out = args.out or os.path.join("out", "compare-" + os.path.splitext(os.path.basename(scene))[0])
     os.makedirs(out, exist_ok=True)
     neural_sets = []

@@ -2,7 +2,7 @@
 
   lens info PATH [--json] [--wavelength NM]   the prescription and every paraxial number
   lens plot PATH [-o layout.png] [--fields DEG ...] [--wavelengths NM ...] [--rays N] [--dpi N]
-  lens list [--json]                          the bundled lenses with EFL and f-number
+  lens list [--json]                          the lenses (bundled and $MI_NEURALLENS_LENSES) with EFL, f-number, model
   lens convert IN OUT.json [--name NAME] [--glass NAME=SPEC ...] [--stop-radius MM]
                                               any readable lens file -> project JSON (atomic write)
 
@@ -46,7 +46,7 @@ def add_parser(subparsers):
     pp.add_argument("--dpi", type=int, default=150, help="resolution of raster output (default 150)")
     pp.set_defaults(func=run_plot)
 
-    pl = sub.add_parser("list", help="list the bundled lenses with EFL and f-number")
+    pl = sub.add_parser("list", help="list the lenses (bundled, and those of $MI_NEURALLENS_LENSES) and where each comes from")
     pl.add_argument("--json", action="store_true", help="print JSON instead of text")
     pl.set_defaults(func=run_list)
 
@@ -253,24 +253,31 @@ def run_plot(args) -> int:
 
 
 def run_list(args) -> int:
-    from ..optics.formats import bundled_lenses
+    from .. import resources
     rows = []
-    for name in bundled_lenses():
+    for name in resources.lens_names():
         lens = _load(name)
         p = lens.paraxial()
+        lib = resources.lens_origin(name)
+        model, recipe = resources.find_model(name), resources.find_recipe(name)
         rows.append({"name": name, "efl": p.efl, "bfl": p.bfl, "fnumber": p.fnumber,
                      "surfaces": len(lens.surfaces),
-                     "description": (lens.metadata or {}).get("description", "")})
+                     "description": (lens.metadata or {}).get("description", ""),
+                     "origin": lib.origin, "path": str(lib.lens(name)),
+                     "model": str(model) if model else None, "recipe": str(recipe) if recipe else None})
     if args.json:
         print(json.dumps(rows, indent=2, allow_nan=False))
         return 0
     w = max([len(r["name"]) for r in rows] + [4])
-    print(f"{'name':<{w}}  {'EFL mm':>9}  {'f/#':>6}  {'surf':>4}  description")
+    print(f"{'name':<{w}}  {'EFL mm':>9}  {'f/#':>6}  {'surf':>4}  {'model':>5}  {'from':<9}  description")
     for r in rows:
         desc = r["description"]
-        desc = desc if len(desc) <= 70 else desc[:69] + "…"
-        print(f"{r['name']:<{w}}  {r['efl']:>9.3f}  {r['fnumber']:>6.2f}  {r['surfaces']:>4}  {desc}")
+        desc = desc if len(desc) <= 60 else desc[:59] + "…"
+        origin = "bundled" if r["origin"] == resources.BUNDLED else "user"
+        print(f"{r['name']:<{w}}  {r['efl']:>9.3f}  {r['fnumber']:>6.2f}  {r['surfaces']:>4}  "
+              f"{'yes' if r['model'] else '-':>5}  {origin:<9}  {desc}")
     print("(paraxial at 587.56 nm, stop fully open; `mi-neurallens lens info NAME` for details)")
+    print(f"lens libraries, first wins: {resources.search_path_text()}")
     return 0
 
 

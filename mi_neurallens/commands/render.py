@@ -21,7 +21,8 @@ from ..render_utils import add_variant_argument
 def add_parser(subparsers):
     p = subparsers.add_parser("render", help="render a Mitsuba XML scene (EXR + PNG)",
                               description=__doc__.split("\n\n", 1)[1] if __doc__ else None)
-    p.add_argument("scene", help="Mitsuba XML scene file")
+    p.add_argument("scene", help="Mitsuba XML scene file, or a bundled scene's name (still_life, chart, bokeh, night, "
+                                    "night_point)")
     p.add_argument("-o", "--output", help="output EXR (default: <scene name>.exr in the current directory)")
     p.add_argument("--spp", type=int, help="samples per pixel (overrides the scene's sampler)")
     add_variant_argument(p)
@@ -54,9 +55,11 @@ def _resolution(text):
 
 def load_scene(path, *, variant=None, sets=(), lens=None, resolution=None, spp=None, params=(),
                sensor_type=None):
-    """Load ``path`` with the overrides applied (see the module docstring); returns the scene."""
+    """Load the scene ``path`` (a file, or the name of a bundled scene: :func:`mi_neurallens.resources.scene_path`)
+    with the overrides applied (see the module docstring); returns the scene."""
     import mitsuba as mi
     from ..errors import NeuralLensError
+    from ..resources import scene_path
     from ..render_utils import apply_sensor_overrides
     if variant is not None and mi.variant() != variant:
         if variant not in mi.variants():
@@ -64,8 +67,7 @@ def load_scene(path, *, variant=None, sets=(), lens=None, resolution=None, spp=N
         mi.set_variant(variant)
     import mi_neurallens
     mi_neurallens.register()
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"scene file not found: {path}")
+    path = str(scene_path(path))
     with open(path, encoding="utf-8") as f:
         text = f.read()
     text = apply_sensor_overrides(text, sets=sets, lens=lens, resolution=resolution, spp=spp, source=path,

@@ -1,6 +1,6 @@
 """``mi-neurallens train LENS``: train the neural lens transport maps of a lens.
 
-Reads the per-lens recipe ``training/<lens>.toml`` when it exists (or ``--config``), plans the planes,
+Reads the lens's recipe ``recipes/<lens>.toml`` of its lens library when there is one (or ``--config``), plans the planes,
 ranks the ghosts, trains every selected map (classifier, regressor and stop head, PyTorch on CPU or CUDA;
 the maps of one direction together, each network stopping at its goals) with checkpoints in
 ``<out>.work/`` (rerun the same command to resume after an interruption) and writes one model file
@@ -24,8 +24,10 @@ def add_parser(subparsers):
     p.add_argument("lens", nargs="+", help="bundled lens name(s) or lens file(s)")
     p.add_argument("--paths", help="comma list: transmit, ghosts, backward, forward, backward-transmit, "
                                    "forward-transmit or forward path ids (default: what the config lists)")
-    p.add_argument("--config", help="TOML training config (default: training/<lens>.toml when present)")
-    p.add_argument("--out", default=None, help="output folder (default: lenses/models)")
+    p.add_argument("--config", help="TOML training recipe (default: the lens library's recipes/<lens>.toml when there is one)")
+    p.add_argument("--out", default=None, help="output folder (default: the current folder; for a lens of a library "
+                                               "in $MI_NEURALLENS_LENSES, that library's models/ folder, where "
+                                               "neural_lens finds it by the lens's name)")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config value, e.g. --set seed=3 --set regressor.max_steps=2000, --set flare_resolution=1024 "
                         "(looser flare-map goals), --set 'forward_regressor.sizes=[\"3x16\",\"5x32\"]' (the smallest "
@@ -85,18 +87,45 @@ def _focus_text(lens, setting) -> str:
             f"{s0:.4g}–{s1:.4g} mm behind the last vertex)")
 
 
+#: how to get PyTorch for training, in one place (README.md says the same)
+TORCH_HINT = ("training needs PyTorch, which mi-neurallens installs only with its 'train' extra: for the CPU build, "
+              "`pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu` first, then "
+              "`pip install 'mi-neurallens[train]'` (with a CUDA GPU: `pip install 'mi-neurallens[train]'` alone); "
+              "rendering, evaluating and the flare work without it")
+
+
+def require_torch() -> None:
+    """A clear error, not an ImportError deep in the trainer, when PyTorch is not installed."""
+    import importlib.util
+    if importlib.util.find_spec("torch") is None:
+        from ..errors import NeuralLensError
+        raise NeuralLensError(TORCH_HINT)
+
+
+def default_out_dir(spec: str, name: str) -> str:
+    """Where ``train`` writes a model without ``--out``: the ``models/`` folder of the user's lens library
+    (``$MI_NEURALLENS_LENSES``) the lens was loaded from by name, else the current folder (never into the
+    installed package: retraining a bundled model in a source checkout names ``--out
+    mi_neurallens/data/lenses/models``)."""
+    from .. import resources
+    lib = resources.lens_origin(name) if spec == name else None
+    if lib is not None and lib.origin != resources.BUNDLED:
+        return str(lib.path / "models")
+    return "."
+
+
 def run(args):
+    require_torch()
     from ..optics.prescription import Lens
     from ..training.config import default_config_path, load_config
-    from ..neural.model import bundled_model_path
     lenses = [Lens.load(name) for name in args.lens]
     cfgs, outs = [], []
-    for lens in lenses:
+    for spec, lens in zip(args.lens, lenses):
         cfg_path = args.config or default_config_path(lens.name)
         cfg = load_config(cfg_path, lens=lens.name, overrides=_overrides(args.sets))
         if args.no_verify:
             cfg.verify_flare = False
-        out_dir = args.out or os.path.dirname(bundled_model_path(lens.name))
+        out_dir = args.out or default_out_dir(spec, lens.name)
         outs.append(os.path.join(out_dir, f"{lens.name}.model.safetensors"))
         cfgs.append(cfg)
         print(f"training {lens.name} (fingerprint {lens.fingerprint()}), config {cfg_path or 'defaults'} "

@@ -587,8 +587,9 @@ def _load_stop_head(path, key, meta, get):
 
 
 def bundled_model_path(lens_name: str) -> str:
-    """``<bundled lenses>/models/<lens>.model.safetensors``: beside the bundled lenses, wherever
-    :func:`mi_neurallens.optics.formats.lenses_dir` finds them (``$MI_NEURALLENS_LENSES`` or the
-    repository's ``lenses/``)."""
-    from ..optics.formats import lenses_dir
-    return os.path.join(lenses_dir(), "models", f"{lens_name}.model.safetensors")
+    """The model file of the lens ``lens_name``: ``models/<lens>.model.safetensors`` of the first lens library
+    that has one (``$MI_NEURALLENS_LENSES``, then the bundled library; :mod:`mi_neurallens.resources`), else
+    the path the bundled library would hold it at (which does not exist)."""
+    from .. import resources
+    found = resources.find_model(lens_name)
+    return str(found if found is not None else resources.bundled_library().model(lens_name))

@@ -110,20 +110,9 @@ class PropertyReader:
 
 # ----------------------------------------------------------------------------- lens loading
 def bundled_lens_names() -> list[str]:
-    """Names of the bundled lenses (``lenses/<name>.json``), best effort."""
-    try:
-        from ..optics import formats as F
-        fn = getattr(F, "bundled_lenses", None)
-        if fn is not None:
-            return sorted(fn())
-    except Exception:  # pragma: no cover
-        pass
-    here = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    d = os.path.join(here, "lenses")
-    try:
-        return sorted(f[:-5] for f in os.listdir(d) if f.endswith(".json"))
-    except OSError:
-        return []
+    """Names of the lenses on the search path (:func:`mi_neurallens.resources.lens_names`)."""
+    from .. import resources
+    return resources.lens_names()
 
 
 def load_lens(spec: str, plugin: str = "realistic_lens", prop: str = "lens"):

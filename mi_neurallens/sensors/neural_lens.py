@@ -12,9 +12,10 @@ from __future__ import annotations
 import dataclasses
 import os
 
+from .. import resources
 from ..errors import ModelError
 from ..jit import untraversed
-from ..neural.model import MLP_MODES, bundled_model_path, load_model
+from ..neural.model import MLP_MODES, load_model
 from ..trace.iris import Iris
 from .base import LensSensorBase
 from .common import SensorPropertyError, load_lens
@@ -125,15 +126,12 @@ def resolve_model_path(spec: str, plugin: str = PLUGIN) -> str:
         pass
     if os.path.exists(spec):
         return spec
-    p = bundled_model_path(spec)
-    if os.path.exists(p):
-        return p
-    models = os.path.dirname(p)
-    have = sorted(f.split(".model.")[0] for f in os.listdir(models) if f.endswith(".model.safetensors")) \
-        if os.path.isdir(models) else []
-    raise SensorPropertyError(plugin, "model", f"no model {spec!r}: not a file, and no bundled model of that "
-                              f"name (bundled: {', '.join(have) or 'none'}); train one with "
-                              f"`mi-neurallens train LENS`")
+    p = resources.find_model(spec)
+    if p is not None:
+        return str(p)
+    raise SensorPropertyError(plugin, "model", f"no model {spec!r}: not a file, and no model of a lens of that "
+                              f"name (models: {', '.join(resources.model_names()) or 'none'}; searched "
+                              f"{resources.search_path_text()}); train one with `mi-neurallens train LENS`")
 
 
 class NeuralLens(LensSensorBase):
@@ -154,7 +152,7 @@ class NeuralLens(LensSensorBase):
         if not self.lens_prop:
             return "wide-22mm"
         name = load_lens(self.lens_prop, PLUGIN).name
-        if os.path.exists(bundled_model_path(name)):
+        if resources.find_model(name) is not None:
             return name
         raise SensorPropertyError(PLUGIN, "model", f"not given, and no bundled model for lens '{name}': give the "
                                   f"model file `mi-neurallens train {self.lens_prop}` writes")

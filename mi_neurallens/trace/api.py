@@ -39,6 +39,8 @@ def float_type(precision: str = "float32"):
     if precision not in ("float32", "float64"):
         raise NeuralLensError(f"precision must be 'float32' or 'float64', got {precision!r}")
     if dr.has_backend(dr.JitBackend.LLVM):
+        from ..jit import check_llvm
+        check_llvm()
         import drjit.llvm as be
     elif dr.has_backend(dr.JitBackend.CUDA):  # pragma: no cover - no GPU here
         import drjit.cuda as be

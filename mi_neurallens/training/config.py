@@ -323,7 +323,10 @@ def load_config(path: str | None = None, lens: str | None = None, overrides: dic
     """Defaults, then the TOML file ``path`` (if any), then ``overrides``."""
     data = {}
     if path:
-        import tomllib
+        try:
+            import tomllib
+        except ImportError:         # Python 3.10: the same parser as the tomli package
+            import tomli as tomllib
         try:
             with open(path, "rb") as f:
                 data = tomllib.load(f)
@@ -354,7 +357,8 @@ def load_config(path: str | None = None, lens: str | None = None, overrides: dic
 
 
 def default_config_path(lens_name: str) -> str | None:
-    """``training/<lens>.toml`` of the repository, when it exists."""
-    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    p = os.path.join(root, "training", f"{lens_name}.toml")
-    return p if os.path.exists(p) else None
+    """The lens's recipe, ``recipes/<lens>.toml`` of the first lens library that has one
+    (:func:`mi_neurallens.resources.find_recipe`), or ``None``: the defaults."""
+    from .. import resources
+    p = resources.find_recipe(lens_name)
+    return str(p) if p is not None else None

@@ -9,7 +9,7 @@
   — :mod:`.lensvisualizer`
 * Zemax OpticStudio sequential ``.zmx`` (UTF-16 or UTF-8; ``SURF n`` blocks) — :mod:`.zemax`
 * CODE V sequence files ``.seq`` (``SO``/``S``/``SI`` commands) — :mod:`.codev`
-* a bundled lens name (a file ``lenses/<name>.json``) — :func:`bundled_lens_path`
+* a lens name (``<name>.json`` in a lens library: :mod:`mi_neurallens.resources`) — :func:`bundled_lens_path`
 
 :func:`convert_bundled` regenerates the bundled lenses from the shared lens data
 (``python -m mi_neurallens.optics.formats convert /path/to/lens-data``).
@@ -21,6 +21,7 @@ import os
 from pathlib import Path
 from typing import Any, Callable
 
+from ... import resources
 from ...errors import LensError
 from ..prescription import Lens
 from ._common import Ctx, loads_json, sha256_file
@@ -32,8 +33,7 @@ from .zemax import decode as _decode_zemax, looks_like_zemax, read_zemax
 from .project_json import (FORMAT_ID, is_project_json, lens_from_dict, lens_to_dict, load_project_json,
                            save_lens)
 
-#: environment variable overriding the folder of bundled lenses
-LENSES_ENV = "MI_NEURALLENS_LENSES"
+LENSES_ENV = resources.LENSES_ENV
 
 #: format id -> description (used in error messages and docs)
 FORMATS = {
@@ -47,30 +47,21 @@ FORMATS = {
 
 
 # ------------------------------------------------------------------------------------------ bundled
-def lenses_dir() -> Path:
-    """Folder of the bundled lenses: ``$MI_NEURALLENS_LENSES`` or ``<repository>/lenses``."""
-    env = os.environ.get(LENSES_ENV)
-    if env:
-        return Path(env)
-    import mi_neurallens
-    return Path(mi_neurallens.__file__).resolve().parents[1] / "lenses"
-
-
 def bundled_lenses() -> list[str]:
-    """Names of the bundled lenses (``lenses/<name>.json``), sorted."""
-    d = lenses_dir()
-    if not d.is_dir():
-        return []
-    return sorted(p.stem for p in d.glob("*.json") if not p.name.startswith("."))
+    """Names of the lenses on the search path (``$MI_NEURALLENS_LENSES``, then the bundled library), sorted:
+    :func:`mi_neurallens.resources.lens_names`."""
+    return resources.lens_names()
 
 
 def bundled_lens_path(name: str) -> Path:
-    p = lenses_dir() / f"{name}.json"
-    if not p.is_file():
-        names = bundled_lenses()
-        raise LensError(f"no lens file or bundled lens named '{name}'; bundled lenses: "
-                        f"{', '.join(names) if names else '(none found in ' + str(lenses_dir()) + ')'}; "
-                        f"or give the path of a file in one of these formats: {_format_list()}")
+    """The prescription of the lens ``name`` on the search path (:func:`mi_neurallens.resources.lens_path`); the
+    error names the lenses there are and the formats a file may have."""
+    p = resources.find_lens(name)
+    if p is None:
+        names = resources.lens_names()
+        raise LensError(f"no lens file or lens named '{name}'; lenses: {', '.join(names) or '(none)'} (searched "
+                        f"{resources.search_path_text()}); or give the path of a file in one of these formats: "
+                        f"{_format_list()}")
     return p
 
 
@@ -189,9 +180,9 @@ def load_lens(path_or_name, *, format: str | None = None, **kw) -> Lens:
         s = str(path_or_name)
         looks_like_path = isinstance(path_or_name, os.PathLike) or "/" in s or os.sep in s or p.suffix.lower() in (
             ".json", ".dat", ".txt", ".len", ".zmx", ".seq")
-        if looks_like_path and not (lenses_dir() / f"{s}.json").is_file():
+        if looks_like_path and resources.find_lens(s) is None:
             names = bundled_lenses()
-            raise LensError(f"file not found: {s} (bundled lenses: {', '.join(names) or 'none'})", file=s)
+            raise LensError(f"file not found: {s} (lenses by name: {', '.join(names) or 'none'})", file=s)
         p = bundled_lens_path(s)
     ctx = Ctx(str(p))
     text, encoding = _read_text(ctx, p)
@@ -279,10 +270,10 @@ def convert_bundled(source_dir: str | os.PathLike, out_dir: str | os.PathLike | 
 
     Each file is read with the readers of this package, given its name, description and provenance
     (original file, repository, path, commit, SHA-256, conversion decisions) and written with
-    :func:`save_lens` into ``out_dir`` (default: :func:`lenses_dir`).  Returns name -> written path.
+    :func:`save_lens` into ``out_dir`` (default: the bundled library, ``mi_neurallens/data/lenses``).  Returns name -> written path.
     """
     src = Path(source_dir)
-    out = Path(out_dir) if out_dir is not None else lenses_dir()
+    out = Path(out_dir) if out_dir is not None else resources.bundled_library().path
     written = {}
     for name, info in BUNDLED.items():
         f = src / info["file"]
@@ -343,5 +334,5 @@ def _conversion_notes(lens: Lens) -> list[str]:
 
 
 __all__ = ["load_lens", "save_lens", "lens_to_dict", "lens_from_dict", "load_project_json", "bundled_lenses",
-           "bundled_lens_path", "lenses_dir", "detect_format", "convert_bundled", "convert_file", "FORMATS", "BUNDLED",
+           "bundled_lens_path", "detect_format", "convert_bundled", "convert_file", "FORMATS", "BUNDLED",
            "read_pbrt", "read_ood", "read_lensvisualizer", "read_zemax", "read_codev"]

@@ -1,6 +1,6 @@
 """``python -m mi_neurallens.optics.formats`` — convert lens files and regenerate the bundled lenses.
 
-    python -m mi_neurallens.optics.formats convert-bundled /path/to/lens-data [--out lenses/]
+    python -m mi_neurallens.optics.formats convert-bundled /path/to/lens-data [--out DIR]
     python -m mi_neurallens.optics.formats convert INPUT OUTPUT.json [--name NAME]
     python -m mi_neurallens.optics.formats list
 """
@@ -10,16 +10,17 @@ import argparse
 import sys
 
 from ...errors import LensError
-from . import BUNDLED, bundled_lenses, convert_bundled, convert_file, lenses_dir
+from ... import resources
+from . import BUNDLED, bundled_lenses, convert_bundled, convert_file
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m mi_neurallens.optics.formats", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
-    b = sub.add_parser("convert-bundled", help="regenerate lenses/*.json from the shared lens data folder")
+    b = sub.add_parser("convert-bundled", help="regenerate the bundled lenses' JSON from the shared lens data folder")
     b.add_argument("source_dir", help="folder holding pbrt/, open-optical-designer/, other/")
-    b.add_argument("--out", default=None, help=f"output folder (default: {lenses_dir()})")
+    b.add_argument("--out", default=None, help=f"output folder (default: {resources.bundled_library().path})")
     c = sub.add_parser("convert", help="convert one file (any supported format) to project JSON")
     c.add_argument("input")
     c.add_argument("output")
