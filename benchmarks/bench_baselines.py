@@ -5,7 +5,7 @@ warm-up (kernel compilation excluded).
 
     python benchmarks/bench_baselines.py [--lens wide-22mm] [--rays 1048576]
 
-Writes benchmarks/results/bench_baselines.json and prints a table.
+Writes out/bench/bench_baselines.json and prints a table.
 """
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ def main(argv=None):
     ap.add_argument("--lens", default="wide-22mm")
     ap.add_argument("--rays", type=int, default=1 << 20)
     ap.add_argument("--threads", type=int, default=2, help="Dr.Jit worker threads (default 2)")
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results",
+    ap.add_argument("--out", default=os.path.join("out", "bench",
                                                   "bench_baselines.json"))
     args = ap.parse_args(argv)
     import drjit as dr

@@ -3,7 +3,7 @@ fractions before/after the pilot bounds, and equal-time MAPE against a converged
 
     python benchmarks/bench_flare.py [--lens wide-22mm] [--ghosts N] [--samples 2^20] [--ref-samples 2^23]
 
-Prints a table and writes benchmarks/results/bench_flare.json.  MAPE as in `mi-neurallens flare
+Prints a table and writes out/bench/bench_flare.json.  MAPE as in `mi-neurallens flare
 --compare` (luminance, mask Y_ref > 1e-2·max, ε = 1e-3·max).
 """
 from __future__ import annotations
@@ -21,7 +21,7 @@ def main(argv=None):
     p.add_argument("--samples", type=int, default=1 << 20)
     p.add_argument("--ref-samples", type=int, default=1 << 23)
     p.add_argument("--model", default=None)
-    p.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "bench_flare.json"))
+    p.add_argument("--out", default=os.path.join("out", "bench", "bench_flare.json"))
     a = p.parse_args(argv)
     import mitsuba as mi
     import drjit as dr
@@ -30,8 +30,8 @@ def main(argv=None):
     nl.register()
     from mi_neurallens.flare.render import FlareOptions, FlareRenderer
     from mi_neurallens.commands.flare import mape
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    model = a.model or os.path.join(root, "lenses", "models", f"{a.lens}.model.safetensors")
+    from mi_neurallens.neural.model import bundled_model_path
+    model = a.model or bundled_model_path(a.lens)
     model = model if os.path.exists(model) else None
     scene = mi.load_dict({"type": "scene",
                           "sensor": {"type": "realistic_lens", "lens": a.lens,

@@ -6,7 +6,7 @@ in-process).
 
     python benchmarks/bench_mlp.py [--lens wide-22mm] [--model FILE] [--rays 22] [--repeats 5]
 
-Prints a markdown table and writes benchmarks/results/bench_mlp.json.  The bar (issue 5):
+Prints a markdown table and writes out/bench/bench_mlp.json.  The bar (issue 5):
 >= 10 M rays/s for classifier + regressor on this 2-core CPU.
 """
 from __future__ import annotations
@@ -32,7 +32,7 @@ def main(argv=None):
                     help="leave the stop head out (the sensor at the trained aperture does not evaluate it)")
     ap.add_argument("--rays", type=int, default=22)
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "bench_mlp.json"))
+    ap.add_argument("--out", default=os.path.join("out", "bench", "bench_mlp.json"))
     a = ap.parse_args(argv)
     import drjit as dr
     import mitsuba as mi

@@ -6,7 +6,7 @@
     python benchmarks/bench_render.py [--res 320x240] [--spp 64] [--repeats 5] [--lens wide-22mm]
                                       [--ray-kernels inline,separate] [--pupil-table] [--furnace]
 
-Prints a table and writes ``benchmarks/results/bench_render.json``.  ``--pupil-table`` adds the
+Prints a table and writes ``out/bench/bench_render.json``.  ``--pupil-table`` adds the
 exit-pupil vs rear-element pass fractions of every bundled lens; ``--furnace`` adds the furnace
 (uniform environment) values of ``wide-22mm`` (docs/realistic_lens.md quotes both).  The bar: realistic_lens within
 1.5x of thinlens on the still life.
@@ -24,6 +24,7 @@ import xml.etree.ElementTree as ET
 from mi_neurallens.fileio import atomic_write_json
 from mi_neurallens.neural.mlp import forced_style
 from mi_neurallens.render_utils import add_variant_argument, default_variant
+from mi_neurallens.resources import scene_path
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -44,7 +45,7 @@ def row_name(sensor: str, ray_kernel: str, args) -> str:
 def build_scenes(mi, args):
     from mi_neurallens.commands.render import load_scene
     from mi_neurallens.render_utils import apply_sensor_overrides
-    path = os.path.join(ROOT, "scenes", "still_life.xml")
+    path = str(scene_path("still_life"))
     w, h = args.res
     real = load_scene(path, variant=args.variant, lens=args.lens, resolution=(w, h), spp=args.spp,
                       sets=[f"ray_kernel={args.ray_kernels[0]}"])
@@ -184,7 +185,7 @@ def main(argv=None):
                    help="record each sensor's kernels of one more frame (size, operations, execution ms)")
     p.add_argument("--pupil-table", action="store_true", help="also measure pupil-sampling pass fractions")
     p.add_argument("--furnace", action="store_true", help="also render the wide-22mm furnace table")
-    p.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "bench_render.json"))
+    p.add_argument("--out", default=os.path.join("out", "bench", "bench_render.json"))
     args = p.parse_args(argv)
     args.res = tuple(int(v) for v in args.res.lower().split("x"))
     args.ray_kernels = [k.strip() for k in args.ray_kernels.split(",") if k.strip()] or ["auto"]
@@ -260,7 +261,7 @@ def main(argv=None):
               f"{best['neural_lens'][0] / best['realistic_lens'][0]:.3f}")
     ok = rows["realistic_lens"]["ratio_vs_thinlens"] <= 1.5
     print(f"bar (realistic_lens <= 1.5x thinlens): {'met' if ok else 'NOT met'}")
-    res = {"benchmark": "bench_render", "scene": "scenes/still_life.xml", "resolution": [w, h], "spp": args.spp,
+    res = {"benchmark": "bench_render", "scene": "still_life", "resolution": [w, h], "spp": args.spp,
            "variant": args.variant, "lens": args.lens, "model": args.model or "bundled", "repeats": args.repeats,
            "threads": dr.thread_count(),
            "machine": {"platform": platform.platform(), "processor": platform.processor(),

@@ -4,7 +4,7 @@ the same rays, measured in the same run.
 
     python benchmarks/bench_tracer.py [--rays 22] [--ref-rays 16] [--repeats 5]
 
-Prints a markdown table and writes benchmarks/results/bench_tracer.json.
+Prints a markdown table and writes out/bench/bench_tracer.json.
 """
 from __future__ import annotations
 
@@ -90,7 +90,7 @@ def main(argv=None):
     ap.add_argument("--rays", type=int, default=22, help="log2 of rays per measurement (ours)")
     ap.add_argument("--ref-rays", type=int, default=16, help="log2 of rays for optiland")
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "bench_tracer.json"))
+    ap.add_argument("--out", default=os.path.join("out", "bench", "bench_tracer.json"))
     a = ap.parse_args(argv)
     import warnings
     warnings.filterwarnings("ignore")

@@ -1,7 +1,7 @@
 """Equal wall time, not equal samples: the error a user gets from ``realistic_lens`` and ``neural_lens``
 in the same render time, per lens (issue 18).
 
-    python benchmarks/equal_time.py [--lenses wide-22mm,ood-59mm,...] [--scene scenes/still_life.xml]
+    python benchmarks/equal_time.py [--lenses wide-22mm,ood-59mm,...] [--scene still_life]
                                     [--res 320x240] [--spp 4,16,64,256] [--reference-spp 1024]
 
 Per lens: a converged reference (``realistic_lens`` at ``--reference-spp``, its own seed), then each sensor
@@ -12,7 +12,7 @@ log–log over its render times at the times ``realistic_lens`` needed for each 
 tracer renders N spp, the neural map reaches MAPE x".  The neural MAPE includes the map's own bias (the
 reference is exact), so it flattens where noise falls below that bias.
 
-Prints a markdown table and writes ``benchmarks/results/equal_time.json``.
+Prints a markdown table and writes ``out/bench/equal_time.json``.
 """
 from __future__ import annotations
 
@@ -90,13 +90,13 @@ def measure_lens(mi, dr, lens, a):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--lenses", default="wide-22mm,ood-59mm,canon-ef-24mm-f1.4l,dgauss-50mm,canon-rf-24mm-f1.4l-vcm")
-    ap.add_argument("--scene", default=os.path.join(ROOT, "scenes", "still_life.xml"))
+    ap.add_argument("--scene", default="still_life")
     ap.add_argument("--res", default="320x240")
     ap.add_argument("--spp", default="4,16,64,256", help="spp list (the scenes' ldsampler needs powers of 4)")
     ap.add_argument("--reference-spp", type=int, default=1024)
     ap.add_argument("--repeats", type=int, default=2)
     add_variant_argument(ap)
-    ap.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "equal_time.json"))
+    ap.add_argument("--out", default=os.path.join("out", "bench", "equal_time.json"))
     a = ap.parse_args(argv)
     a.res = tuple(int(v) for v in a.res.lower().split("x"))
     a.spp = [int(v) for v in a.spp.split(",")]
@@ -104,7 +104,7 @@ def main(argv=None):
     import mitsuba as mi
     mi.set_variant(a.variant)
     results = [r for r in (measure_lens(mi, dr, lens, a) for lens in a.lenses.split(",")) if r is not None]
-    print(f"\n{os.path.relpath(a.scene, ROOT)} {a.res[0]}x{a.res[1]}, {a.variant}, {dr.thread_count()} threads; "
+    print(f"\n{a.scene} {a.res[0]}x{a.res[1]}, {a.variant}, {dr.thread_count()} threads; "
           f"reference realistic_lens {a.reference_spp} spp")
     print("| lens | neural / realistic time per spp | exact spp (s) | MAPE realistic | MAPE neural, same time "
           "| neural spp in that time |")
@@ -113,7 +113,7 @@ def main(argv=None):
         for e in r["equal_time"]:
             print(f"| {r['lens']} | {r['time_per_spp_ratio']:.2f} | {e['spp_realistic']} ({e['seconds']:.2f}) | "
                   f"{e['mape_realistic']:.4f} | {e['mape_neural']:.4f} | {e['spp_neural']:.1f} |")
-    atomic_write_json(a.out, {"benchmark": "equal_time", "scene": os.path.relpath(a.scene, ROOT),
+    atomic_write_json(a.out, {"benchmark": "equal_time", "scene": a.scene,
                               "resolution": list(a.res), "variant": a.variant, "threads": dr.thread_count(),
                               "reference_spp": a.reference_spp, "machine": platform.processor() or platform.machine(),
                               "cpus": os.cpu_count(),

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Everything a session with a lent GPU should measure, in few calls (issues 17 and 18).
+# What a session with a lent GPU measures, in few calls: the maintained benchmarks and the GPU tests.
 #
 #   bash scripts/gpu_carry.sh                  # here, once: .whl/ = drjit + a trimmed mitsuba for Python 3.12
 #   bash benchmarks/gpu_suite.sh STAGE [STAGE…]   # there (repository root), with .whl carried
@@ -9,34 +9,24 @@
 #
 # Stages (in the order given; `setup` always runs first):
 #   setup   install .whl/*.whl into /tmp/site (pip --no-index), print the GPU and the Mitsuba variants
-#   bench   fused literals vs cooperative vectors (bench_mlp.py) and render time thinlens / realistic_lens /
-#           neural_lens (bench_render.py) on the three paper lenses and the 27-surface RF 24 mm, and the RF 24 mm
-#           again with its 16-wide camera map ($RF16: a quarter of the multiply-adds, 2.3x the position error)
-#   mlp     bench's learned-map speeds alone (bench_mlp.py on $PAPER_LENSES: both evaluation styles, cooperative vectors,
+#   bench   mlp, then render
+#   mlp     the learned maps' speed alone (bench_mlp.py on $PAPER_LENSES: both evaluation styles, cooperative vectors,
 #           the tracer; each neural path's outputs against the CPU style's)
-#   render  bench's render times alone, on $PAPER_LENSES (overridable: PAPER_LENSES="canon-ef-24mm-f1.4l"), each lens
-#           sensor with its camera rays inline in the integrator's kernel and in a kernel of their own (ray_kernel),
-#           neural_lens also in the other backend's evaluation style (neural/mlp.py MLP_STYLES), each frame's kernels
-#           timed (Dr.Jit's kernel history)
-#   sass    each lens sensor's camera-ray kernel compiled by ptxas: SASS instructions by opcode, registers, spills
-#           (ray_kernel_sass.py; ptxas from the CUDA toolkit, or Triton's wheel where there is none)
-#   equal   equal render time, neural vs exact (equal_time.py), on every bundled lens
-#   flare   the Canon EF's whole flare, all 32 ghosts learned vs traced (complete_flare.py; again with the fp16
-#           cooperative vectors at one light position), its first render
-#           on a fresh kernel cache (first_render.py: literals vs shared kernels), and the wide-22mm flare
-#           benchmark (bench_flare.py: samples/s and equal-time MAPE, exact vs neural), and the fixed cost of a
-#           flare render with frozen kernels and without (frozen_flare.py)
+#   render  render time thinlens / realistic_lens / neural_lens (bench_render.py) on $PAPER_LENSES (overridable:
+#           PAPER_LENSES="canon-ef-24mm-f1.4l"), each lens sensor with its camera rays inline in the integrator's
+#           kernel and in a kernel of their own (ray_kernel), neural_lens also in the other backend's evaluation
+#           style (neural/mlp.py MLP_STYLES), each frame's kernels timed (Dr.Jit's kernel history)
+#   equal   equal render time, neural vs exact (equal_time.py), on every bundled lens with a model
+#   flare   the 22 mm lens's flare benchmark (bench_flare.py: samples/s and equal-time MAPE, exact vs neural)
 #   tests   the sensor, flare and aperture tests under cuda_ad_rgb ($MI_NEURALLENS_VARIANT)
-#   throughput  the stacked trainer's samples/s on the GPU (training_throughput.py)
 #   train   a whole new lens with the defaults on the GPU: dgauss-50mm, transmit maps and the ghosts of the
-#           default selection (issue 17: <= 10 min), then its held-out evaluation; GPU_SUITE_PROFILE=1 runs it
-#           under cProfile (benchmarks/profile_run.py: results/train.pstats, written even when the deadline stops it)
+#           default selection, then its held-out evaluation
 #   costs   every bundled model's ghost maps timed against tracing them on this backend (evaluate --flare-cost
 #           --write on copies, $RES/models): lens_flare's auto_max_cost then decides on the GPU too; copy each
 #           model's metrics["flare_cost"]["cuda"] into the bundled one (the llvm records stay)
 #   ghosts  every ghost of the default selection for $GHOST_LENSES (default: the three paper lenses; one
-#           lens per call if they do not fit), recipe as in training/<lens>.toml; each model comes back in
-#           results.tar.gz, to be merged into the bundled one with training/merge_maps.py
+#           lens per call if they do not fit), with each lens's bundled recipe; each model comes back in
+#           results.tar.gz, to be merged into the bundled one with `mi-neurallens merge`
 #
 # Time: SUITE_DEADLINE=S (seconds from the start) makes every step stop by then (each Python step runs under
 # `timeout` with what is left, and a step left with < 20 s is skipped), and results.tar.gz is rewritten after
@@ -63,20 +53,18 @@ PY=python3
 DEADLINE="${SUITE_DEADLINE:-}"
 PAPER_LENSES="${PAPER_LENSES:-wide-22mm ood-59mm canon-ef-24mm-f1.4l canon-rf-24mm-f1.4l-vcm}"   # bench, render
 ALL_LENSES="wide-22mm,ood-59mm,canon-ef-24mm-f1.4l,dgauss-50mm,canon-rf-24mm-f1.4l-vcm"
-FLARE_LENS=canon-ef-24mm-f1.4l
-RF16=benchmarks/models/canon-rf-24mm-f1.4l-vcm.width16.model.safetensors   # 5x16 + 2x16 camera map (not shipped)
 if [ -n "${GPU_SUITE_QUICK:-}" ]; then
     PAPER_LENSES="wide-22mm"; ALL_LENSES="wide-22mm"; RAYS=18; FILM=160x120; SPP=16
-    FLARE="--ghosts 1 --samples 65536 --ref-samples 262144"; COMPLETE="--samples 16 --reference 18 --positions 0.6:0.35"
-    EQUAL="--res 64x48 --spp 4,16 --reference-spp 64 --repeats 1"; FIRST=14; FROZEN=12,14
+    FLARE="--ghosts 1 --samples 65536 --ref-samples 262144"
+    EQUAL="--res 64x48 --spp 4,16 --reference-spp 64 --repeats 1"
     TRAIN="--paths backward-transmit --set regressor.max_steps=200 --set classifier.max_steps=200 --set stop.max_steps=200 --set regressor.lm_iterations=5 --set classifier.lm_iterations=5 --set stop.lm_iterations=5"
     GHOST_LENSES="${GHOST_LENSES:-wide-22mm}"
     GHOST_ARGS="--set max_ghosts=1 --set forward_regressor.max_steps=200 --set forward_classifier.max_steps=200 --set forward_stop.max_steps=200 --set forward_regressor.lm_iterations=5 --set forward_classifier.lm_iterations=5 --set forward_stop.lm_iterations=5"
-    EVAL_N=2000; THROUGHPUT="--steps 20 --maps 1,4"; COST=14; COST_LENSES="${COST_LENSES:-wide-22mm}"
+    EVAL_N=2000; COST=14; COST_LENSES="${COST_LENSES:-wide-22mm}"
 else
     RAYS=24; FILM=1280x960; SPP=64; FLARE="--ghosts 8 --samples $((1 << 24)) --ref-samples $((1 << 27))"
-    COMPLETE="--samples 24 --reference 28"; EQUAL="--res 640x480 --spp 4,16,64 --reference-spp 1024 --repeats 2"
-    FIRST=22; FROZEN=16,20,24; TRAIN="--paths transmit,ghosts"; EVAL_N=100000; THROUGHPUT="--steps 300 --maps 1,16"
+    EQUAL="--res 640x480 --spp 4,16,64 --reference-spp 1024 --repeats 2"
+    TRAIN="--paths transmit,ghosts"; EVAL_N=100000
     COST=22; COST_LENSES="${COST_LENSES:-$(echo $ALL_LENSES | tr , ' ')}"
 fi
 case "$MI_NEURALLENS_VARIANT" in cuda*) OTHER_STYLE=cpu ;; *) OTHER_STYLE=gpu ;; esac   # the learned maps' other style
@@ -138,12 +126,6 @@ stage_bench() {
     local rc=0
     stage_mlp || rc=1
     stage_render || rc=1
-    if [ -z "${GPU_SUITE_QUICK:-}" ] && [ -f "$RF16" ]; then   # a 4x cheaper camera map: does it beat the tracer?
-        py 60 benchmarks/bench_mlp.py --lens canon-rf-24mm-f1.4l-vcm --model "$RF16" --rays $RAYS \
-            --out "$RES/mlp_canon-rf-24mm-f1.4l-vcm_width16.json" || rc=1
-        py 90 benchmarks/bench_render.py --lens canon-rf-24mm-f1.4l-vcm --model "$RF16" --res $FILM --spp $SPP \
-            --repeats 3 --out "$RES/render_canon-rf-24mm-f1.4l-vcm_width16.json" || rc=1
-    fi
     return $rc
 }
 
@@ -164,25 +146,12 @@ stage_render() {   # bench's render times alone (a call with little time left): 
     return $rc
 }
 
-stage_sass() {     # each lens sensor's camera-ray kernel in machine code: instructions by opcode, registers, spills
-    py 120 benchmarks/ray_kernel_sass.py --lens $PAPER_LENSES --keep "$RES/sass" --out "$RES/ray_kernel_sass.json"
-}
-
 stage_equal() {
     py 150 benchmarks/equal_time.py --lenses $ALL_LENSES $EQUAL --out "$RES/equal_time.json"
 }
 
 stage_flare() {
-    local rc=0
-    py 120 benchmarks/complete_flare.py --lens $FLARE_LENS $COMPLETE --json "$RES/complete_flare_$FLARE_LENS.json" || rc=1
-    py 120 benchmarks/complete_flare.py --lens $FLARE_LENS $COMPLETE --positions 0.9:0.45 --mlp coopvec \
-        --json "$RES/complete_flare_${FLARE_LENS}_coopvec.json" || rc=1      # fp16 tensor cores: the flare's accuracy
-    py 120 benchmarks/first_render.py --lens $FLARE_LENS --samples $FIRST --modes exact,neural:shared,neural:fused,neural:coopvec \
-        --out "$RES/first_render_$FLARE_LENS.json" || rc=1
-    py 90 benchmarks/bench_flare.py --lens wide-22mm $FLARE --out "$RES/flare_wide-22mm.json" || rc=1
-    py 120 benchmarks/frozen_flare.py --lens $FLARE_LENS --samples $FROZEN \
-        --out "$RES/frozen_flare_$FLARE_LENS.json" || rc=1            # the fixed cost per render, frozen or traced
-    return $rc
+    py 90 benchmarks/bench_flare.py --lens wide-22mm $FLARE --out "$RES/flare_wide-22mm.json"
 }
 
 stage_tests() {
@@ -195,15 +164,9 @@ stage_tests() {
     return "${PIPESTATUS[0]}"
 }
 
-stage_throughput() {
-    py 240 benchmarks/training_throughput.py $THROUGHPUT --out "$RES/training_throughput.json" 2>&1 | tee "$RES/throughput.log"
-    return "${PIPESTATUS[0]}"
-}
-
 stage_train() {
-    local t0=$SECONDS rc=0 prof=()
-    [ -n "${GPU_SUITE_PROFILE:-}" ] && prof=(benchmarks/profile_run.py "$RES/train.pstats")   # kept when stopped
-    py 100000 "${prof[@]}" -m mi_neurallens train dgauss-50mm $TRAIN --out "$RES/train" --no-progress 2>&1 \
+    local t0=$SECONDS rc=0
+    py 100000 -m mi_neurallens train dgauss-50mm $TRAIN --out "$RES/train" --no-progress 2>&1 \
         | stamp | tee "$RES/train.log"
     [ "${PIPESTATUS[0]}" -eq 0 ] || rc=1
     echo "wall: $((SECONDS - t0)) s for dgauss-50mm ($TRAIN) (MI_NEURALLENS_VARIANT=$MI_NEURALLENS_VARIANT; the samplers' backend: setup.txt)" | tee -a "$RES/train.log"
@@ -217,7 +180,7 @@ stage_costs() {
     local rc=0
     mkdir -p "$RES/models"
     for lens in $COST_LENSES; do
-        cp "lenses/models/$lens.model.safetensors" "$RES/models/" || { rc=1; continue; }
+        cp "mi_neurallens/data/lenses/models/$lens.model.safetensors" "$RES/models/" || { rc=1; continue; }
         py 300 -m mi_neurallens evaluate "$RES/models/$lens.model.safetensors" --recorded --flare-cost --write \
             --flare-cost-samples $COST --json "$RES/models/$lens.eval.json" --markdown "$RES/models/$lens.eval.md" \
             2>&1 | tee "$RES/costs_$lens.log"
