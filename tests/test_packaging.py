@@ -136,3 +136,12 @@ def test_llvm15_stops_with_the_message_instead_of_aborting():
     code = "import mitsuba as mi; mi.set_variant('llvm_ad_rgb'); import mi_neurallens; mi_neurallens.register()"
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
     assert r.returncode == 1 and "LLVM 15" in r.stderr, (r.returncode, r.stderr[-2000:])
+
+
+def test_reports_on_a_bundled_model_stay_out_of_the_package(tmp_path):
+    """``evaluate`` writes its report beside a model file, except beside one inside the installed package, whose
+    shipped evaluation record it must not overwrite: that report goes into the current folder."""
+    from mi_neurallens.commands.evaluate import _beside
+    assert _beside(str(resources.find_model("wide-22mm"))) == "wide-22mm.model.safetensors"
+    mine = str(tmp_path / "my.model.safetensors")
+    assert _beside(mine) == mine

@@ -4,7 +4,8 @@ Traces fresh held-out rays (float64, a seed different from training) and prints,
 classifier's misclassification / false-valid / false-blocked rates and the distance of wrong answers
 from the true boundary, and the regressor's exit-position (µm), direction (arcsec) and relative
 throughput errors, checked against the goals of docs/training.md.  Writes JSON and markdown
-(``--json``, ``--markdown``; default next to the model: ``<model>.eval.json`` / ``.md``).
+(``--json``, ``--markdown``; default next to the model, ``<model>.eval.json`` / ``.md``, or in the current folder for
+a bundled model).
 
 ``--flare`` also renders every forward ghost map's flare against the tracer's on the same samples
 (:mod:`mi_neurallens.flare.verify`: paired MAPE, the largest over two light positions; a ghost above the
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import json
 import os
+from pathlib import Path
 
 
 def add_parser(subparsers):
@@ -28,8 +30,9 @@ def add_parser(subparsers):
     p.add_argument("--lens", help="lens (default: the bundled lens named in the model)")
     p.add_argument("-n", type=int, default=200_000, help="held-out rays per map (default 200000)")
     p.add_argument("--seed", type=int, default=4242)
-    p.add_argument("--json", help="output JSON (default <model>.eval.json)")
-    p.add_argument("--markdown", help="output markdown (default <model>.eval.md)")
+    p.add_argument("--json", help="output JSON (default <model>.eval.json beside the model; for a bundled model, "
+                                  "in the current folder)")
+    p.add_argument("--markdown", help="output markdown (default <model>.eval.md, placed as --json)")
     p.add_argument("--recorded", action="store_true",
                    help="report the held-out metrics recorded in the model file at training instead of tracing "
                         "fresh rays (seconds instead of ~30 s per map)")
@@ -102,8 +105,8 @@ def run(args):
            f"(each map's own held-out rays and seed)" if args.recorded else
            f"`mi-neurallens evaluate {args.model} -n {args.n} --seed {args.seed}`")
     md = f"# Held-out accuracy of `{os.path.basename(path)}` ({lens.name})\n\n{how}\n\n" + markdown_table(model, rows)
-    jp = args.json or path + ".eval.json"
-    mp = args.markdown or path + ".eval.md"
+    jp = args.json or _beside(path) + ".eval.json"
+    mp = args.markdown or _beside(path) + ".eval.md"
     atomic_write_text(jp, json.dumps(out, indent=1))
     atomic_write_text(mp, md)
     print(md)
@@ -113,6 +116,17 @@ def run(args):
     if args.flare_cost:
         _flare_cost(args, path, model)
     return 0
+
+
+def _beside(path: str) -> str:
+    """Where a report on the model file ``path`` goes by default: beside it, except for a model inside the
+    installed package (its shipped evaluation record stays as it is), whose report goes into the current
+    folder."""
+    from .. import resources
+    bundled = resources.bundled_library().path.resolve()
+    if bundled in Path(path).resolve().parents:
+        return os.path.basename(path)
+    return path
 
 
 def _flare_cost(args, path, model):
