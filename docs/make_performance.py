@@ -541,8 +541,24 @@ def detect_machine() -> tuple:
         pass
     simd = "AVX-512" if " avx512f" in flags else "AVX2" if " avx2" in flags else ""
     n = os.cpu_count() or 0
-    long = f"{n}-core {model}" + (f" ({simd})" if simd else "") + f", {platform.system()}, Python {platform.python_version()}"
+    long = f"{n}-core {model}" + (f" ({simd})" if simd else "") + f", {platform.system()}"
     return long, f"{n}-core CPU"
+
+
+def _software(d: dict) -> str:
+    """What a benchmark's JSON says of its software: Mitsuba / Dr.Jit versions, variant, threads."""
+    m = d.get("machine") if isinstance(d.get("machine"), dict) else {}
+    parts = []
+    if m.get("python"):
+        parts.append(f"Python {m['python']}")
+    if m.get("mitsuba") or m.get("drjit"):
+        parts.append(f"Mitsuba {m.get('mitsuba', '?')} / Dr.Jit {m.get('drjit', '?')}")
+    if d.get("variant"):
+        parts.append(str(d["variant"]))
+    threads = d.get("threads") or (d.get("info") or {}).get("drjit_threads")
+    if threads:
+        parts.append(f"{threads} Dr.Jit threads")
+    return "".join(f", {p}" for p in parts)
 
 
 def _commit() -> str:
@@ -566,8 +582,8 @@ def take_run(src: str, names: list, dest: str, machine: tuple, command_of) -> li
         shutil.copyfile(p, os.path.join(dest, n))
         key = os.path.relpath(os.path.join(dest, n), PERF).replace(os.sep, "/")
         d = _load(p)
-        sources["files"][key] = {"command": command_of(n, d), "machine": machine[0], "machine_short": machine[1],
-                                 "measured": today, "commit": commit}
+        sources["files"][key] = {"command": command_of(n, d), "machine": machine[0] + _software(d),
+                                 "machine_short": machine[1], "measured": today, "commit": commit}
         took.append(key)
     with open(spath + ".tmp", "w", encoding="utf-8") as f:
         json.dump(sources, f, indent=1, ensure_ascii=False)
@@ -584,13 +600,15 @@ def _cpu_command(name, d):
 
 
 def _gpu_machine(src: str) -> tuple:
-    gpu = "GPU"
+    """The GPU of a gpu_suite.sh run, from its gpu.txt (nvidia-smi's name and driver); the JSON adds the rest."""
+    gpu, driver = "GPU", ""
     p = os.path.join(src, "gpu.txt")
     if os.path.exists(p):
         lines = [ln for ln in open(p, encoding="utf-8").read().splitlines() if ln.strip()]
         if len(lines) > 1:
-            gpu = lines[1].split(",")[0].strip()
-    return f"{gpu} with {os.cpu_count()} CPU cores (this machine's count: give --machine where they differ)", gpu
+            cells = [c.strip() for c in lines[1].split(",")]
+            gpu, driver = cells[0], cells[2] if len(cells) > 2 else ""
+    return gpu + (f" (driver {driver})" if driver else ""), gpu
 
 
 def main(argv=None) -> int:
