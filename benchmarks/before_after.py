@@ -8,8 +8,8 @@ Runs ``bench_tracer``, ``bench_mlp``, ``bench_render`` and ``bench_flare`` of TH
 the other tree ("before") and of this tree ("after"), alternating before/after ``--rounds`` times so
 that slow drifts of the machine fall on both, and prints every rate (``*per_s``) and time (``*_s``,
 ``seconds``) as before, after and after/before (best of the rounds: rates max, times min).  Run it
-on an idle machine.  The benchmarks' own settings are reduced with ``--quick`` (fewer rays, one
-repeat fewer) for a fast look; the table in docs/results.md uses the defaults below.
+on an idle machine.  Each benchmark runs with the settings of ``BENCHES`` below (fewer rays and repeats
+than its own defaults, so that both trees fit in one sitting).
 """
 from __future__ import annotations
 

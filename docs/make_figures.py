@@ -1,21 +1,22 @@
-"""Regenerate the pictures and tables of docs/neural_lens.md and docs/results.md.
+"""Regenerate the pictures of docs/neural_lens.md, docs/flares.md and docs/baselines.md (renders, a few minutes each).
 
     python docs/make_figures.py [--spp 64] [--reference-spp 1024] [--quick]
 
 1. The paper's path-tracing figure: the still life through each of the three paper lenses, converged
    ``realistic_lens`` reference vs ``realistic_lens`` and ``neural_lens`` at equal spp
-   (``mi-neurallens compare``), → docs/images/compare_<lens>.png and out/figures/compare.json.
-2. The classifier ablation (``use_classifier=false``) → docs/images/neural_ablation_classifier.png.
+   (``mi-neurallens compare``), → docs/images/compare_wide-22mm.jpg (the others stay in out/figures/<lens>/) and
+   out/figures/compare.json.
+2. The classifier ablation (``use_classifier=false``) → docs/images/neural_ablation_classifier.jpg.
 3. Manual focusing with one model: ood-59mm at three sensor distances, exact vs neural
-   → docs/images/neural_focus_sweep.png.
+   → docs/images/neural_focus_sweep.jpg.
 4. ``--methods``: the depth-of-field render of every transport method (exact, neural, ABCD, Taylor 3/5,
-   fitted polynomials) → docs/images/methods_dof_wide-22mm.png and out/figures/methods.json.
-5. ``--night``: scenes/night.xml with its flare, ``realistic_lens`` (exact ghosts) beside ``neural_lens``
-   (learned ghosts), the ghosts the model has maps for → docs/images/flare_night_<lens>.png and
+   fitted polynomials) → docs/images/methods_dof_wide-22mm.jpg and out/figures/methods.json.
+5. ``--night``: the bundled night scene with its flare, ``realistic_lens`` (exact ghosts) beside ``neural_lens``
+   (learned ghosts), the ghosts the model has maps for → docs/images/flare_night_<lens>.jpg and
    out/figures/night.json.
 6. ``--aperture``: one wide-22mm model at the render-time aperture: the still life from the widest
    aperture to f/16, and a defocused point light through 5, 6 and 9 blades, exact above neural
-   → docs/images/aperture_still_life.png, docs/images/aperture_bokeh.png, out/figures/aperture.json.
+   → docs/images/aperture_still_life.jpg, docs/images/aperture_bokeh.png, out/figures/aperture.json.
 7. ``--bladed``: single wide-22mm ghosts through 6 blades at 4× the widest f-number, exact beside the learned
    ghost with its iris learned and with the iris's edge traced (``iris_band``), same samples, with their error
    maps → docs/images/flare_bladed_iris_band.png and out/figures/bladed.json.
@@ -25,28 +26,32 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import shutil
 import subprocess
 import sys
 
 import numpy as np
 
+from mi_neurallens.resources import scene_path
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 IMG = os.path.join(ROOT, "docs", "images")
 OUT = os.path.join(ROOT, "out", "figures")
 LENSES = ("wide-22mm", "ood-59mm", "canon-ef-24mm-f1.4l")
+#: the lens whose side-by-side comparison is the docs' picture (README.md, docs/neural_lens.md)
+FIGURE_LENS = "wide-22mm"
 
 
 def compare_all(spp, ref_spp, res):
     rows = {}
     for lens in LENSES:
         out = os.path.join(OUT, lens)
-        cmd = [sys.executable, "-m", "mi_neurallens", "compare", "scenes/still_life.xml", "--lens", lens,
+        cmd = [sys.executable, "-m", "mi_neurallens", "compare", "still_life", "--lens", lens,
                "--spp", str(spp), "--reference-spp", str(ref_spp), "--resolution", res, "--out", out,
                "--no-progress"]
         print(" ".join(cmd[1:]), flush=True)
         subprocess.run(cmd, cwd=ROOT, check=True)
-        shutil.copy(os.path.join(out, "compare.png"), os.path.join(IMG, f"compare_{lens}.png"))
+        if lens == FIGURE_LENS:
+            save_jpeg(os.path.join(out, "compare.png"), os.path.join(IMG, f"compare_{lens}.jpg"))
         rows[lens] = json.load(open(os.path.join(out, "compare.json")))
     with open(os.path.join(OUT, "compare.json"), "w") as f:
         json.dump(rows, f, indent=2)
@@ -57,6 +62,19 @@ def compare_all(spp, ref_spp, res):
         print(f"| {lens} | {a['spp']} | {a['mape']:.4f} | {b['mape']:.4f} | {r['ratio_mape_neural_over_realistic']:.3f} | "
               f"{r['mape_neural_vs_realistic_same_spp']:.4f} | {a['seconds']:.2f} | {b['seconds']:.2f} |")
     return rows
+
+
+def save_jpeg(src, dst, quality=88):
+    """``src`` (any image PIL reads) as a JPEG at ``dst`` (renders and photos: a tenth of a PNG's bytes)."""
+    from PIL import Image
+    im = Image.open(src)
+    if im.mode != "RGB":
+        im = im.convert("RGBA")
+        bg = Image.new("RGB", im.size, (255, 255, 255))
+        bg.paste(im, mask=im.split()[3])
+        im = bg
+    im.save(dst + ".tmp.jpg", "JPEG", quality=quality, optimize=True, progressive=True)
+    os.replace(dst + ".tmp.jpg", dst)
 
 
 def grid(images, titles, path, suptitle, cols):
@@ -78,14 +96,18 @@ def grid(images, titles, path, suptitle, cols):
     fig.suptitle(textwrap.fill(suptitle, 50 * cols), fontsize=9)     # long titles wrap instead of clipping
     fig.subplots_adjust(left=0.01, right=0.99, top=0.86, bottom=0.01, wspace=0.03, hspace=0.18)
     fig.savefig(path + ".tmp.png")
-    os.replace(path + ".tmp.png", path)
+    if path.endswith(".jpg"):
+        save_jpeg(path + ".tmp.png", path)
+        os.remove(path + ".tmp.png")
+    else:
+        os.replace(path + ".tmp.png", path)
 
 
 def render(sensor_type, lens, spp, res, sets=()):
     from mi_neurallens.commands.render import load_scene, render_passes
     w, h = (int(v) for v in res.split("x"))
     extra = [f"model={lens}"] if sensor_type == "neural_lens" else []
-    scene = load_scene(os.path.join(ROOT, "scenes", "still_life.xml"), variant="llvm_ad_rgb", lens=lens,
+    scene = load_scene(str(scene_path("still_life")), variant="llvm_ad_rgb", lens=lens,
                        resolution=(w, h), spp=spp, sets=list(sets) + extra, sensor_type=sensor_type)
     img, _ = render_passes(scene, spp, max(1, spp // 64), show_progress=False)
     return img
@@ -98,7 +120,7 @@ def ablation(spp, res):
     b = render("neural_lens", "wide-22mm", spp, res, ["use_classifier=false"])
     grid([real, a, b], [f"realistic_lens ({spp * 4} spp)", f"neural_lens ({spp} spp), MAPE {mape(a, real):.3f}",
                         f"neural_lens without classifier, MAPE {mape(b, real):.3f}"],
-         os.path.join(IMG, "neural_ablation_classifier.png"),
+         os.path.join(IMG, "neural_ablation_classifier.jpg"),
          "wide-22mm: without the classifier every ray inside the trained domain passes (brighter corners, "
          f"mean {b.mean() / a.mean():.2f}x)", 3)
     return {"mape_with": mape(a, real), "mape_without": mape(b, real), "brightness_ratio": float(b.mean() / a.mean())}
@@ -118,7 +140,7 @@ def focus_sweep(spp, res):
             titles.append(f"{kind}, sensor {s} mm (focus {fd / 1000:.2f} m)")
     for i, s in enumerate(dists):
         out.append({"sensor_distance_mm": s, "mape_neural_vs_exact": mape(imgs[3 + i], imgs[i])})
-    grid(imgs, titles, os.path.join(IMG, "neural_focus_sweep.png"),
+    grid(imgs, titles, os.path.join(IMG, "neural_focus_sweep.jpg"),
          "ood-59mm, manual focusing by moving the sensor: one neural model serves every sensor distance", 3)
     return out
 
@@ -133,7 +155,7 @@ def methods(spp, res, lens="wide-22mm"):
         rows[m] = mape(img, ref)
         imgs.append(img)
         titles.append(f"method={m}, {spp} spp, MAPE {rows[m]:.3f}")
-    grid(imgs[:1] + imgs[1:], titles, os.path.join(IMG, f"methods_dof_{lens}.png"),
+    grid(imgs[:1] + imgs[1:], titles, os.path.join(IMG, f"methods_dof_{lens}.jpg"),
          f"{lens}: camera-ray transport by each method (same planes, pupil sampling and seeds)", 4)
     print("| method | MAPE vs reference |\n|---|---|")
     for m, v in rows.items():
@@ -156,7 +178,7 @@ def night(spp, lens="ood-59mm", res="480x320", flare_samples=1 << 24):
     from mi_neurallens.flare.render import render_flare
     imgs, flares, secs, ghost_only = {}, {}, {}, {}
     for st, mode in (("realistic_lens", "exact"), ("neural_lens", "neural")):
-        scene = load_scene(os.path.join(ROOT, "scenes", "night.xml"), variant="llvm_ad_rgb", lens=lens,
+        scene = load_scene(str(scene_path("night")), variant="llvm_ad_rgb", lens=lens,
                            resolution=(w, h), spp=spp, sensor_type=st,
                            sets=[f"model={lens}"] if st == "neural_lens" else [],
                            params=[f"mode={mode}", f"ghosts={ghosts}", f"flare_samples={flare_samples}"])
@@ -179,8 +201,8 @@ def night(spp, lens="ood-59mm", res="480x320", flare_samples=1 << 24):
           f"neural_lens + learned ghosts ({secs['neural_lens']:.1f} s)",
           "flare alone, exact",
           f"flare alone, learned (ghosts: MAPE {out['ghost_mape_neural_vs_exact']:.3f} vs exact)"],
-         os.path.join(IMG, f"flare_night_{lens}.png"),
-         f"scenes/night.xml, {lens}, {spp} spp, the {len(out['ghosts'])} ghosts with learned maps, "
+         os.path.join(IMG, f"flare_night_{lens}.jpg"),
+         f"night scene, {lens}, {spp} spp, the {len(out['ghosts'])} ghosts with learned maps, "
          f"{flare_samples / 2**20:.0f} M flare samples per light", 2)
     return out
 
@@ -202,13 +224,11 @@ def aperture(spp, res, lens="wide-22mm"):
         imgs[0].append(ex), imgs[1].append(nn)
         titles[0].append(f"realistic_lens f/{N:.3g}")
         titles[1].append(f"neural_lens f/{N:.3g}, MAPE vs exact {m:.4f}")
-    grid(imgs[0] + imgs[1], titles[0] + titles[1], os.path.join(IMG, "aperture_still_life.png"),
+    grid(imgs[0] + imgs[1], titles[0] + titles[1], os.path.join(IMG, "aperture_still_life.jpg"),
          f"{lens}: one model from f/{n0:.3g} to f/16 (the map was learned wide open; the iris is tested on its "
          f"predicted stop crossing), {spp} spp, same seeds", 4)
     N = 4.0 * n0
     imgs, titles = [[], []], [[], []]
-    sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
-    from aperture import bokeh_pair      # the bokeh protocol of `benchmarks/aperture.py --bokeh`
     for blades in (5, 6, 9):
         ex, nn, iou = bokeh_pair(mi, lens, N, blades, 0.35)
         for row, img in enumerate((ex, nn)):
@@ -221,6 +241,21 @@ def aperture(spp, res, lens="wide-22mm"):
     return out
 
 
+def bokeh_pair(mi, lens_name, fstop, blades, focus_m, spp=4096, res=160, seed=7):
+    """The blur disc of an on-axis point light (tests/bokeh.py's scene), ``realistic_lens`` and ``neural_lens`` with
+    the same seed, the film cropped to 2.5x the paraxial disc: ``(exact, neural, mask IoU)``."""
+    from mi_neurallens.optics.prescription import Lens
+    sys.path.insert(0, os.path.join(ROOT, "tests"))
+    from bokeh import BOKEH_LIGHT_M, bokeh_scene, disc_mask, mask_iou
+    lens = Lens.load(lens_name)
+    f = lens.efl()
+    s_f, s_p = 1000.0 * focus_m, 1000.0 * BOKEH_LIGHT_M
+    width_mm = 2.5 * (f / fstop) * f / (s_f - f) * abs(s_p - s_f) / s_p
+    pair = [np.array(mi.render(mi.load_dict(bokeh_scene(kind, lens_name, fstop, blades, focus_m, width_mm, res, spp)),
+                               seed=seed), dtype=np.float64) for kind in ("realistic_lens", "neural_lens")]
+    return pair[0], pair[1], mask_iou(disc_mask(pair[0]), disc_mask(pair[1]))
+
+
 def bladed(lens="wide-22mm", fstop=10.74, ghosts=(66048, 144, 4224), samples=1 << 24):
     """Each of ``ghosts`` alone through 6 blades at ``fstop``: exact, learned with the iris tested on its predicted
     crossings, and learned with the iris's edge traced (``iris_band`` 1), on the same samples (paired), cropped to
@@ -229,7 +264,7 @@ def bladed(lens="wide-22mm", fstop=10.74, ghosts=(66048, 144, 4224), samples=1 <
     from mi_neurallens.flare.verify import paired_renders
     from mi_neurallens.metrics import flare_error_map
     import mitsuba as mi
-    scene = load_scene(os.path.join(ROOT, "scenes", "night_point.xml"), variant=mi.variant(), lens=lens,
+    scene = load_scene(str(scene_path("night_point")), variant=mi.variant(), lens=lens,
                        sensor_type="neural_lens", sets=[f"model={lens}", f"fstop={fstop!r}", "blades=6"])
     imgs, titles, out = [], [], []
     for g in ghosts:

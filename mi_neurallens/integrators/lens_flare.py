@@ -75,18 +75,17 @@ sensor must be ``realistic_lens`` or ``neural_lens``.
    - Learned ghosts: a sample whose classifier logit lies within ±this of its decision is traced exactly
      instead, in a second pass over just those samples.  A learned ghost's flare error sits on its edges,
      where the classifier decides (its logit is about 40 × the aperture margin there), so 1.0 traces the rays
-     within ≈ 0.025 of an aperture edge: 4–5 % of a ghost's samples on the RF 24 mm, its three worst ghosts'
-     paired errors 0.030–0.060 → 0.006–0.017 (docs/flares.md, "Exact edges").  0: off.  In ``auto`` this is
-     a floor: a ghost whose map is verified within ``auto_max_flare_error`` only with a wider band is rendered
-     with that band.  (Default: 0)
+     within ≈ 0.025 of an aperture edge, a few percent of a ghost's samples: choose it for converged renders
+     and fine films, where the learned edges' error would show (docs/flares.md, "Exact edges").  0: off.  In
+     ``auto`` this is a floor: a ghost whose map is verified within ``auto_max_flare_error`` only with a wider
+     band is rendered with that band.  (Default: 0)
 
  * - iris_band
    - |float|
    - Learned ghosts through an iris other than the trained one (``fstop`` stopped down, ``blades``: the iris is
      tested on each map's predicted stop-plane crossings): a sample whose predicted crossing lies within
      ``iris_band`` × 3 × the stop head's held-out p99 crossing error of the iris's edge is traced exactly
-     instead, like ``boundary_band``'s.  The iris polygon's edge is then the tracer's: on the 22 mm lens at
-     f/10.7 with 6 blades, ghosts 66048 and 144 go from paired errors 0.033 and 0.027 to 0.009 and 0.003
+     instead, like ``boundary_band``'s, so the iris polygon's edge is the tracer's
      (docs/flares.md, "Exact edges").  0: off.  (Default: ``boundary_band`` in ``neural``, at least 1 in
      ``auto``, whose verified records were measured at the trained iris)
 
@@ -98,11 +97,11 @@ sensor must be ``realistic_lens`` or ``neural_lens``.
  * - mlp
    - |string|
    - How learned ghost maps are evaluated in their kernels: ``fused`` (every weight a literal: the fastest
-     code, one kernel compiled per ghost map, 1–7 s each the first time on a CPU), ``shared`` (every number
-     of a map a kernel input, on a CPU the weights in packed cooperative-vector buffers: the ghost maps of
-     one architecture share one kernel, compiled once in about a second), ``coopvec`` (Dr.Jit cooperative
-     vectors on every backend, fp16 on CUDA), or ``auto``: ``shared`` when the render uses several learned
-     maps (docs/results.md, "One compilation").  (Default: ``auto``)
+     code once compiled, but one kernel to compile per ghost map), ``shared`` (every number of a map a kernel
+     input, on a CPU the weights in packed cooperative-vector buffers: the ghost maps of one architecture
+     share one kernel, compiled once), ``coopvec`` (Dr.Jit cooperative vectors on every backend, fp16 on
+     CUDA), or ``auto``: ``shared`` when the render uses several learned maps, ``fused`` for one.
+     (Default: ``auto``)
 
  * - freeze
    - |bool|

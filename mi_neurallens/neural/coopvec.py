@@ -7,9 +7,8 @@ weights costs no compilation, and on CUDA the matrix–vector products run on te
 
 * LLVM (this project's CPU default): fp32, same results as the literal path to ~1e-6.
 * CUDA: ``drjit.nn`` requires half precision for ``matvec`` (driver ≥ R570); weights and activations
-  are then fp16.  Measured on an H100 (docs/results.md, "On a GPU"): 2.5–3.6× the rate of the literal
-  kernels; the largest difference from them over 2^24 uniform inputs and all outputs (logit and rejected
-  rays included) was 0.05–0.34, per output not yet measured — so ``fused`` stays the default there too.
+  are then fp16: several times the rate of the literal kernels, but exit rays tens of µm off the fp32
+  network's (rates and errors: docs/performance.md, "On a GPU") — so ``fused`` stays the default there too.
 
 The activation is Dr.Jit's ``tanh`` on the cooperative vector (no division is available on
 ``CoopVec``, so the rational tanh of the literal path cannot be used).

@@ -10,7 +10,7 @@ every network of one architecture compiles to the same kernel.  How it spends th
 backend's **style** (:data:`MLP_STYLES`, :func:`mlp_style`): on the CPU four interleaved partial sums per
 neuron and Eigen's 13/6 rational tanh (:func:`tanh_eigen`), clamped to ±7.90531, maximum error 2.6e-7; on
 CUDA one multiply-add chain per neuron and tanh from the GPU's exp2 and reciprocal (:func:`tanh_exp2`): a
-third fewer instructions there (docs/results.md, "The sixth GPU session").  Float64 inputs get the exact
+third fewer machine instructions there (counted in the compiled kernels' SASS).  Float64 inputs get the exact
 tanh: that is the maps' numpy reference path.  It is plain Dr.Jit arithmetic on the float type of its
 inputs, so it runs in any Mitsuba variant (``mi.Float``).
 """

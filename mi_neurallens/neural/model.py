@@ -95,9 +95,8 @@ PARAM_MODES = ("shared", "coopvec")
 def packed_networks(mlp: str, like) -> bool:
     """Whether ``mlp`` evaluates the networks through Dr.Jit cooperative vectors (weights in one packed
     buffer per network) rather than unrolled multiply-adds: always for ``"coopvec"``; for ``"shared"`` on
-    the LLVM backend, where it is the same fp32 arithmetic (to ~1e-6) and compiles 3–25× sooner than one
-    opaque scalar per weight, with one upload per network instead of one per weight (docs/results.md, "One
-    compilation"); on CUDA ``"shared"`` keeps fp32 opaque scalars (its cooperative vectors are fp16), and in
+    the LLVM backend, where it is the same fp32 arithmetic (to ~1e-6) and compiles several times sooner than one
+    opaque scalar per weight, with one upload per network instead of one per weight; on CUDA ``"shared"`` keeps fp32 opaque scalars (its cooperative vectors are fp16), and in
     float64 (``like``: the Dr.Jit input array) it keeps them too."""
     if mlp == "coopvec":
         return True

@@ -41,10 +41,9 @@ SEPARATE_MAX_BYTES = 4 << 30
 def ray_kernel_for(mode: str, cuda: bool, samples: int, floats_per_sample: int) -> str:
     """``inline`` or ``separate`` for a render pass of ``samples`` camera rays, each stored (if separate) as
     ``floats_per_sample`` 32-bit numbers.  ``auto``: separate on CUDA while the stored rays fit
-    :data:`SEPARATE_MAX_BYTES`, inline otherwise and on the CPU.  Measured, still life at 1280×960, 64 spp
-    (docs/results.md, "Camera rays in a kernel of their own"): on an H200 separate renders 5–19 % faster with
-    the learned map and 4–9 % faster with the tracer on three of four lenses (6 % slower on the 13-surface
-    wide-22mm); on this project's 2-core CPU the two are within 1–3 %, and inline stores nothing."""
+    :data:`SEPARATE_MAX_BYTES`, inline otherwise and on the CPU: on a GPU the path tracer's kernel then does not
+    carry the lens transport's registers through its loop, and on a CPU the two render alike while inline stores
+    nothing (render times with both: docs/performance.md, "On a GPU")."""
     if mode != AUTO:
         return mode
     return SEPARATE if cuda and samples * floats_per_sample * 4 <= SEPARATE_MAX_BYTES else INLINE

@@ -35,10 +35,10 @@ Neural lens camera (:monosp:`neural_lens`)
 
  * - model
    - |string|
-   - A model file (``*.model.safetensors``, written by ``mi-neurallens train``) or the name of a
-     bundled lens whose model ships in ``lenses/models/`` (``wide-22mm``, ``ood-59mm``,
-     ``canon-ef-24mm-f1.4l``).  (Default: the bundled model of ``lens`` when ``lens`` is given, else
-     ``wide-22mm``)
+   - A model file (``*.model.safetensors``, written by ``mi-neurallens train``) or a lens name whose model is
+     found in a lens library: a bundled lens (``mi-neurallens lens list``; which ship a model:
+     docs/lenses.md), or a lens of ``$MI_NEURALLENS_LENSES`` with a ``models/<name>.model.safetensors``.
+     (Default: the model of ``lens`` when ``lens`` is given, else ``wide-22mm``)
 
  * - lens
    - |string|
@@ -54,15 +54,15 @@ Neural lens camera (:monosp:`neural_lens`)
 
  * - mlp
    - |string|
-   - How the networks are evaluated in the kernel.  ``fused`` (default): every weight is a literal in
-     the generated kernel and tanh is accurate to float32 (a rational approximation on the CPU, the GPU's
-     exp2 and reciprocal on CUDA) — the fastest on the CPU (16 M rays/s for the 3×16 + 2×16 camera map of
-     wide-22mm on 2 cores vs 11 M for ``coopvec``), but a new weight set compiles a new kernel (1–7 s on 2 cores).  ``shared``: every number
-     of the map a kernel input — on the CPU the networks through packed cooperative-vector buffers
-     (fp32, equal to ``fused`` to ~1e-6), on CUDA fp32 kernel parameters — so maps of one architecture
-     share one compiled kernel (docs/results.md, "One compilation"; ``lens_flare`` uses it for its
-     ghosts).  ``coopvec``: Dr.Jit cooperative vectors (``drjit.nn``) on every backend: no recompilation
-     when weights change, tensor cores on CUDA (fp16 there).  (Default: ``fused``)
+   - How the networks are evaluated in the kernel.  ``fused``: every weight is a literal in the generated
+     kernel and tanh is accurate to float32 (a rational approximation on the CPU, the GPU's exp2 and
+     reciprocal on CUDA); the fastest evaluation once compiled, but every new weight set compiles a kernel
+     of its own.  ``shared``: every number of the map is a kernel input (on the CPU the networks through
+     packed cooperative-vector buffers, fp32, equal to ``fused`` to ~1e-6; on CUDA fp32 kernel parameters),
+     so maps of one architecture share one compiled kernel: for many maps in one render, as ``lens_flare``'s
+     ghosts.  ``coopvec``: Dr.Jit cooperative vectors (``drjit.nn``) on every backend, no recompilation when
+     weights change, tensor cores on CUDA but fp16 there (coarser exit rays).  Keep ``fused`` for camera
+     rays (rates of each: docs/performance.md).  (Default: ``fused``)
 
  * - method
    - |string|

@@ -22,8 +22,8 @@ Realistic lens camera (:monosp:`realistic_lens`)
  * - lens
    - |string|
    - Lens prescription: a file (project JSON, pbrt ``.dat``, Open Optical Designer ``.json``, Zemax
-     ``.zmx``; relative paths are resolved like other scene files) or the name of a bundled lens (``wide-22mm``,
-     ``ood-59mm``, ``canon-ef-24mm-f1.4l``, ``dgauss-50mm``, ``fisheye-10mm``, ``telephoto-250mm``).
+     ``.zmx``, CODE V ``.seq``; relative paths are resolved like other scene files) or the name of a lens in a
+     lens library: a bundled lens, or one of ``$MI_NEURALLENS_LENSES`` (``mi-neurallens lens list`` names them).
      (Default: ``wide-22mm``)
 
  * - focus_distance
@@ -39,15 +39,16 @@ Realistic lens camera (:monosp:`realistic_lens`)
 
  * - fstop
    - |float|
-   - Stop down to this f-number (paraxial, object at infinity: EFL / entrance-pupil diameter).  It
-     must not be smaller than the lens's own f-number.  (Default: the lens's widest aperture)
+   - Stop down to this f-number (paraxial, object at infinity: EFL / entrance-pupil diameter).  A value
+     smaller than the lens's own f-number is an error that names the widest; one within 0.5 % of it (the
+     printed ``2.68`` for f/2.6837) means wide open.  (Default: the lens's widest aperture)
 
  * - blades
    - |int|
    - Number of straight iris blades: the stop becomes the regular polygon whose inscribed circle is
      the stop's (the f-number is that circle's; the corners, 1/cos(π/n) farther out, must stay in the
-     stop's air gap)
-     (0: circular).  (Default: the lens file's, usually 0)
+     stop's air gap, else an error names the f-number from which they do; 0: circular).  What makes bokeh
+     polygonal.  (Default: the lens file's, usually 0)
 
  * - blade_rotation
    - |float|
@@ -64,7 +65,8 @@ Realistic lens camera (:monosp:`realistic_lens`)
 
  * - fresnel
    - |bool|
-   - Include the Fresnel (and coating) transmittance of every surface.  (Default: |true|)
+   - Include the Fresnel (and coating) transmittance of every surface.  No bundled lens is coated,
+     so with it their images are darker (the 22 mm lens's about half as bright).  (Default: |true|)
 
  * - pupil_sampling
    - |string|
@@ -78,19 +80,21 @@ Realistic lens camera (:monosp:`realistic_lens`)
      ``separate``: in a kernel of their own before it (the rays stored, 44 bytes a sample in RGB, 64 in
      spectral variants), so the integrator's kernel does not carry the transport's registers through its
      path loop — the same image; ``auto``: separate on CUDA while a render pass's rays fit 4 GiB, inline
-     otherwise and on the CPU, as measured (docs/results.md, "Camera rays in a kernel of their own").
+     otherwise and on the CPU.  Set it only to compare the two (render times: docs/performance.md).
      (Default: ``auto``)
 
  * - to_world
    - |transform|
    - Camera-to-world transform.  The camera origin is the centre of the sensor plane; it looks along
-     +z like ``perspective``.  (Default: identity)
+     +z like ``perspective``.  The only parameter ``mi.traverse`` exposes (not differentiable): lens,
+     stop and focus are fixed when the scene loads.  (Default: identity)
 
  * - film, sampler, shutter_open, shutter_close
    - |film|, |sampler|, |float|
    - As for every Mitsuba sensor.  Use a stratified sampler (``ldsampler``, ``multijitter``): each ray
      carries one wavelength.  In RGB variants without a shutter interval the sensor uses a unit shutter
-     internally to get a stratified wavelength sample (see below).
+     internally to get a stratified wavelength sample (see below).  ``srf`` is honoured only for a
+     lens whose transport does not depend on λ, in spectral variants.
 
 Each camera ray starts at a point of the sensor rectangle, is aimed at a point sampled on the
 exit-pupil bound (or the rear element), traced backward through the lens (transmission only) at ONE
