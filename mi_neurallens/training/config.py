@@ -11,11 +11,11 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields, replace
 import hashlib
 import json
-import os
 
 from ..constants import FULL_FRAME_HALF_DIAGONAL_MM
 from ..errors import NeuralLensError
 from ..flare.verify import BANDS as VERIFY_BANDS
+from ..transport.planes import DEFAULT_CLOSE_FOCUS_MM, DEFAULT_FIELD_MARGIN, recipe_path
 
 
 @dataclass
@@ -180,13 +180,13 @@ class TrainConfig:
     max_ghosts: int = 32                # keep the top-K ghosts carrying energy_fraction of ghost energy…
     ghost_energy_fraction: float = 0.99
     ship_ghosts: int = 32               # …but train at most this many (CPU budget)
-    close_focus_mm: float | str = "auto"  # nearest object distance (mm from the first vertex) the maps support; 0:
+    close_focus_mm: float | str = DEFAULT_CLOSE_FOCUS_MM  # nearest object distance (mm from the first vertex) the maps support; 0:
                                         # infinity only; "auto": 300 mm, farther for a long lens (1:4 magnification at
                                         # most: plan.close_focus_mm)
     film_half_diagonal_mm: float = FULL_FRAME_HALF_DIAGONAL_MM
     flare_resolution: int = 2048        # pixels across the film's width the forward (flare) maps' goals are stated
                                         # for (flare_goals); fewer pixels: looser goals, smaller networks (sizes)
-    field_margin: float = 1.1
+    field_margin: float = DEFAULT_FIELD_MARGIN
     film_reach: float = 1.5             # forward maps learn the rays landing within this × film_half_diagonal_mm of
                                         # the axis (at the nearest or farthest sensor plane); the rest count as
                                         # blocked (0: every ray that passes the lens; transport.planning.Reach)
@@ -354,7 +354,6 @@ def load_config(path: str | None = None, lens: str | None = None, overrides: dic
 
 
 def default_config_path(lens_name: str) -> str | None:
-    """``training/<lens>.toml`` of the repository, when it exists."""
-    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    p = os.path.join(root, "training", f"{lens_name}.toml")
-    return p if os.path.exists(p) else None
+    """``training/<lens>.toml`` of the repository, when it exists
+    (:func:`~mi_neurallens.transport.planes.recipe_path`)."""
+    return recipe_path(lens_name)
