@@ -180,7 +180,7 @@ def test_a_ghost_that_misses_the_gate_at_every_band_is_refined_after_its_verific
     from mi_neurallens import Lens
     from mi_neurallens.neural.model import bundled_model_path, load_model
     from mi_neurallens.training.config import load_config
-    from mi_neurallens.training.trainer import REFINED_KEY, _refine_missed
+    from mi_neurallens.training.whole_lens import FINISH_MISSED_KEY, _finish_missed
     lens = Lens.load("wide-22mm")
     m = load_model(bundled_model_path("wide-22mm"))
     m.maps = {k: v for k, v in m.maps.items() if k in ("backward.0", "forward.2560")}
@@ -195,15 +195,15 @@ def test_a_ghost_that_misses_the_gate_at_every_band_is_refined_after_its_verific
         "heldout": 5000, "verify_flare_samples": 14, "verify_flare_max_samples": 14, "verify_flare_cost": False,
         "verify_flare_refine_minutes": 0.02, "forward_classifier": {"lm_minutes": 0.01}})
     said = []
-    got = _refine_missed(lens, cfg, out, [2560], str(tmp_path / "work"), False, None, said.append, time.perf_counter())
-    mark = got.map(2560, "forward").training[REFINED_KEY]
+    got = _finish_missed(lens, cfg, out, [2560], str(tmp_path / "work"), False, None, said.append, time.perf_counter())
+    mark = got.map(2560, "forward").training[FINISH_MISSED_KEY]
     assert mark["best_before"] == 0.5 and mark["best_refined"] is not None and mark["best_refined"] < 0.5
     assert mark["kept"] == "refined" and got.map(2560, "forward").training["config_digest"] == cfg.digest()
     back = load_model(out)
-    assert back.map(2560, "forward").training[REFINED_KEY]["kept"] == "refined"
+    assert back.map(2560, "forward").training[FINISH_MISSED_KEY]["kept"] == "refined"
     assert back.map(2560, "forward").stop_head is not None                       # its render-time aperture stays
-    assert any("refined past their goals" in s for s in said)
+    assert any("finished past their goals" in s for s in said)
     # a rerun finds nothing to refine: the map is marked
     said.clear()
-    _refine_missed(lens, cfg, out, [2560], str(tmp_path / "work"), False, None, said.append, time.perf_counter())
+    _finish_missed(lens, cfg, out, [2560], str(tmp_path / "work"), False, None, said.append, time.perf_counter())
     assert not said

@@ -160,7 +160,7 @@ def _keep_base(args, lens, out) -> str:
 
 
 def _train_one(args, lens, cfg, out):
-    from ..training.trainer import train_lens
+    from ..training.whole_lens import train_lens
 
     def log(desc, rec):
         if not args.quiet:

@@ -46,7 +46,7 @@ class NetConfig:
     exit_position: str = "auto"         # regressor: "plane" (the exit position on the output plane, the paper's), "cos"
                                         # (times |dz|: bounded for rays nearly parallel to the plane) or "auto" (cos
                                         # where the exit rays reach beyond 60° off axis: a fisheye's camera map;
-                                        # trainer.wants_position_cos)
+                                        # outputs.wants_position_cos)
     target: str = "margin"              # classifier: "margin" (regress scale·(aperture margin) inside ±clip, one-sided
                                         # beyond: a sharper boundary) or "label" (BCE on blocked/passed, the paper's)
     margin_scale: float = 40.0          # classifier "margin" target: logit slope per unit margin at the boundary
@@ -71,7 +71,7 @@ class NetConfig:
     lm_eval_every: int = 10             # Levenberg–Marquardt iterations between validations
     sizes: tuple = ()                   # regressor / classifier: architectures to try, smallest first, as "HxW"
                                         # (hidden layers × width); each map keeps the first that meets its goals,
-                                        # the last when none does (empty: hidden × width alone; trainer.train_sized)
+                                        # the last when none does (empty: hidden × width alone; maps.train_sized)
 
 
 #: Adam steps before a regressor's finish.  Adam only has to bring a network near the optimum the finish then
@@ -224,7 +224,7 @@ class TrainConfig:
     verify_flare_refine_minutes: float = 1.5  # a ghost the verification leaves above the gate at every band: its
                                         # regressor refined past its goals (the finish, this many minutes, from
                                         # the map as trained), verified again, and the better map kept (0: off;
-                                        # trainer._refine_missed, docs/training.md)
+                                        # whole_lens._finish_missed, docs/training.md)
 
     def to_dict(self) -> dict:
         return asdict(self)
