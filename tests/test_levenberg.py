@@ -328,9 +328,9 @@ def test_large_networks_are_left_to_adam():
     assert "skipped" in res[0]["state"]["lm"]
 
 
-def test_trainer_finishes_small_networks_and_refines_a_model(tmp_path):
+def test_trainer_finishes_small_networks_and_a_finish_only_run_finishes_a_model(tmp_path):
     """On a thick lens's camera map: the same Adam run, then 60 iterations of the finish, gives a regressor
-    and a margin classifier far better than Adam's alone; ``keep = "refine"`` runs only the finish from a
+    and a margin classifier far better than Adam's alone; ``finish_only = "maps"`` runs only the finish from a
     trained map (its stop head kept, its Adam history carried, the finish's validations after it); refining
     with no finish time is a clear error."""
     import dataclasses
@@ -360,9 +360,9 @@ def test_trainer_finishes_small_networks_and_refines_a_model(tmp_path):
     assert rl["direction_arcsec_median"] < 0.5 * ra["direction_arcsec_median"]
     assert 0 < lm.training["classifier_lm"]["iterations"] <= 60
     assert lm.metrics["classifier"]["misclassification"] <= adam.metrics["classifier"]["misclassification"]
-    # refine: only the finish, from the Adam map
+    # finish_only = "maps": only the finish, from the Adam map
     ref = train_map(lens, 0, "backward", z_rear, z_front, dom, cfg_lm, str(tmp_path), progress=False, eval_n=20000,
-                    keep="refine", base=adam)
+                    finish_only="maps", base=adam)
     assert ref.training["kept"]["network"] == "refine"
     assert ref.metrics["regressor"]["position_um_median"] < 0.3 * ra["position_um_median"]
     hist = ref.training["regressor_history"]
@@ -371,19 +371,19 @@ def test_trainer_finishes_small_networks_and_refines_a_model(tmp_path):
     for (W, b), (W0, b0) in zip(ref.stop_head.layers, adam.stop_head.layers):
         np.testing.assert_array_equal(W, W0)
         np.testing.assert_array_equal(b, b0)
-    # refine with a wider regressor configured: the map's 2×16 network is widened (the same function) and finished
+    # finish-only with a wider regressor configured: the map's 2×16 network is widened (the same function) and finished
     wide_cfg = load_config(overrides={**over, "regressor": dict(over["regressor"], width=24, **fin),
                                       "classifier": dict(over["classifier"], **fin)})
     wid = train_map(lens, 0, "backward", z_rear, z_front, dom, wide_cfg, str(tmp_path / "w"), progress=False,
-                    eval_n=20000, keep="refine", base=adam)
+                    eval_n=20000, finish_only="maps", base=adam)
     assert [W.shape for W, _ in wid.regressor] == [(24, 4), (24, 24), (5, 24)]
     assert [W.shape for W, _ in wid.classifier] == [W.shape for W, _ in adam.classifier]
     assert wid.training["regressor"]["widened_from"] == [16, 16] and wid.training["regressor"]["width"] == 24
     assert wid.metrics["regressor"]["position_um_median"] < 0.3 * ra["position_um_median"]
-    # refine-stop: only the stop head's finish, from its own weights widened to the configured width; the
+    # finish_only = "stop-heads": only the stop head's finish, from its own weights widened to the configured width; the
     # classifier and regressor are the base's, bit for bit
     stop_cfg = load_config(overrides={**over, "stop": dict(over["stop"], width=24, lm_minutes=10.0, lm_iterations=30)})
-    rs = train_map(lens, 0, "backward", z_rear, z_front, dom, stop_cfg, None, progress=False, keep="refine-stop",
+    rs = train_map(lens, 0, "backward", z_rear, z_front, dom, stop_cfg, None, progress=False, finish_only="stop-heads",
                    base=adam)
     assert [W.shape[0] for W, _ in rs.stop_head.layers] == [24, 24, rs.stop_head.layers[-1][0].shape[0]]
     assert rs.stop_head.training["widened_from"] == [16, 16] and rs.stop_head.training["lm"]["iterations"] > 0
@@ -392,17 +392,17 @@ def test_trainer_finishes_small_networks_and_refines_a_model(tmp_path):
         np.testing.assert_array_equal(W, W0)
         np.testing.assert_array_equal(b, b0)
     with pytest.raises(NeuralLensError, match="lm_minutes is 0"):
-        train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, None, progress=False, keep="refine-stop", base=adam)
+        train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, None, progress=False, finish_only="stop-heads", base=adam)
     # a rerun takes the finished networks from their checkpoints
     again = train_map(lens, 0, "backward", z_rear, z_front, dom, cfg_lm, str(tmp_path), progress=False, evaluate=False,
-                      keep="refine", base=adam)
+                      finish_only="maps", base=adam)
     np.testing.assert_array_equal(again.regressor[0][0], ref.regressor[0][0])
     with pytest.raises(NeuralLensError, match="lm_minutes is 0"):
-        train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, None, progress=False, keep="refine", base=adam)
+        train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, None, progress=False, finish_only="maps", base=adam)
 
 
 def test_widening_keeps_the_function_and_lets_the_finish_go_lower():
-    """``widen`` (what ``--keep refine`` does to a map configured wider than it is): the widened network computes
+    """``widen`` (what ``--finish-only maps`` does to a map configured wider than it is): the widened network computes
     the same outputs to rounding, and the finish continues from there below where the narrow network had
     stalled."""
     from mi_neurallens.training.levenberg import widen
@@ -447,10 +447,10 @@ def test_row_feed_hands_out_each_fresh_row_once_in_chunks():
     np.testing.assert_array_equal(got[7]["Y"], 2.0 * np.arange(700, 800))
 
 
-def test_refining_a_network_larger_than_the_finish_takes_is_a_clear_error():
-    """``keep = "refine"`` runs only the finish, which leaves networks above ``MAX_PARAMS`` alone: a 5×32 regressor
+def test_finishing_a_network_larger_than_the_finish_takes_is_a_clear_error():
+    """``finish_only = "maps"`` runs only the finish, which leaves networks above ``MAX_PARAMS`` alone: a 5×32 regressor
     (or a 3×16 one configured wider than the finish takes) is refused before any training, naming the way out; a
-    3×16 one widened to 3×32 passes; a stop head widened past the limit by ``refine-stop`` is refused the same way.
+    3×16 one widened to 3×32 passes; a stop head widened past the limit by ``--finish-only stop-heads`` is refused the same way.
     A network given no time for the finish (``lm_minutes`` 0) is refused there too, before the other one's finish
     has run (it used to be found only then, minutes later)."""
     from mi_neurallens import NeuralLensError
@@ -471,7 +471,7 @@ def test_refining_a_network_larger_than_the_finish_takes_is_a_clear_error():
         check_finish_only([base([16] * 3)], nets(48), "forward")
     with pytest.raises(NeuralLensError, match=r"the classifier's lm_minutes is 0: .*--set classifier\.lm_minutes"):
         check_finish_only([base([16] * 3)], nets(16, lm=0.0), "backward")
-    # the stop heads' refine (``keep = "refine-stop"``) refuses the same, before it samples anything
+    # the stop heads' finish-only run (``finish_only = "stop-heads"``) refuses the same, before it samples anything
     from mi_neurallens.training.stop_head import train_stop_heads
     tm = types.SimpleNamespace(key="forward.278528", direction="forward", path_id=278528)
     head = types.SimpleNamespace(layers=random_layers([4, 32, 32, 32, 6]))

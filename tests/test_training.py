@@ -480,11 +480,11 @@ def test_tiny_training_run_learns(tmp_path):
     for (W, b), (W0, b0) in zip(tc.classifier, tk.classifier):
         np.testing.assert_array_equal(W, W0)
         np.testing.assert_array_equal(b, b0)
-    # keep = "both": only the stop heads train, together in one stack as in a whole run (here two copies of
+    # keep = "networks": only the stop heads train, together in one stack as in a whole run (here two copies of
     # the map); classifiers, regressors and their metrics come bit for bit from the bases
     from mi_neurallens.training.maps import train_maps
     spec = (0, "backward", z_rear, z_front, dom)
-    tbs = train_maps(lens, [spec, spec], cfg, None, progress=False, keep="both", bases=[tb, tb])
+    tbs = train_maps(lens, [spec, spec], cfg, None, progress=False, keep="networks", bases=[tb, tb])
     for t in tbs:
         assert t.stop_head is not None and t.stop_head is not tb.stop_head
         assert t.stop_head.training["stacked_with"] == 2
@@ -495,7 +495,7 @@ def test_tiny_training_run_learns(tmp_path):
         assert t.metrics["regressor"] == tb.metrics["regressor"]
         assert t.metrics["stop"]["stop_um_median"] < 300.0
     with pytest.raises(NeuralLensError, match="stop.max_minutes = 0"):
-        train_maps(lens, [spec], cfgm, None, progress=False, keep="both", bases=[tb])
+        train_maps(lens, [spec], cfgm, None, progress=False, keep="networks", bases=[tb])
     # a base map of another path, planes or domain, an unknown network, or no base: clear errors
     with pytest.raises(NeuralLensError, match="not backward.0"):
         train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, None, keep="regressor",

@@ -12,17 +12,21 @@ A training may build on an existing model (``mi-neurallens train --base``), map 
 The old spellings of ``keep`` are accepted as aliases (:data:`OLD_KEEP`, :func:`run_mode`): ``"both"`` for
 ``"networks"``, and ``"refine"`` / ``"refine-stop"``, which chose the finish-only runs.  A base map must be of
 the same path, direction, planes and domain (:func:`check_keep`): only then do its networks' inputs and outputs
-mean the same.
+mean the same.  The module is light (no torch, no training configuration at import): the command line reads
+its choices.
 """
 from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..errors import NeuralLensError
-from .config import NetConfig
-from .data import Domain
+
+if TYPE_CHECKING:
+    from ..transport.planning import Domain
+    from .config import NetConfig
 
 #: what a run can keep of each base map (``keep``)
 KEEP = ("regressor", "classifier", "networks")
@@ -68,6 +72,7 @@ def check_keep(keep: str | None, finish_only: str | None, base, path_id: int, di
                z_out: float, domain: Domain):
     """Validate a run's mode and base map (:func:`run_mode`): the networks kept or finished must come from a map
     of the same path, direction, planes (mm) and domain."""
+    from ..transport.planning import Domain
     keep, finish_only = run_mode(keep, finish_only)
     if keep is None and finish_only is None:
         return
