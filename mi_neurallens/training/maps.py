@@ -43,9 +43,9 @@ def map_seed(cfg: TrainConfig, path_id: int, direction: str) -> int:
 
 
 def regressor_problem(lens, spec, stream, seed: int, key: str, cfg: TrainConfig) -> dict:
-    """One map's problem for :func:`~mi_neurallens.training.regressor.train_regressors`: ``spec`` = (path_id, direction, z_in, z_out, domain),
-    ``stream`` its :class:`~mi_neurallens.training.data.RegressorStream`, validated on ≤ 20 000 held-out
-    valid rays traced with ``seed + 7``."""
+    """One map's problem for :func:`~mi_neurallens.training.regressor.train_regressors`: ``spec`` = (path_id,
+    direction, z_in, z_out, domain), ``stream`` its :class:`~mi_neurallens.training.data.RegressorStream`,
+    validated on ≤ 20 000 held-out valid rays traced with ``seed + 7``."""
     from .evaluate import heldout_valid
     p, d, zi, zo, dom = spec
     center, scale_in = dom.norm_center_scale()
@@ -271,7 +271,8 @@ def _neural_map(lens, spec, reg: dict, cls: dict, stream, cfg: TrainConfig, ncs,
                    domain=dom.to_dict(), input_center=center, input_scale=scale_in,
                    classifier=cls["layers"], regressor=reg["layers"], skip=reg["skip"],
                    out_scale=reg["out_scale"], out_shift=reg["out_shift"], odd_y=reg["odd_y"],
-                   position_cos=bool(reg.get("position_cos", False)), classifier_activation=cls.get("activation", cc.activation),
+                   position_cos=bool(reg.get("position_cos", False)),
+                   classifier_activation=cls.get("activation", cc.activation),
                    regressor_activation=reg.get("activation", rc.activation), training=training)
     if keep != "classifier":
         calibrate_classifier(lens, tm, min(cfg.heldout, 200_000), seed + 13, cfg.fresnel)

@@ -139,9 +139,9 @@ class RegressorFit(Problem):
     """One regressor's training problem, its pieces as methods (what :func:`train_regressor` runs and
     tests call): the sample pool and its targets, the loss, validation and pool refresh.
 
-    ``transform`` = (skip, shift, oscale) of :func:`~mi_neurallens.training.outputs.fit_output_transform`; the network's output ``p``
-    relates to the reduced-frame outputs ``y`` by ``y = M·(shift + skip·xn) + oscale·(M·p)`` with ``M``
-    the odd-y factor (1 unless ``odd_s``).  ``pool0`` = (u, x, y) of the first pool.
+    ``transform`` = (skip, shift, oscale) of :func:`~mi_neurallens.training.outputs.fit_output_transform`; the
+    network's output ``p`` relates to the reduced-frame outputs ``y`` by ``y = M·(shift + skip·xn) + oscale·(M·p)``
+    with ``M`` the odd-y factor (1 unless ``odd_s``).  ``pool0`` = (u, x, y) of the first pool.
     """
 
     POOL = {"X": "X", "Y": "Y", "Yraw": "Yraw", "W": "Wedge"}   # inputs, targets, raw outputs, edge weights
