@@ -29,6 +29,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import subprocess
 import time
 
 import numpy as np
@@ -191,7 +192,10 @@ def training_tanh(torch, device=None):
             out.sum().backward()                  # compile the backward too, here, where it is timed
             if float((out.detach() - torch.tanh(probe.detach())).abs().max()) < 1e-6:
                 fn, how = RationalTanh.apply, "the render kernel's rational tanh, fused by torch.compile"
-        except Exception:          # no C++ compiler, unsupported platform: the exact torch.tanh
+        # no C++ compiler, an unsupported platform: the exact torch.tanh.  Dynamo's and Inductor's failures are
+        # RuntimeErrors (InvalidCxxCompiler, CppCompileError, BackendCompilerFailed, ...); ImportError where
+        # torch._dynamo is absent; OSError and CalledProcessError from running the compiler
+        except (RuntimeError, ImportError, OSError, subprocess.CalledProcessError):
             fn, how = torch.tanh, "torch.tanh (torch.compile failed)"
         how += f" ({time.perf_counter() - t0:.1f} s to compile)"
     _ACT[kind] = fn
@@ -610,11 +614,12 @@ def load_stack(path, keys, net, opt, torch, dev):
     ``net`` and ``opt`` restored to its active maps, or None (no or another or a broken checkpoint)."""
     if not (os.path.exists(path + ".safetensors") and os.path.exists(path + ".json")):
         return None
+    from safetensors import SafetensorError
     from safetensors.torch import load_file
     try:
         t = load_file(path + ".safetensors")
         meta = json.loads(open(path + ".json").read())
-    except Exception:
+    except (OSError, ValueError, SafetensorError):      # unreadable, not JSON (or not UTF-8), not safetensors
         return None
     if meta.get("keys") != list(keys):
         return None
@@ -640,7 +645,7 @@ def peek_stack(path, keys) -> dict:
             continue
         try:
             meta = json.loads(open(f + ".json").read())
-        except Exception:
+        except (OSError, ValueError):                   # unreadable or not JSON: no state to restore from it
             continue
         for k, st in zip(meta.get("keys", []), meta.get("states", [])):
             if k in keys:
