@@ -171,16 +171,47 @@ def test_train_command_keeps_the_bundled_regressor(tmp_path, capsys):
     assert "no map 'forward.999'" in capsys.readouterr().err
 
 
-def test_a_ghost_that_misses_the_gate_at_every_band_is_refined_after_its_verification(tmp_path):
+def test_train_keep_says_what_is_kept_and_finish_only_what_runs(capsys):
+    """`train --keep` says what each map keeps of --base (regressor, classifier or networks; `both` the old spelling
+    of networks), `--finish-only maps|stop-heads` that only the finish runs; `--keep refine` and `--keep refine-stop`
+    still work, with a one-line note naming the new flag, and the two flags together are refused."""
+    from mi_neurallens.cli import build_parser
+    from mi_neurallens.commands.train import _mode
+    from mi_neurallens.training.keep import run_mode
+    parser = build_parser()
+
+    def mode(*argv):
+        return _mode(parser.parse_args(["train", "wide-22mm", *argv]))
+
+    assert mode() == (None, None)
+    assert mode("--keep", "networks") == mode("--keep", "both") == ("networks", None)
+    assert mode("--keep", "regressor") == ("regressor", None)
+    assert mode("--finish-only", "maps") == (None, "maps") and mode("--finish-only", "stop-heads") == (None, "stop-heads")
+    assert capsys.readouterr().err == ""
+    assert mode("--keep", "refine") == (None, "maps")
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "--finish-only maps" in err
+    assert mode("--keep", "refine-stop") == (None, "stop-heads")
+    assert "--finish-only stop-heads" in capsys.readouterr().err
+    assert run_mode("refine") == (None, "maps") and run_mode("both") == ("networks", None)      # the Python API too
+    assert main(["train", "wide-22mm", "--keep", "networks", "--finish-only", "maps"]) == 1
+    assert "give one of them" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        parser.parse_args(["train", "--help"])
+    out = capsys.readouterr().out
+    assert "{regressor,classifier,networks}" in out and "--finish-only {maps,stop-heads}" in out
+
+
+def test_a_ghost_that_misses_the_gate_at_every_band_is_finished_again_after_its_verification(tmp_path):
     """``verify_flare_refine_minutes``: after the verification, a ghost whose records all miss the gate gets its
-    regressor refined past its goals (a ``keep = "refine"`` run of that ghost, verified as any run), the better map
-    is kept, and the map is marked so that a rerun does not refine it again."""
+    regressor's finish again past its goals (a ``finish_only = "maps"`` run of that ghost, verified as any run), the
+    better map is kept, and the map is marked so that a rerun does not finish it again."""
     pytest.importorskip("torch")
     import time
     from mi_neurallens import Lens
     from mi_neurallens.neural.model import bundled_model_path, load_model
     from mi_neurallens.training.config import load_config
-    from mi_neurallens.training.trainer import REFINED_KEY, _refine_missed
+    from mi_neurallens.training.whole_lens import FINISH_MISSED_KEY, _finish_missed
     lens = Lens.load("wide-22mm")
     m = load_model(bundled_model_path("wide-22mm"))
     m.maps = {k: v for k, v in m.maps.items() if k in ("backward.0", "forward.2560")}
@@ -195,15 +226,15 @@ def test_a_ghost_that_misses_the_gate_at_every_band_is_refined_after_its_verific
         "heldout": 5000, "verify_flare_samples": 14, "verify_flare_max_samples": 14, "verify_flare_cost": False,
         "verify_flare_refine_minutes": 0.02, "forward_classifier": {"lm_minutes": 0.01}})
     said = []
-    got = _refine_missed(lens, cfg, out, [2560], str(tmp_path / "work"), False, None, said.append, time.perf_counter())
-    mark = got.map(2560, "forward").training[REFINED_KEY]
+    got = _finish_missed(lens, cfg, out, [2560], str(tmp_path / "work"), False, None, said.append, time.perf_counter())
+    mark = got.map(2560, "forward").training[FINISH_MISSED_KEY]
     assert mark["best_before"] == 0.5 and mark["best_refined"] is not None and mark["best_refined"] < 0.5
     assert mark["kept"] == "refined" and got.map(2560, "forward").training["config_digest"] == cfg.digest()
     back = load_model(out)
-    assert back.map(2560, "forward").training[REFINED_KEY]["kept"] == "refined"
+    assert back.map(2560, "forward").training[FINISH_MISSED_KEY]["kept"] == "refined"
     assert back.map(2560, "forward").stop_head is not None                       # its render-time aperture stays
-    assert any("refined past their goals" in s for s in said)
-    # a rerun finds nothing to refine: the map is marked
+    assert any("finished past their goals" in s for s in said)
+    # a rerun finds nothing to finish again: the map is marked
     said.clear()
-    _refine_missed(lens, cfg, out, [2560], str(tmp_path / "work"), False, None, said.append, time.perf_counter())
+    _finish_missed(lens, cfg, out, [2560], str(tmp_path / "work"), False, None, said.append, time.perf_counter())
     assert not said

@@ -128,7 +128,7 @@ def test_a_stack_trains_the_same_with_and_without_the_kernel():
 def _regressor_problem(direction_loss, odd, heading):
     """A RegressorFit with just what its loss reads (no tracer): random transform, weights and constants."""
     from mi_neurallens.training.config import NetConfig
-    from mi_neurallens.training.trainer import RegressorFit
+    from mi_neurallens.training.regressor import RegressorFit
     fit = RegressorFit.__new__(RegressorFit)
     rng = np.random.default_rng(11)
     fit.torch, fit.dev, fit.heading = torch, "cpu", heading
@@ -170,7 +170,7 @@ def test_regressor_loss_and_gradient_match_autograd(direction_loss, odd, edge, h
 
 def test_margin_loss_and_gradient_match_autograd():
     from mi_neurallens.training.config import NetConfig
-    from mi_neurallens.training.trainer import ClassifierFit
+    from mi_neurallens.training.classifier import ClassifierFit
     net = stacked.StackedMLP(torch, "cpu", range(2), 4, 1, 2, 16)
     kern = _kernel_or_skip(net.dims)
     fit = ClassifierFit.__new__(ClassifierFit)

@@ -11,7 +11,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from mi_neurallens.training import levenberg  # noqa: E402
-from mi_neurallens.training.levenberg import MAX_PARAMS, FlatMLP, n_params, polish, polish_stack  # noqa: E402
+from mi_neurallens.training.levenberg import MAX_PARAMS, FlatMLP, finish, finish_stack, n_params  # noqa: E402
 
 
 def random_layers(dims, seed=0):
@@ -131,7 +131,7 @@ def test_levenberg_marquardt_fits_far_beyond_adam():
     layers = random_layers([4, 16, 16, 2], seed=3)
     nc = types.SimpleNamespace(lm_rows=1024, lm_eval_every=10, stop_at_goals=True, patience=100)
     prob = SmoothMap()
-    got = polish(torch, prob, layers, nc, seconds=1e9, max_iterations=60)
+    got = finish(torch, prob, layers, nc, seconds=1e9, max_iterations=60)
     lm = prob.state["history"][-1]["rms"]
     assert prob.state["history"][0]["rms"] > 0.3                   # the random start
     assert [h["phase"] for h in prob.state["history"]] == ["lm"] * 7
@@ -157,21 +157,21 @@ def test_levenberg_marquardt_fits_far_beyond_adam():
     np.testing.assert_allclose(float(((best.forward(best.flatten(got), prob.Xv.double()) - prob.Yv.double()) ** 2)
                                      .mean().sqrt()), min(h["rms"] for h in prob.state["history"]), rtol=1e-3)
     early = SmoothMap(goal=0.05)
-    polish(torch, early, layers, nc, seconds=1e9, max_iterations=60)
+    finish(torch, early, layers, nc, seconds=1e9, max_iterations=60)
     assert early.state["lm"]["stop_reason"] == "goals" and early.state["lm"]["iterations"] < 60
 
 
 def test_a_stack_finishes_each_network_as_alone():
-    """Three networks polished as one stack (batched Jacobians and solves, what a GPU runs) end where each
-    ends polished alone: the same weights, validations, iterations and stop reasons — also when one meets
+    """Three networks finished as one stack (batched Jacobians and solves, what a GPU runs) end where each
+    ends finished alone: the same weights, validations, iterations and stop reasons — also when one meets
     its goal early and leaves the stack, and with a Jacobian of stacked networks equal to each one's."""
     nc = types.SimpleNamespace(lm_rows=512, lm_eval_every=5, stop_at_goals=True, patience=100)
     starts = [random_layers([4, 16, 16, 2], seed=s) for s in (3, 4, 5)]
     goals = [0.0, 0.08, 0.0]
     alone = [SmoothMap(goal=g, seed=10 + j) for j, g in enumerate(goals)]
-    want = [polish(torch, m, lay, nc, seconds=1e9, max_iterations=25) for m, lay in zip(alone, starts)]
+    want = [finish(torch, m, lay, nc, seconds=1e9, max_iterations=25) for m, lay in zip(alone, starts)]
     stacked = [SmoothMap(goal=g, seed=10 + j) for j, g in enumerate(goals)]
-    got = polish_stack(torch, stacked, starts, nc, seconds=1e9, max_iterations=25)
+    got = finish_stack(torch, stacked, starts, nc, seconds=1e9, max_iterations=25)
     assert alone[1].state["lm"]["stop_reason"] == "goals" and alone[1].state["lm"]["iterations"] < 25
     for a, b, w, g in zip(alone, stacked, want, got):
         assert a.state["lm"]["stop_reason"] == b.state["lm"]["stop_reason"]
@@ -194,27 +194,26 @@ def test_a_stack_finishes_each_network_as_alone():
         np.testing.assert_allclose(J[k].numpy(), J1.numpy(), rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(z[k].numpy(), z1.numpy(), rtol=1e-12, atol=1e-12)
     with pytest.raises(ValueError, match="one shape"):
-        polish_stack(torch, stacked[:2], [starts[0], random_layers([4, 8, 2])], nc, seconds=1.0)
+        finish_stack(torch, stacked[:2], [starts[0], random_layers([4, 8, 2])], nc, seconds=1.0)
 
 
 def test_trainer_finishes_in_stacks_of_one_shape(monkeypatch):
-    """:func:`polish_results` stacks the networks to finish by architecture (a refined model may mix 2×16 and
+    """:func:`finish_results` stacks the networks to finish by architecture (a finish-only run's base may mix 2×16 and
     2×8 maps), in stacks of :func:`lm_stack_size` (one on a CPU; several on a GPU, forced here), and each
     network ends as it would alone; a network that met its goals under Adam is left as it is."""
-    from mi_neurallens.training import trainer
-    assert trainer.lm_stack_size("cpu", 8192, 5, 709) == 1
-    assert trainer.lm_stack_size("cuda:0", 8192, 5, 709) >= 32        # a lens's ghost regressors in one stack
+    assert levenberg.lm_stack_size("cpu", 8192, 5, 709) == 1
+    assert levenberg.lm_stack_size("cuda:0", 8192, 5, 709) >= 32        # a lens's ghost regressors in one stack
     nc = types.SimpleNamespace(lm_minutes=1e6, lm_iterations=12, lm_rows=512, lm_eval_every=4, stop_at_goals=True,
                                patience=100)
     dims = [[4, 16, 16, 2], [4, 8, 8, 2], [4, 16, 16, 2], [4, 16, 16, 2]]
     starts = [random_layers(d, seed=20 + j) for j, d in enumerate(dims)]
 
     def run(stack):
-        monkeypatch.setattr(trainer, "lm_stack_size", lambda *a: stack)
+        monkeypatch.setattr(levenberg, "lm_stack_size", lambda *a: stack)
         fits = [SmoothMap(seed=30 + j) for j in range(4)]
         res = [{"layers": lay, "state": fits[j].state} for j, lay in enumerate(starts)]
         res[3]["state"]["stop_reason"] = "goals"
-        trainer.polish_results(torch, fits, res, nc, [f"forward.{j}" for j in range(4)])
+        levenberg.finish_results(torch, fits, res, nc, [f"forward.{j}" for j in range(4)])
         return fits, res
 
     alone, res1 = run(1)
@@ -230,7 +229,8 @@ def test_trainer_finishes_in_stacks_of_one_shape(monkeypatch):
 def test_residuals_are_the_losses_adam_minimises():
     """The regressor's residuals square to its weighted MSE (:meth:`RegressorFit.rows_loss` without the
     cosine term), edge weights included; the classifier's to its margin interval loss."""
-    from mi_neurallens.training.trainer import ClassifierFit, RegressorFit
+    from mi_neurallens.training.classifier import ClassifierFit
+    from mi_neurallens.training.regressor import RegressorFit
     g = np.random.default_rng(4)
     n = 500
     X = torch.as_tensor(g.normal(size=(n, 4)), dtype=torch.float64)
@@ -319,25 +319,25 @@ def test_a_stop_head_trained_on_its_input_box_folds_into_the_same_function():
 
 def test_large_networks_are_left_to_adam():
     """A 5×32 regressor has more weights than the finish handles; the trainer records why it skipped."""
-    from mi_neurallens.training.trainer import polish_results
+    from mi_neurallens.training.levenberg import finish_results
     layers = random_layers([4] + [32] * 5 + [5])
     assert n_params(layers) > MAX_PARAMS
     res = [{"layers": layers, "state": {"history": [], "stop_reason": "time_budget"}}]
     nc = types.SimpleNamespace(lm_minutes=1.0)
-    polish_results(torch, [object()], res, nc, ["forward.12"])
+    finish_results(torch, [object()], res, nc, ["forward.12"])
     assert "skipped" in res[0]["state"]["lm"]
 
 
-def test_trainer_finishes_small_networks_and_refines_a_model(tmp_path):
+def test_trainer_finishes_small_networks_and_a_finish_only_run_finishes_a_model(tmp_path):
     """On a thick lens's camera map: the same Adam run, then 60 iterations of the finish, gives a regressor
-    and a margin classifier far better than Adam's alone; ``keep = "refine"`` runs only the finish from a
+    and a margin classifier far better than Adam's alone; ``finish_only = "maps"`` runs only the finish from a
     trained map (its stop head kept, its Adam history carried, the finish's validations after it); refining
     with no finish time is a clear error."""
     import dataclasses
     from mi_neurallens import NeuralLensError
     from mi_neurallens.training import plan
     from mi_neurallens.training.config import load_config
-    from mi_neurallens.training.trainer import train_map
+    from mi_neurallens.training.maps import train_map
     from test_training import thick_lens
     lens = thick_lens()
     s0, _ = plan.sensor_distance_range(lens, 500.0)
@@ -360,9 +360,9 @@ def test_trainer_finishes_small_networks_and_refines_a_model(tmp_path):
     assert rl["direction_arcsec_median"] < 0.5 * ra["direction_arcsec_median"]
     assert 0 < lm.training["classifier_lm"]["iterations"] <= 60
     assert lm.metrics["classifier"]["misclassification"] <= adam.metrics["classifier"]["misclassification"]
-    # refine: only the finish, from the Adam map
+    # finish_only = "maps": only the finish, from the Adam map
     ref = train_map(lens, 0, "backward", z_rear, z_front, dom, cfg_lm, str(tmp_path), progress=False, eval_n=20000,
-                    keep="refine", base=adam)
+                    finish_only="maps", base=adam)
     assert ref.training["kept"]["network"] == "refine"
     assert ref.metrics["regressor"]["position_um_median"] < 0.3 * ra["position_um_median"]
     hist = ref.training["regressor_history"]
@@ -371,19 +371,19 @@ def test_trainer_finishes_small_networks_and_refines_a_model(tmp_path):
     for (W, b), (W0, b0) in zip(ref.stop_head.layers, adam.stop_head.layers):
         np.testing.assert_array_equal(W, W0)
         np.testing.assert_array_equal(b, b0)
-    # refine with a wider regressor configured: the map's 2×16 network is widened (the same function) and finished
+    # finish-only with a wider regressor configured: the map's 2×16 network is widened (the same function) and finished
     wide_cfg = load_config(overrides={**over, "regressor": dict(over["regressor"], width=24, **fin),
                                       "classifier": dict(over["classifier"], **fin)})
     wid = train_map(lens, 0, "backward", z_rear, z_front, dom, wide_cfg, str(tmp_path / "w"), progress=False,
-                    eval_n=20000, keep="refine", base=adam)
+                    eval_n=20000, finish_only="maps", base=adam)
     assert [W.shape for W, _ in wid.regressor] == [(24, 4), (24, 24), (5, 24)]
     assert [W.shape for W, _ in wid.classifier] == [W.shape for W, _ in adam.classifier]
     assert wid.training["regressor"]["widened_from"] == [16, 16] and wid.training["regressor"]["width"] == 24
     assert wid.metrics["regressor"]["position_um_median"] < 0.3 * ra["position_um_median"]
-    # refine-stop: only the stop head's finish, from its own weights widened to the configured width; the
+    # finish_only = "stop-heads": only the stop head's finish, from its own weights widened to the configured width; the
     # classifier and regressor are the base's, bit for bit
     stop_cfg = load_config(overrides={**over, "stop": dict(over["stop"], width=24, lm_minutes=10.0, lm_iterations=30)})
-    rs = train_map(lens, 0, "backward", z_rear, z_front, dom, stop_cfg, None, progress=False, keep="refine-stop",
+    rs = train_map(lens, 0, "backward", z_rear, z_front, dom, stop_cfg, None, progress=False, finish_only="stop-heads",
                    base=adam)
     assert [W.shape[0] for W, _ in rs.stop_head.layers] == [24, 24, rs.stop_head.layers[-1][0].shape[0]]
     assert rs.stop_head.training["widened_from"] == [16, 16] and rs.stop_head.training["lm"]["iterations"] > 0
@@ -392,23 +392,23 @@ def test_trainer_finishes_small_networks_and_refines_a_model(tmp_path):
         np.testing.assert_array_equal(W, W0)
         np.testing.assert_array_equal(b, b0)
     with pytest.raises(NeuralLensError, match="lm_minutes is 0"):
-        train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, None, progress=False, keep="refine-stop", base=adam)
+        train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, None, progress=False, finish_only="stop-heads", base=adam)
     # a rerun takes the finished networks from their checkpoints
     again = train_map(lens, 0, "backward", z_rear, z_front, dom, cfg_lm, str(tmp_path), progress=False, evaluate=False,
-                      keep="refine", base=adam)
+                      finish_only="maps", base=adam)
     np.testing.assert_array_equal(again.regressor[0][0], ref.regressor[0][0])
     with pytest.raises(NeuralLensError, match="lm_minutes is 0"):
-        train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, None, progress=False, keep="refine", base=adam)
+        train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, None, progress=False, finish_only="maps", base=adam)
 
 
 def test_widening_keeps_the_function_and_lets_the_finish_go_lower():
-    """``widen`` (what ``--keep refine`` does to a map configured wider than it is): the widened network computes
+    """``widen`` (what ``--finish-only maps`` does to a map configured wider than it is): the widened network computes
     the same outputs to rounding, and the finish continues from there below where the narrow network had
     stalled."""
     from mi_neurallens.training.levenberg import widen
     nc = types.SimpleNamespace(lm_rows=1024, lm_eval_every=10, stop_at_goals=True, patience=100)
     narrow = SmoothMap()
-    small = polish(torch, narrow, random_layers([4, 3, 3, 2], seed=5), nc, seconds=1e9, max_iterations=120)
+    small = finish(torch, narrow, random_layers([4, 3, 3, 2], seed=5), nc, seconds=1e9, max_iterations=120)
     stalled = min(h["rms"] for h in narrow.state["history"])
     wide = widen(small, 12, np.random.default_rng(0))
     assert [W.shape for W, _ in wide] == [(12, 4), (12, 12), (2, 12)] and n_params(wide) > 3 * n_params(small)
@@ -418,7 +418,7 @@ def test_widening_keeps_the_function_and_lets_the_finish_go_lower():
                                rtol=0, atol=1e-12)
     assert widen(wide, 8, np.random.default_rng(0))[1][0].shape == (12, 12)        # never narrower
     again = SmoothMap()
-    polish(torch, again, wide, nc, seconds=1e9, max_iterations=40)
+    finish(torch, again, wide, nc, seconds=1e9, max_iterations=40)
     assert again.state["history"][0]["rms"] == pytest.approx(stalled, rel=1e-3)    # it starts where it stalled
     assert min(h["rms"] for h in again.state["history"]) < 0.5 * stalled, (stalled, again.state["history"])
 
@@ -447,15 +447,15 @@ def test_row_feed_hands_out_each_fresh_row_once_in_chunks():
     np.testing.assert_array_equal(got[7]["Y"], 2.0 * np.arange(700, 800))
 
 
-def test_refining_a_network_larger_than_the_finish_takes_is_a_clear_error():
-    """``keep = "refine"`` runs only the finish, which leaves networks above ``MAX_PARAMS`` alone: a 5×32 regressor
+def test_finishing_a_network_larger_than_the_finish_takes_is_a_clear_error():
+    """``finish_only = "maps"`` runs only the finish, which leaves networks above ``MAX_PARAMS`` alone: a 5×32 regressor
     (or a 3×16 one configured wider than the finish takes) is refused before any training, naming the way out; a
-    3×16 one widened to 3×32 passes; a stop head widened past the limit by ``refine-stop`` is refused the same way.
+    3×16 one widened to 3×32 passes; a stop head widened past the limit by ``--finish-only stop-heads`` is refused the same way.
     A network given no time for the finish (``lm_minutes`` 0) is refused there too, before the other one's finish
     has run (it used to be found only then, minutes later)."""
     from mi_neurallens import NeuralLensError
     from mi_neurallens.training.config import NetConfig
-    from mi_neurallens.training.trainer import _check_finishable
+    from mi_neurallens.training.keep import check_finish_only
 
     def base(widths):
         return types.SimpleNamespace(key="forward.10240", training={}, regressor=random_layers([4, *widths, 5]),
@@ -465,15 +465,15 @@ def test_refining_a_network_larger_than_the_finish_takes_is_a_clear_error():
                                   ("classifier", NetConfig(hidden=2, width=16, lm_minutes=lm)))
     with pytest.raises(NeuralLensError, match=r"regressor of forward\.10240 \(4549 weights\).*--keep classifier "
                                               r"--set forward_regressor\.hidden=3"):
-        _check_finishable([base([32] * 5)], nets(32), "forward")
-    _check_finishable([base([16] * 3)], nets(32), "forward")           # 2 437 weights widened: the finish takes it
+        check_finish_only([base([32] * 5)], nets(32), "forward")
+    check_finish_only([base([16] * 3)], nets(32), "forward")           # 2 437 weights widened: the finish takes it
     with pytest.raises(NeuralLensError, match="larger than the Levenberg-Marquardt finish takes"):
-        _check_finishable([base([16] * 3)], nets(48), "forward")
+        check_finish_only([base([16] * 3)], nets(48), "forward")
     with pytest.raises(NeuralLensError, match=r"the classifier's lm_minutes is 0: .*--set classifier\.lm_minutes"):
-        _check_finishable([base([16] * 3)], nets(16, lm=0.0), "backward")
-    # the stop heads' refine (``keep = "refine-stop"``) refuses the same, before it samples anything
+        check_finish_only([base([16] * 3)], nets(16, lm=0.0), "backward")
+    # the stop heads' finish-only run (``finish_only = "stop-heads"``) refuses the same, before it samples anything
     from mi_neurallens.training.stop_head import train_stop_heads
     tm = types.SimpleNamespace(key="forward.278528", direction="forward", path_id=278528)
     head = types.SimpleNamespace(layers=random_layers([4, 32, 32, 32, 6]))
-    with pytest.raises(NeuralLensError, match=r"refine-stop: forward\.278528 stop head \(\d+ weights\).*--keep both"):
+    with pytest.raises(NeuralLensError, match=r"--finish-only stop-heads: forward\.278528 stop head \(\d+ weights\).*--keep networks"):
         train_stop_heads(None, [tm], NetConfig(hidden=3, width=48, lm_minutes=1.0), seeds=[0], start=[head])

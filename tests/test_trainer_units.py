@@ -10,7 +10,9 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from mi_neurallens.training.config import NetConfig  # noqa: E402
-from mi_neurallens.training.trainer import ODD_COLUMNS, ClassifierFit, RegressorFit, odd_factor  # noqa: E402
+from mi_neurallens.training.classifier import ClassifierFit  # noqa: E402
+from mi_neurallens.training.outputs import ODD_COLUMNS, odd_factor  # noqa: E402
+from mi_neurallens.training.regressor import RegressorFit  # noqa: E402
 
 
 def _regressor_fit(odd_s, rng):

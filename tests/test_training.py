@@ -265,7 +265,7 @@ def test_aperture_margin_is_the_validity_boundary(blades, path):
 def test_output_transform_is_the_least_squares_fit_over_many_blocks():
     """fit_output_transform's blocked normal equations give what one least-squares solve of the whole
     (N, 5) design matrix gives (the odd factor on the y columns included), and the residuals' spread."""
-    from mi_neurallens.training.trainer import FIT_BLOCK_ROWS, fit_output_transform, odd_factor
+    from mi_neurallens.training.outputs import FIT_BLOCK_ROWS, fit_output_transform, odd_factor
     rng = np.random.default_rng(11)
     n = 2 * FIT_BLOCK_ROWS + 1234
     xn = rng.uniform(-1, 1, (n, 4))
@@ -347,7 +347,7 @@ def test_budget_is_the_sum_of_the_networks_wall_budgets():
     """What `train` announces before a lens: the most minutes its networks may take — Adam's budget once per
     size tried plus the finish, per map — checked against the defaults' numbers written out."""
     from mi_neurallens.training.config import budget_minutes, minutes_text
-    from mi_neurallens.training.trainer import _budget_text, _spent_text
+    from mi_neurallens.training.whole_lens import _budget_text, _spent_text
     c = load_config(None)
     fwd = budget_minutes(c, "forward", 33)
     # forward: regressor 1 + 1, classifier 0.4 + 0.35, stop head 0.5 + 0.5 minutes per map
@@ -389,7 +389,7 @@ def test_tiny_training_run_learns(tmp_path):
     pytest.importorskip("torch")
     from mi_neurallens.neural import NeuralLensModel, load_model
     from mi_neurallens.training.evaluate import evaluate_map
-    from mi_neurallens.training.trainer import train_map
+    from mi_neurallens.training.maps import train_map
     lens = thick_lens()
     s0, s1 = plan.sensor_distance_range(lens, 500.0)
     z_front, z_rear = plan.planes(lens, s0)
@@ -479,11 +479,11 @@ def test_tiny_training_run_learns(tmp_path):
     for (W, b), (W0, b0) in zip(tc.classifier, tk.classifier):
         np.testing.assert_array_equal(W, W0)
         np.testing.assert_array_equal(b, b0)
-    # keep = "both": only the stop heads train, together in one stack as in a whole run (here two copies of
+    # keep = "networks": only the stop heads train, together in one stack as in a whole run (here two copies of
     # the map); classifiers, regressors and their metrics come bit for bit from the bases
-    from mi_neurallens.training.trainer import train_maps
+    from mi_neurallens.training.maps import train_maps
     spec = (0, "backward", z_rear, z_front, dom)
-    tbs = train_maps(lens, [spec, spec], cfg, None, progress=False, keep="both", bases=[tb, tb])
+    tbs = train_maps(lens, [spec, spec], cfg, None, progress=False, keep="networks", bases=[tb, tb])
     for t in tbs:
         assert t.stop_head is not None and t.stop_head is not tb.stop_head
         assert t.stop_head.training["stacked_with"] == 2
@@ -494,7 +494,7 @@ def test_tiny_training_run_learns(tmp_path):
         assert t.metrics["regressor"] == tb.metrics["regressor"]
         assert t.metrics["stop"]["stop_um_median"] < 300.0
     with pytest.raises(NeuralLensError, match="stop.max_minutes = 0"):
-        train_maps(lens, [spec], cfgm, None, progress=False, keep="both", bases=[tb])
+        train_maps(lens, [spec], cfgm, None, progress=False, keep="networks", bases=[tb])
     # a base map of another path, planes or domain, an unknown network, or no base: clear errors
     with pytest.raises(NeuralLensError, match="not backward.0"):
         train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, None, keep="regressor",
@@ -517,7 +517,8 @@ def test_edge_weighted_regressor_loss():
     factor 0.67–0.77 over three stream seeds (the same seed without the weights gives exactly 1)."""
     pytest.importorskip("torch")
     from mi_neurallens.training.config import NetConfig
-    from mi_neurallens.training.trainer import edge_weights, train_regressor
+    from mi_neurallens.training.outputs import edge_weights
+    from mi_neurallens.training.regressor import train_regressor
     lens = thick_lens()
     ps = data.PathSampler(lens, 0, "backward", 52.0, -1.0, data.Domain(12.0, 0.4))
     u, x, y, _ = data.rejection_sample(ps, 40000, np.random.default_rng(0))
@@ -551,7 +552,8 @@ def test_a_fisheye_camera_map_regresses_its_exit_position_times_dz(tmp_path):
     from mi_neurallens.neural.model import NeuralLensModel, bundled_model_path, load_model, position_cos
     from mi_neurallens.training.config import NetConfig
     from mi_neurallens.training.evaluate import map_outputs_np, regression_errors
-    from mi_neurallens.training.trainer import odd_factor, train_regressor, wants_position_cos
+    from mi_neurallens.training.outputs import odd_factor, wants_position_cos
+    from mi_neurallens.training.regressor import train_regressor
 
     def camera_rays(name, n):
         lens = Lens.load(name)
@@ -601,7 +603,8 @@ def test_a_regressor_trained_on_its_input_box_is_returned_in_the_maps_normalisat
     from mi_neurallens.neural.mlp import mlp_np
     from mi_neurallens.training.config import NetConfig
     from mi_neurallens.training.evaluate import regression_errors
-    from mi_neurallens.training.trainer import odd_factor, train_regressor
+    from mi_neurallens.training.outputs import odd_factor
+    from mi_neurallens.training.regressor import train_regressor
     lens = thick_lens()
     ps = data.PathSampler(lens, 0, "backward", 52.0, -1.0, data.Domain(12.0, 0.4))
     _, x, y, _ = data.rejection_sample(ps, 8000, np.random.default_rng(0))

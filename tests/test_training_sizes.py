@@ -1,4 +1,4 @@
-"""Network size per error budget: the architecture ladder (``NetConfig.sizes``, ``trainer.train_sized``)
+"""Network size per error budget: the architecture ladder (``NetConfig.sizes``, ``maps.train_sized``)
 and the flare goals stated at a film resolution (``TrainConfig.flare_resolution``)."""
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 
 from mi_neurallens.errors import NeuralLensError
 from mi_neurallens.training.config import flare_goals, load_config, parse_size
-from mi_neurallens.training.trainer import train_sized
+from mi_neurallens.training.maps import train_sized
 
 
 def _fake_train(meets, calls):

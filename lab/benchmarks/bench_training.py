@@ -99,7 +99,7 @@ def bench_generation(lens, zf, zr, seconds=6.0):
 # ----------------------------------------------------------------------------- training speed
 def bench_training_speed(batch=8192, steps=150):
     import torch
-    from mi_neurallens.training.trainer import make_net
+    from mi_neurallens.training.nets import make_net
     torch.set_num_threads(2)
     out = {}
     for kind, hidden, n_out in (("regressor 5x32", 5, 5), ("classifier 2x32", 2, 1)):
@@ -171,7 +171,7 @@ def train_log_peak_rss():
 # ----------------------------------------------------------------------------- ablations
 def _budget_regressor(stream, val, heading, center, scale, seconds, s_max=None, **over):
     from mi_neurallens.training.config import NetConfig, PAPER
-    from mi_neurallens.training.trainer import train_regressor
+    from mi_neurallens.training.regressor import train_regressor
     d = dict(max_minutes=seconds / 60.0, max_steps=10 ** 7, eval_every=100, patience=10 ** 6, pool=500_000)
     if STEPS:
         d.update(max_minutes=1e9, max_steps=STEPS)
@@ -187,7 +187,7 @@ def _budget_regressor(stream, val, heading, center, scale, seconds, s_max=None, 
 
 def _eval_reduced(res, x, center, scale, activation="tanh"):
     from mi_neurallens.neural.mlp import mlp_np
-    from mi_neurallens.training.trainer import odd_factor
+    from mi_neurallens.training.outputs import odd_factor
     xn = (x - center) / scale
     M = odd_factor(x[:, 2], res["s_max"] if res.get("odd_y") else None)
     return M * (mlp_np(xn, res["layers"], activation) * res["out_scale"] + res["out_shift"] + xn @ res["skip"].T)
@@ -241,7 +241,8 @@ def symmetry_ablation(lens, zf, zr, dom, seconds):
     """Same network, data budget and time: reduced inputs (r, ωx, ωy, λ) vs full (x, y, dx, dy, λ)."""
     import torch
     from mi_neurallens.trace import symmetry
-    from mi_neurallens.training.trainer import fit_output_transform, make_net
+    from mi_neurallens.training.nets import make_net
+    from mi_neurallens.training.outputs import fit_output_transform
     torch.set_num_threads(2)
     rng = np.random.default_rng(11)
 

@@ -6,7 +6,8 @@ lens's data set-up goes on a GPU).
 Runs ``mi-neurallens train LENS --paths PATHS`` in this process with a few hundred Adam steps and three
 Levenberg–Marquardt iterations per network (the data steps are what is counted; the networks barely train) and no
 flare verification, with Dr.Jit's kernel history on.  The data functions of ``training/data.py``,
-``training/bounds.py``, ``training/trainer.py`` and ``training/evaluate.py`` are wrapped; each kernel is counted
+``training/bounds.py``, ``training/outputs.py``, ``training/classifier.py``, ``training/levenberg.py`` and
+``training/evaluate.py`` are wrapped; each kernel is counted
 in the innermost wrapped call that launched it.  Per step: calls, kernels launched, distinct kernels (hashes),
 in-run cache hits, compile seconds (code generation + the backend's compiler), execution seconds, wall seconds
 (wrapped calls nest, so walls overlap).  The kernel cache is ``$HOME/.drjit``: run with ``HOME`` set to an empty
@@ -34,7 +35,7 @@ sys.path.insert(0, ROOT)
 STEPS = (("data", "PathSampler.random_valid"), ("data", "PathSampler.trace_u"), ("data", "PathSampler.trace_x"),
          ("data", "PathSampler.margin_u"), ("data", "valid_fraction"), ("data", "rejection_sample"),
          ("data", "classifier_samples"), ("data", "RegressorStream.sample"), ("bounds", "ValidBounds.build"),
-         ("trainer", "calibrate_classifier"), ("trainer", "fit_output_transform"), ("trainer", "polish_results"),
+         ("classifier", "calibrate_classifier"), ("outputs", "fit_output_transform"), ("levenberg", "finish_results"),
          ("evaluate", "evaluate_map"))
 
 
@@ -102,8 +103,9 @@ def main(argv=None) -> int:
     import mitsuba as mi
     from mi_neurallens.render_utils import default_variant
     mi.set_variant(default_variant())
-    from mi_neurallens.training import bounds, data, evaluate, trainer
-    modules = {"data": data, "bounds": bounds, "trainer": trainer, "evaluate": evaluate}
+    from mi_neurallens.training import bounds, classifier, data, evaluate, levenberg, outputs
+    modules = {"data": data, "bounds": bounds, "classifier": classifier, "outputs": outputs, "levenberg": levenberg,
+               "evaluate": evaluate}
     census = Census(dr)
     for mod, name in STEPS:
         census.wrap(modules[mod], name)

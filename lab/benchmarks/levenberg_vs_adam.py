@@ -35,7 +35,7 @@ sys.path.insert(0, ROOT)
 def problems(lens, model, ghosts, kind, cfg):
     """The trainer's problem dicts of the ghosts ``ghosts`` on the bundled maps' planes and domains."""
     from mi_neurallens.training.data import Domain, PathSampler, RegressorStream
-    from mi_neurallens.training.trainer import classifier_problem, map_seed, regressor_problem
+    from mi_neurallens.training.maps import classifier_problem, map_seed, regressor_problem
     out = []
     for pid in ghosts:
         tm = model.maps[f"forward.{pid}"]
@@ -99,7 +99,7 @@ def main(argv=None):
     from mi_neurallens import Lens
     from mi_neurallens.fileio import atomic_write_json
     from mi_neurallens.neural.model import bundled_model_path, load_model
-    from mi_neurallens.training import trainer
+    from mi_neurallens.training import classifier, regressor
     from mi_neurallens.training.config import default_config_path, load_config
     lens = Lens.load(a.lens)
     model = load_model(bundled_model_path(a.lens), lens)
@@ -110,7 +110,7 @@ def main(argv=None):
     for kind in a.kinds.split(","):
         base = cfg.net(kind, "forward")
         goals = (base.goal_position_um, base.goal_direction_arcsec)
-        fn = trainer.train_regressors if kind == "regressor" else trainer.train_classifiers
+        fn = regressor.train_regressors if kind == "regressor" else classifier.train_classifiers
         doc["kinds"][kind] = {"network": f"{base.hidden}x{base.width}", "goals": goals, "variants": {}}
         for name, adam_min, lm_min in (("adam", a.minutes, 0.0),
                                         ("adam+lm", a.minutes * (1 - a.lm_share), a.minutes * a.lm_share)):

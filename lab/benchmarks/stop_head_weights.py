@@ -37,7 +37,7 @@ def main(argv=None):
     mi.set_variant(default_variant())
     from mi_neurallens.neural.model import bundled_model_path, load_model
     from mi_neurallens.optics.formats import load_lens
-    from mi_neurallens.training import stop_head, trainer
+    from mi_neurallens.training import maps, stop_head
     from mi_neurallens.training.config import load_config
     from mi_neurallens.training.evaluate import heldout_valid, stop_errors
 
@@ -58,7 +58,7 @@ def main(argv=None):
     rows = []
     for mode in a.modes.split(","):
         nc = dataclasses.replace(cfg.net("stop", tms[0].direction), loss_weights=mode, lm_minutes=a.lm_minutes)
-        seeds = [trainer.map_seed(cfg, tm.path_id, tm.direction) + 17 for tm in tms]
+        seeds = [maps.map_seed(cfg, tm.path_id, tm.direction) + 17 for tm in tms]
         t0 = time.perf_counter()
         heads = stop_head.train_stop_heads(lens, tms, nc, seeds=seeds, progress=False)
         wall = time.perf_counter() - t0

@@ -91,7 +91,7 @@ def net_config(kind, steps):
 def measure_new(k, kind, steps, step="fused"):
     """The stacked trainer; ``step``: "fused" (its CPU default where a C compiler is, training/fused_mlp.c) or
     "pytorch" (PyTorch's batched products and the compiled rational tanh: MI_NEURALLENS_FUSED=0)."""
-    from mi_neurallens.training import fused_cpu, trainer
+    from mi_neurallens.training import fused_cpu
     fused_cpu._KERNELS.clear()
     old_env = os.environ.get("MI_NEURALLENS_FUSED")
     os.environ["MI_NEURALLENS_FUSED"] = "1" if step == "fused" else "0"
@@ -106,12 +106,12 @@ def measure_new(k, kind, steps, step="fused"):
 
 
 def _measure_new(k, kind, steps, step):
-    from mi_neurallens.training import trainer
+    from mi_neurallens.training import classifier, regressor
     from mi_neurallens.training.stacked import STEP_CHOICE
     STEP_CHOICE.clear()
     probs = problems(k, kind)
     nc = net_config(kind, steps)
-    fn = trainer.train_regressors if kind == "regressor" else trainer.train_classifiers
+    fn = regressor.train_regressors if kind == "regressor" else classifier.train_classifiers
     t = time.perf_counter()
     res = fn(probs, nc, progress=False)
     wall = time.perf_counter() - t
@@ -125,7 +125,7 @@ def _measure_new(k, kind, steps, step):
 
 def measure_old(k, kind, steps):
     """The pre-stack trainer: one map at a time with its own train_regressor / train_classifier."""
-    from mi_neurallens.training import trainer
+    from mi_neurallens.training import trainer      # the baseline checkout's module (this runs in its tree)
     nc = net_config(kind, steps)
     probs = problems(k, kind)
     samples = seconds = 0.0
@@ -212,7 +212,7 @@ def grid(maps=(1, 2, 4, 8, 16, 32), batches=(1024, 2048, 4096, 8192), hidden=5, 
     import copy
     import numpy as np
     import torch
-    from mi_neurallens.training import stacked, trainer
+    from mi_neurallens.training import nets, outputs, regressor, stacked
     torch.set_num_threads(2)
     probs = problems(max(maps), "regressor", heldout=2000)
     nc = net_config("regressor", 10)
@@ -220,11 +220,11 @@ def grid(maps=(1, 2, 4, 8, 16, 32), batches=(1024, 2048, 4096, 8192), hidden=5, 
     for p in probs:
         u0, x0, y0 = p["stream"].sample(300_000)
         xn0 = (x0 - p["center"]) / p["scale_in"]
-        tr = trainer.fit_output_transform(xn0, y0, nc.residual, trainer.odd_factor(x0[:, 2], p["s_max"]))
-        fits.append(trainer.RegressorFit(torch, "cpu", None, nc, p["stream"], p["val"], (u0, x0, y0),
-                                         state=trainer._new_state(), heading=1,
-                                         center=p["center"], scale_in=p["scale_in"], transform=tr,
-                                         odd_s=p["s_max"]))
+        tr = outputs.fit_output_transform(xn0, y0, nc.residual, outputs.odd_factor(x0[:, 2], p["s_max"]))
+        fits.append(regressor.RegressorFit(torch, "cpu", None, nc, p["stream"], p["val"], (u0, x0, y0),
+                                           state=nets.new_state(), heading=1,
+                                           center=p["center"], scale_in=p["scale_in"], transform=tr,
+                                           odd_s=p["s_max"]))
     rng = np.random.default_rng(0)
     rows = []
     for k in maps:

@@ -18,6 +18,9 @@ each ray adds its weight to the pixel it lands in), one channel per wavelength, 
 the exact tracer (:func:`mi_neurallens.metrics.mape_masked`: luminance, over the pixels above 1 % of the
 reference's peak — the plain MAPE of a mostly black image is dominated by empty pixels).  Every method
 sees the same rays, so the error is the map's, not Monte Carlo noise.
+
+These tables are measurements, never render time: :func:`evaluate_path` draws its held-out rays with the
+training's samplers (``mi_neurallens.training.data``, ``training.evaluate``), imported inside it only.
 """
 from __future__ import annotations
 
@@ -245,8 +248,8 @@ def flare_images(lens, paths, methods=("abcd", "taylor3", "taylor5", "fitted", "
     zf, zr = default_map_planes(lens, "forward", model)
     dom = default_domain(lens, 0, "forward", model)
     if field_deg is None:
-        from ..training import plan
-        field_deg = 0.5 * plan.default_field_half_angle(lens)
+        from ..transport.planes import default_field_half_angle
+        field_deg = 0.5 * default_field_half_angle(lens)
     if half_extent is None:
         half_extent = FULL_FRAME_HALF_DIAGONAL_MM
     sensor_z = lens.image_z

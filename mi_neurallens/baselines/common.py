@@ -1,6 +1,10 @@
 """What every baseline shares: the map planes and domains of the neural maps, the base of the
 baseline maps, and normal-incidence Fresnel factors.
 
+The planes and domains come from the bundled model, or, where there is none, from
+:mod:`mi_neurallens.transport.planes` with the lens's training recipe (its close focus): nothing here imports
+``mi_neurallens.training``.
+
 Every baseline is a :class:`~mi_neurallens.transport.base.TransportMap` from an input plane ``z_in`` to
 an output plane ``z_out`` (lens space, mm) for one path id and direction: it provides only its core,
 the base class moves, reduces, checks and undoes (``eval_dr``, ``eval_np``).
@@ -12,7 +16,9 @@ import os
 
 import numpy as np
 
+from ..transport import planes
 from ..transport.base import TransportMap, heading_of
+from ..transport.planning import Domain
 
 LAM0_NM = 550.0      # expansion / normalisation centre of the wavelength variable
 LAM_SCALE_NM = 100.0  # l = (λ − 550 nm) / 100 nm
@@ -34,15 +40,13 @@ def bundled_model(lens):
 
 def default_planes(lens, model=None):
     """(z_front, z_rear, (s_min, s_max)) as the neural maps use them: the bundled model's when there is
-    one, else :func:`mi_neurallens.training.plan.planes` with the lens's training recipe (close focus)."""
+    one, else :func:`mi_neurallens.transport.planes.planes` with the close focus of the lens's training recipe
+    (:func:`~mi_neurallens.transport.planes.recipe_close_focus`)."""
     model = bundled_model(lens) if model is None else model
     if model is not None:
         return model.z_front, model.z_rear, tuple(model.sensor_distance_range)
-    from ..training import plan
-    from ..training.config import default_config_path, load_config
-    cfg = load_config(default_config_path(lens.name), lens=lens.name)
-    s0, s1 = plan.sensor_distance_range(lens, cfg.close_focus_mm)
-    zf, zr = plan.planes(lens, s0)
+    s0, s1 = planes.sensor_distance_range(lens, planes.recipe_close_focus(lens.name))
+    zf, zr = planes.planes(lens, s0)
     return zf, zr, (s0, s1)
 
 
@@ -54,10 +58,8 @@ def default_map_planes(lens, direction: str, model=None):
 
 def default_domain(lens, path_id: int, direction: str, model=None, seed: int = 1):
     """The reduced input domain the neural map of (path, direction) uses (or would use):
-    the model's stored domain when present; forward: :func:`plan.forward_domain` over the default field;
-    backward: the pilot-traced :func:`plan.backward_domain`."""
-    from ..training import plan
-    from ..training.data import Domain
+    the model's stored domain when present; forward: :func:`~mi_neurallens.transport.planes.forward_domain`
+    over the default field; backward: the pilot-traced :func:`~mi_neurallens.transport.planes.backward_domain`."""
     model = bundled_model(lens) if model is None else model
     if model is not None and model.has(path_id, direction):
         return Domain.from_dict(model.map(path_id, direction).domain)
@@ -67,8 +69,8 @@ def default_domain(lens, path_id: int, direction: str, model=None, seed: int = 1
                 return Domain.from_dict(m.domain)
     zf, zr, _ = default_planes(lens, model)
     if direction == "forward":
-        return plan.forward_domain(lens, zf, plan.default_field_half_angle(lens))
-    return plan.backward_domain(lens, path_id, zr, zf, np.random.default_rng(seed), n=1 << 20)
+        return planes.forward_domain(lens, zf, planes.default_field_half_angle(lens))
+    return planes.backward_domain(lens, path_id, zr, zf, np.random.default_rng(seed), n=1 << 20)
 
 
 # ----------------------------------------------------------------------------- Fresnel at normal incidence

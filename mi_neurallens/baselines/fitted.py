@@ -8,7 +8,8 @@ direction cosines (dx, dy), Fresnel throughput T — the same as the neural regr
 Data: valid rays traced exactly (float64) over the domain the neural map uses, with the training code's
 samplers (uniform over the valid region by rejection, or the Metropolis sampler for rare paths:
 :func:`mi_neurallens.training.evaluate.heldout_valid`), ``n_samples`` of them (default 20 000; lentil
-uses 15 000).
+uses 15 000).  That sampler is the one import of ``mi_neurallens.training`` here, made inside the fit
+(:class:`FittedMap`'s constructor) only: a fitted map is fitted when it is built.
 
 Term selection: per output, **orthogonal matching pursuit** over the template of all monomials of total
 degree ≤ ``degree`` (default 11, like lentil) that have the output's parity in ωy (mirror symmetry makes
@@ -62,7 +63,6 @@ class FittedMap(BaselineMap):
                  domain=None, degree: int = 11, terms: int = 28, n_samples: int = 20000,
                  valid: str = "auto", seed: int = 7, model=None, data=None, fresnel: bool = True):
         super().__init__(lens, path, direction, z_in, z_out)
-        from ..training.evaluate import heldout_valid
         if valid not in ("auto", "classifier", "aperture", "all"):
             raise ValueError(f"fitted valid must be 'auto', 'classifier', 'aperture' or 'all', got {valid!r}")
         self.degree, self.terms = int(degree), int(terms)
@@ -86,7 +86,8 @@ class FittedMap(BaselineMap):
                 valid = "aperture"
         self.valid_mode = valid
         # --- regressor data and fit
-        if data is None:
+        if data is None:                # the fit's data: the training's held-out sampler (its one use here)
+            from ..training.evaluate import heldout_valid
             data = heldout_valid(lens, (self.path_id, direction, self.z_in, self.z_out), d, n_samples, seed,
                                  fresnel=fresnel)
         x, y = data

@@ -17,6 +17,8 @@ import json
 import os
 import sys
 
+from ..training.keep import FINISH_ONLY, KEEP, OLD_KEEP
+
 
 def add_parser(subparsers):
     p = subparsers.add_parser("train", help="train the neural transport maps of a lens",
@@ -32,15 +34,18 @@ def add_parser(subparsers):
                    help="override a config value, e.g. --set seed=3 --set regressor.max_steps=2000, --set flare_resolution=1024 "
                         "(looser flare-map goals), --set 'forward_regressor.sizes=[\"3x16\",\"5x32\"]' (the smallest "
                         "network that meets them) (JSON values)")
-    p.add_argument("--keep", choices=("regressor", "classifier", "both", "refine", "refine-stop"),
-                   help="keep this network of each selected map from --base and train the rest; 'both': train "
-                        "only the stop heads (a render-time aperture for an existing model); 'refine': start "
-                        "both networks from --base and run only their Levenberg-Marquardt finish (lm_minutes), "
-                        "each widened first where the config's width is larger; 'refine-stop': the same for the "
-                        "stop heads alone")
-    p.add_argument("--base", help="model file the --keep networks come from (default: the bundled model of the "
-                                  "lens; an existing output file other than it must be named, and a rerun "
-                                  "that resumes takes the base of the run before)")
+    p.add_argument("--keep", choices=KEEP + tuple(OLD_KEEP), metavar="{" + ",".join(KEEP) + "}",
+                   help="keep this of each selected map from --base and train the rest: its regressor or its "
+                        "classifier (the other network trains anew), or its networks (both: only the stop heads "
+                        "train, a render-time aperture for an existing model; 'both' is the old spelling)")
+    p.add_argument("--finish-only", choices=FINISH_ONLY,
+                   help="train nothing anew: start from --base's networks and run only their Levenberg-Marquardt "
+                        "finish (lm_minutes), each widened first where the config's width is larger; 'maps': the "
+                        "regressors and classifiers (stop heads kept), 'stop-heads': the stop heads alone "
+                        "(networks kept). `--keep refine` and `--keep refine-stop` are the old spellings")
+    p.add_argument("--base", help="model file the --keep or --finish-only networks come from (default: the bundled "
+                                  "model of the lens; an existing output file other than it must be named, and a "
+                                  "rerun that resumes takes the base of the run before)")
     p.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
                    help="run the maps as jobs on Ray (the 'cluster' extra): a local instance, or the cluster at "
                         "ADDRESS (e.g. auto, ray://head:10001); one GPU per job when the cluster has GPUs")
@@ -114,10 +119,27 @@ def default_out_dir(spec: str, name: str) -> str:
     return "."
 
 
+def _mode(args) -> tuple:
+    """(keep, finish_only) of the command line in today's spelling; ``--keep refine`` and ``--keep refine-stop``
+    say, in one line, that they are now ``--finish-only maps`` and ``--finish-only stop-heads``."""
+    from ..training.keep import run_mode
+    keep, finish_only = getattr(args, "keep", None), getattr(args, "finish_only", None)
+    if keep in OLD_KEEP and OLD_KEEP[keep][1] is not None:
+        print(f"note: --keep {keep} is now --finish-only {OLD_KEEP[keep][1]}; the old spelling will go",
+              file=sys.stderr)
+    return run_mode(keep, finish_only)
+
+
+def _mode_flag(keep, finish_only) -> str:
+    """The command-line words of a run's mode: ``--keep regressor`` or ``--finish-only maps``."""
+    return f"--finish-only {finish_only}" if finish_only is not None else f"--keep {keep}"
+
+
 def run(args):
     require_torch()
     from ..optics.prescription import Lens
     from ..training.config import default_config_path, load_config
+    args.keep, args.finish_only = _mode(args)
     lenses = [Lens.load(name) for name in args.lens]
     cfgs, outs = [], []
     for spec, lens in zip(args.lens, lenses):
@@ -132,9 +154,9 @@ def run(args):
               f"[{cfg.digest()}] -> {outs[-1]}", file=sys.stderr)
         print(f"  focus: {_focus_text(lens, cfg.close_focus_mm)}", file=sys.stderr)
     if args.ray:
-        if args.keep:
+        if args.keep or args.finish_only:
             from ..errors import NeuralLensError
-            raise NeuralLensError("--keep trains on this machine only; drop --ray")
+            raise NeuralLensError(f"{_mode_flag(args.keep, args.finish_only)} trains on this machine only; drop --ray")
         from ..training.distributed import train_on_ray
         out_dir = args.out or os.path.dirname(outs[0])
         got = train_on_ray(lenses, cfgs, out_dir, address=None if args.ray == "local" else args.ray,
@@ -156,40 +178,47 @@ def _report(path):
 
 
 def _keep_base(args, lens, out) -> str:
-    """The model file ``--keep`` takes its networks from: ``--base``; on a rerun of the same ``--keep`` and
-    ``--paths`` into the same output (resuming an interrupted run), the base that run took (recorded in
-    ``<out>.work/keep_base.json``); else the bundled model of the lens.  An existing output file that is not the
-    bundled model is never taken silently — it may be an earlier run's — so then ``--base`` must say which."""
+    """The model file ``--keep`` or ``--finish-only`` takes its networks from: ``--base``; on a rerun of the same mode
+    and ``--paths`` into the same output (resuming an interrupted run), the base that run took (recorded in
+    ``<out>.work/keep_base.json``; a record in the old spellings counts as its mode); else the bundled model of the
+    lens.  An existing output file that is not the bundled model is never taken silently — it may be an earlier
+    run's — so then ``--base`` must say which."""
     from ..errors import NeuralLensError
     from ..fileio import atomic_write_text
     from ..neural.model import bundled_model_path
+    from ..training.keep import run_mode
     rec_path = os.path.join(out + ".work", "keep_base.json")
-    this = {"keep": args.keep, "paths": args.paths}
+    mode = run_mode(getattr(args, "keep", None), getattr(args, "finish_only", None))
+    flag = _mode_flag(*mode)
     base = args.base
     if base is None and os.path.exists(rec_path):
         with open(rec_path) as f:
             rec = json.load(f)
-        if {k: rec.get(k) for k in this} == this and os.path.exists(rec.get("base", "")):
+        try:
+            same = run_mode(rec.get("keep"), rec.get("finish_only")) == mode and rec.get("paths") == args.paths
+        except NeuralLensError:         # a record this version cannot read: not the same run
+            same = False
+        if same and os.path.exists(rec.get("base", "")):
             base = rec["base"]
-            print(f"resuming {out}: --keep {args.keep} takes its networks from {base}, as the run before",
-                  file=sys.stderr)
+            print(f"resuming {out}: {flag} takes its networks from {base}, as the run before", file=sys.stderr)
     if base is None:
         bundled = bundled_model_path(lens.name)
         if os.path.exists(out) and not (os.path.exists(bundled) and os.path.samefile(out, bundled)):
             import datetime
             when = datetime.datetime.fromtimestamp(os.path.getmtime(out)).strftime("%Y-%m-%d %H:%M")
             raise NeuralLensError(
-                f"--keep {args.keep}: {out} already exists (written {when}) and is not the bundled model; say "
+                f"{flag}: {out} already exists (written {when}) and is not the bundled model; say "
                 f"which model the kept networks come from: --base {out} to build on it, --base {bundled} for "
                 f"the bundled one, or a new --out")
         base = bundled
     os.makedirs(out + ".work", exist_ok=True)
-    atomic_write_text(rec_path, json.dumps({**this, "base": os.path.abspath(base)}))
+    atomic_write_text(rec_path, json.dumps({"keep": mode[0], "finish_only": mode[1], "paths": args.paths,
+                                            "base": os.path.abspath(base)}))
     return base
 
 
 def _train_one(args, lens, cfg, out):
-    from ..training.trainer import train_lens
+    from ..training.whole_lens import train_lens
 
     def log(desc, rec):
         if not args.quiet:
@@ -197,16 +226,17 @@ def _train_one(args, lens, cfg, out):
                                         for k, v in rec.items()), file=sys.stderr, flush=True)
 
     base = None
-    if args.keep:
+    if args.keep or args.finish_only:
         base = _keep_base(args, lens, out)
-        what = {"both": "classifiers and regressors (training stop heads only)",
-                "refine-stop": "classifiers and regressors, and their stop heads as the start of the finish",
-                "refine": "classifiers and regressors as the start of their Levenberg-Marquardt finish"}.get(
-            args.keep, f"{args.keep}s")
+        what = {"networks": "classifiers and regressors (training stop heads only)",
+                "stop-heads": "classifiers and regressors, and their stop heads as the start of the finish",
+                "maps": "classifiers and regressors as the start of their Levenberg-Marquardt finish"}.get(
+            args.finish_only or args.keep, f"{args.keep}s")
         print(f"keeping the {what} of {base}", file=sys.stderr)
     elif args.base:
         from ..errors import NeuralLensError
-        raise NeuralLensError("--base names where --keep takes its networks from; give --keep too")
+        raise NeuralLensError("--base names where --keep or --finish-only take their networks from; give one of "
+                              "them too")
     train_lens(lens, cfg, out, paths=args.paths, progress=not args.no_progress, log=log,
-               keep=args.keep, base_path=base)
+               keep=args.keep, finish_only=args.finish_only, base_path=base)
     _report(out)

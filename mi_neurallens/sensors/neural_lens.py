@@ -189,7 +189,7 @@ class NeuralLens(LensSensorBase):
             raise SensorPropertyError(
                 PLUGIN, prop, f"model {self.model_path} was trained wide open (f/{st.max_fnumber:.3g}, "
                 f"{trained.describe()}) and has no stop head, so its aperture is fixed; add one with "
-                f"`mi-neurallens train {st.base_lens.name} --paths backward-transmit --keep both` or use "
+                f"`mi-neurallens train {st.base_lens.name} --paths backward-transmit --keep networks` or use "
                 f"realistic_lens")
         if trained.blades:
             raise SensorPropertyError(

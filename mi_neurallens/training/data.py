@@ -58,23 +58,14 @@ class PathSampler:
 
     # -- Dr.Jit core ---------------------------------------------------------------------------
     def u_to_x_dr(self, u):
-        """Unit-cube components (4 Dr.Jit floats) → reduced inputs (r, ωx, ωy, λ) in Dr.Jit."""
-        import drjit as dr
-        d = self.domain
-        rho = d.s_max * dr.sqrt(u[1])
-        s, c = dr.sincos(math.pi * u[2])
-        lam, _ = sample_cie_wavelength(u[3])
-        return d.r_max * u[0], rho * c, rho * s, lam
+        """Unit-cube components (4 Dr.Jit floats) → reduced inputs (r, ωx, ωy, λ) in Dr.Jit
+        (:meth:`~mi_neurallens.transport.planning.Domain.u_to_x_dr`)."""
+        return self.domain.u_to_x_dr(u)
 
     def trace_dr(self, r, wx, wy, lam):
         """Reduced inputs (Dr.Jit) → (valid, [x, y, dx, dy, T (, sx, sy, …)]) (Dr.Jit, reduced frame): the exact
         map's reduced core, with rays whose outputs are not finite made invalid."""
-        import drjit as dr
-        valid, outs, _ = self.map.core_reduced_dr((r, wx, wy, lam), True)
-        outs = outs[:self.n_out]
-        for o in outs:
-            valid &= dr.isfinite(o)
-        return valid, outs
+        return self.map.core_reduced_finite_dr((r, wx, wy, lam), self.n_out)
 
     def _to_np(self, valid, outs, n):
         import drjit as dr

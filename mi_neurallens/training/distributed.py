@@ -5,7 +5,7 @@
 
 Each lens's maps are split into jobs (:func:`plan_jobs`): the backward transmit map, and the forward maps
 (transmit and the selected ghosts, strongest first) in ``jobs`` chunks.  A job is
-:func:`~mi_neurallens.training.trainer.train_lens` on its chunk — one stack per direction, goal-stopped —
+:func:`~mi_neurallens.training.whole_lens.train_lens` on its chunk — one stack per direction, goal-stopped —
 writing its own model file ``<work>/<lens>.job<i>.model.safetensors`` with checkpoints in
 ``<work>/<lens>.job<i>.work/``.  Jobs ask Ray for ``cfg.threads`` CPUs, and one GPU each when the cluster
 has GPUs (PyTorch then trains on it).  When a job's worker dies, Ray runs it again (``max_retries``) and it
@@ -43,7 +43,7 @@ def plan_jobs(lens, cfg, paths: str | None = None, jobs: int = 1) -> list:
     chunks are interleaved so every job gets strong and weak ghosts.  Returns (paths, ghost ranking or None,
     selected ghosts)."""
     from ..transport.planning import select_ghosts
-    from .trainer import select_maps
+    from .whole_lens import select_maps
     groups = select_maps(cfg, paths)
     backward = [("transmit" if p == "transmit" else str(p)) for d, p in groups if d == "backward"]
     forward, ranking, selected = [], None, []
@@ -73,7 +73,7 @@ def plan_jobs(lens, cfg, paths: str | None = None, jobs: int = 1) -> list:
 def _job(lens, cfg, paths: str, out_path: str, workdir: str) -> tuple:
     """One job (runs in a Ray worker): train ``paths`` of ``lens`` into ``out_path``; returns (out_path,
     wall seconds of this attempt)."""
-    from .trainer import train_lens
+    from .whole_lens import train_lens
     t0 = time.perf_counter()
     train_lens(lens, cfg, out_path, paths=paths, workdir=workdir, progress=False)
     kill = os.environ.get(KILL_ONCE_ENV)

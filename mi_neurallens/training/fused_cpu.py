@@ -12,12 +12,12 @@ with them and no autograd).
 
 Layout (what :class:`StackedMLP` holds): ``params`` = [W₀ (K, in, w), b₀ (K, 1, w), …, W_H (K, w, out),
 b_H (K, 1, out)], each contiguous float32; inputs ``(K, B, in)``.  :func:`fused_forward` is an autograd
-function of the parameters (the inputs get no gradient: the trainer never needs one).
+function of the parameters (the inputs get no gradient: the trainers never need one).
 
 The kernel is compiled once per network shape and machine with the C compiler that ``torch.compile`` uses
 (``cc``, ``-O3 -march=native``, OpenMP) and cached under ``~/.cache/mi_neurallens/fused`` (or
 ``$MI_NEURALLENS_CACHE``).  Where there is no compiler, or with ``MI_NEURALLENS_FUSED=0``, :func:`kernel`
-returns None and the trainer keeps PyTorch's operations; the two agree to float32 rounding
+returns None and the trainers keep PyTorch's operations; the two agree to float32 rounding
 (``tests/test_fused_cpu.py``).
 """
 from __future__ import annotations
@@ -153,7 +153,7 @@ class FusedKernel:
         return grads
 
 
-    # -- the losses, value and gradient in one pass (fused_mlp.c, "The losses of training/trainer.py") ----------
+    # -- the losses, value and gradient in one pass (fused_mlp.c, "The losses of training/regressor.py") -------
     @staticmethod
     def _check_rows(torch, out, n_out, *rows):
         """A loss's outputs (K, B, n_out) and its batch's arrays (K, B, ·): float32 on the CPU."""
@@ -174,7 +174,7 @@ class FusedKernel:
     def loss_regressor(self, torch, out, batch, const, *, odd: bool, cos_mode: int, cosine_weight: float,
                        heading: float):
         """(loss (K,) float32, ∂ΣK loss / ∂out (K, B, 5)) of :meth:`RegressorFit.rows_loss
-        <mi_neurallens.training.trainer.RegressorFit.rows_loss>`; ``cos_mode`` 0: MSE, 1: cosine, 2: both."""
+        <mi_neurallens.training.regressor.RegressorFit.rows_loss>`; ``cos_mode`` 0: MSE, 1: cosine, 2: both."""
         K, B = out.shape[0], out.shape[1]
         self._check_rows(torch, out, 5, batch["X"], batch["Y"], batch["Yraw"], batch.get("W"))
         if batch["X"].shape[-1] != 4:
@@ -205,7 +205,7 @@ class FusedKernel:
 
     def loss_margin(self, torch, out, target, clip: float):
         """(loss (K,) float32, ∂ΣK loss / ∂out (K, B, 1)) of :meth:`ClassifierFit.margin_loss
-        <mi_neurallens.training.trainer.ClassifierFit.margin_loss>`."""
+        <mi_neurallens.training.classifier.ClassifierFit.margin_loss>`."""
         K, B = out.shape[0], out.shape[1]
         self._check_rows(torch, out, 1, target)
         out = out.detach().contiguous()

@@ -224,10 +224,10 @@ void fused_backward(int K, int B, const float *x, const float *const *T, const f
 void fused_set_threads(int n) { omp_set_num_threads(n); }
 
 /* ---------------------------------------------------------------------------------------------------------------
- * The losses of training/trainer.py, value and gradient with respect to the network's outputs in one pass (what
- * RegressorFit.rows_loss / ClassifierFit.margin_loss compute through some forty PyTorch operations).  Rows are
- * read through strides: a batch is a window of the stacked pools, (K, B, ·) with map stride ks and row stride
- * rs floats.  loss (K) in double; gout (K, B, nout) contiguous.
+ * The losses of training/regressor.py and classifier.py, value and gradient with respect to the network's outputs
+ * in one pass (what RegressorFit.rows_loss / ClassifierFit.margin_loss compute through some forty PyTorch
+ * operations).  Rows are read through strides: a batch is a window of the stacked pools, (K, B, ·) with map
+ * stride ks and row stride rs floats.  loss (K) in double; gout (K, B, nout) contiguous.
  * ------------------------------------------------------------------------------------------------------------- */
 
 static inline void dir3(float dx, float dy, float heading, float v[3], float *norm, float *s) {

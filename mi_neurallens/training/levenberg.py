@@ -17,6 +17,12 @@ Measured on the Canon's strongest ghost (3×16 regressor): from its shipped Adam
 median exit-position error) to 4.4 µm in 90 s, and from random weights to 3.8 µm in 120 s, where Adam
 had reached 14–17 µm in 75 s–5 min (docs/results.md, "Second-order training").
 
+A run's networks finish after Adam through :func:`finish_results`: those that missed their goals and are small
+enough, in stacks of one shape (:func:`lm_stack_size`: one on a CPU, many on a GPU), each saved as it finishes.
+A finish-only run (``mi-neurallens train --finish-only``) starts from a model's networks, widened first where the
+configuration asks (:func:`widen_as_configured`), and refuses before any work what the finish cannot change
+(:func:`check_finishable`).
+
 What a problem provides (:class:`~.stacked.Problem`): ``fresh_rows(n)``, ``lm_residual(z, batch)`` →
 (r, s) with r the residuals (n, outputs) whose mean square is the loss and ``s = ∂r/∂z`` (the losses are
 separable per output, so the chain rule is a column scale), and ``validate`` / ``goals_met`` /
@@ -25,13 +31,20 @@ separable per output, so the chain rule is a column scale), and ``validate`` / `
 """
 from __future__ import annotations
 
+import json
 import math
 import os
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-#: networks with more weights than this are not polished (JᵀJ would cost seconds per iteration on a CPU)
+from ..fileio import atomic_write_text
+
+if TYPE_CHECKING:
+    from .config import NetConfig
+
+#: networks with more weights than this are not finished (JᵀJ would cost seconds per iteration on a CPU)
 MAX_PARAMS = 2500
 
 #: iterations' worth of rows one call of a problem's ``fresh_rows`` draws: a call costs a tracer launch (and a
@@ -83,10 +96,10 @@ def widen(layers, width: int, rng) -> list:
 
 
 def widen_as_configured(layers, hidden: int, width: int, seed) -> tuple:
-    """What ``refine`` starts from (regressors, classifiers, stop heads alike): ``(layers widened to width,
+    """What a finish-only run starts from (regressors, classifiers, stop heads alike): ``(layers widened to width,
     the hidden widths before)`` where ``layers`` has ``hidden`` hidden layers and one of them is narrower than
     ``width`` (:func:`widen`, random inputs from ``numpy.random.default_rng(seed)``), else ``(layers, None)``:
-    any other architecture asked for is not the one refining keeps."""
+    any other architecture asked for is not the one a finish-only run keeps."""
     before = [np.shape(W)[0] for W, _ in layers[:-1]]
     if len(before) != int(hidden) or all(h >= int(width) for h in before):
         return layers, None
@@ -94,9 +107,9 @@ def widen_as_configured(layers, hidden: int, width: int, seed) -> tuple:
 
 
 def too_large_to_finish(named_layers, hidden: int, width: int) -> list:
-    """What a refine run (regressors, classifiers, stop heads alike) cannot do: ``"key (P weights)"`` for each
+    """What a finish-only run (regressors, classifiers, stop heads alike) cannot do: ``"key (P weights)"`` for each
     ``(key, layers)`` whose network, widened as configured (:func:`widen_as_configured`), has more than
-    :data:`MAX_PARAMS` weights, so the finish would hand it back unchanged.  Empty where every one can be refined."""
+    :data:`MAX_PARAMS` weights, so the finish would hand it back unchanged.  Empty where every one can be finished."""
     out = []
     for key, layers in named_layers:
         layers = [(np.asarray(W), np.asarray(b)) for W, b in layers]
@@ -106,21 +119,21 @@ def too_large_to_finish(named_layers, hidden: int, width: int) -> list:
     return out
 
 
-def check_refinable(named_layers, nc, owner: str, table: str, way_out: str, what: str = "") -> None:
-    """The one rule of every refine run (``--keep refine``: regressors and classifiers; ``refine-stop``: stop
-    heads), which runs only the finish: a :class:`~mi_neurallens.errors.NeuralLensError`, before any training,
-    where ``nc`` (a NetConfig) gives the finish no time or a network of ``named_layers`` ((key, layers) pairs) is
-    too large for it (:func:`too_large_to_finish`), since either would come back unchanged.  ``owner``: whose
-    ``lm_minutes`` the message names (e.g. "the classifier's"); ``table``: its config table; ``what``: the
-    message's lead before the networks' names; ``way_out``: the retrain that works."""
+def check_finishable(named_layers, nc, owner: str, table: str, way_out: str, what: str = "") -> None:
+    """The one rule of every finish-only run (``--finish-only maps``: regressors and classifiers; ``--finish-only
+    stop-heads``: stop heads): a :class:`~mi_neurallens.errors.NeuralLensError`, before any training, where ``nc``
+    (a NetConfig) gives the finish no time or a network of ``named_layers`` ((key, layers) pairs) is too large for
+    it (:func:`too_large_to_finish`), since either would come back unchanged.  ``owner``: whose ``lm_minutes`` the
+    message names (e.g. "the classifier's"); ``table``: its config table; ``what``: the message's lead before the
+    networks' names; ``way_out``: the retrain that works."""
     from ..errors import NeuralLensError
     if nc.lm_minutes <= 0:
-        raise NeuralLensError(f"refining runs only the Levenberg–Marquardt finish, and {owner} lm_minutes is 0: "
-                              f"give it time, e.g. --set {table}.lm_minutes=1.5")
+        raise NeuralLensError(f"a finish-only run runs only the Levenberg–Marquardt finish, and {owner} lm_minutes "
+                              f"is 0: give it time, e.g. --set {table}.lm_minutes=1.5")
     big = too_large_to_finish(named_layers, nc.hidden, nc.width)
     if big:
         raise NeuralLensError(f"{what}{', '.join(big)} is larger than the Levenberg-Marquardt finish takes "
-                              f"({MAX_PARAMS} weights), so refining would leave it as it is; train it anew as a "
+                              f"({MAX_PARAMS} weights), so the finish would leave it as it is; train it anew as a "
                               f"network the finish takes, e.g. {way_out}")
 
 
@@ -333,7 +346,7 @@ def _gram_columns(torch, JT, out):
     return out
 
 
-def polish(torch, fit, layers, nc, *, seconds: float, max_iterations: int | None = None, rows: int | None = None,
+def finish(torch, fit, layers, nc, *, seconds: float, max_iterations: int | None = None, rows: int | None = None,
            eval_every: int | None = None, step0: int = 0, lam: float = 1e-3, progress=None) -> list:
     """Levenberg–Marquardt on ``layers`` (the network of the :class:`~.stacked.Problem` ``fit``) for
     ``seconds`` of wall time (and at most ``max_iterations``), or until a validation meets the goals
@@ -342,20 +355,20 @@ def polish(torch, fit, layers, nc, *, seconds: float, max_iterations: int | None
     (``nc.lm_rows``); ``eval_every``: iterations between validations (``nc.lm_eval_every``).  The
     iterations are appended to ``fit.state`` (``lm``: iterations, seconds, final λ, stop reason) and its
     validations to ``fit.state["history"]`` with ``phase = "lm"`` and step = ``step0`` + iteration.
-    One network: :func:`polish_stack` with a stack of one."""
-    return polish_stack(torch, [fit], [layers], nc, seconds=seconds, max_iterations=max_iterations, rows=rows,
+    One network: :func:`finish_stack` with a stack of one."""
+    return finish_stack(torch, [fit], [layers], nc, seconds=seconds, max_iterations=max_iterations, rows=rows,
                         eval_every=eval_every, step0=[step0], lam=lam,
                         progress=None if progress is None else (lambda it, loss, lam_: progress(it, loss[0], lam_[0])))[0]
 
 
-def polish_stack(torch, fits, layers, nc, *, seconds: float, max_iterations: int | None = None,
+def finish_stack(torch, fits, layers, nc, *, seconds: float, max_iterations: int | None = None,
                  rows: int | None = None, eval_every: int | None = None, step0=None, lam: float = 1e-3,
                  progress=None) -> list:
-    """:func:`polish` for K networks of one shape at once (``fits``: their problems, ``layers``: their
+    """:func:`finish` for K networks of one shape at once (``fits``: their problems, ``layers``: their
     starting weights): each iteration forms the K Jacobians as one batched product and solves the K damped
     systems as one batched solve, so on a GPU a stack of ghost maps costs about what one does.  Every
-    network keeps its own rows (``fit.fresh_rows``, in the order :func:`polish` would draw them), its own λ,
-    validations, best weights and stop reason — the result is :func:`polish`'s, network by network
+    network keeps its own rows (``fit.fresh_rows``, in the order :func:`finish` would draw them), its own λ,
+    validations, best weights and stop reason — the result is :func:`finish`'s, network by network
     (``tests/test_levenberg.py``).  A network leaves the stack when it stops; the stack's wall budget is
     K × ``seconds`` (the time the networks would get one at a time).  ``step0``: one Adam step count per
     network.  ``progress(iteration, losses, λs)``: the networks still running.  Returns their best layers,
@@ -363,106 +376,140 @@ def polish_stack(torch, fits, layers, nc, *, seconds: float, max_iterations: int
     K = len(fits)
     if K == 0:
         return []
-    rows = int(rows or nc.lm_rows)
-    eval_every = int(eval_every or nc.lm_eval_every)
-    step0 = [0] * K if step0 is None else [int(s) for s in step0]
-    dev = getattr(fits[0], "dev", None)
-    net = FlatMLP(torch, layers[0], dev)
-    for lay in layers[1:]:
-        if FlatMLP(torch, lay).shapes != net.shapes:
-            raise ValueError("polish_stack: the networks of one stack must have one shape")
-    theta = torch.stack([net.flatten(lay) for lay in layers])          # (K, P) float64
-    f32, f64 = torch.float32, torch.float64
-    t0 = time.perf_counter()
-    states = [f.state for f in fits]
-    base_seconds = [float(st.get("seconds", 0.0)) for st in states]
-    lams = [float(lam)] * K
-    reasons, since_best = [None] * K, [0] * K
-    iters, ended = [0] * K, [0.0] * K          # each network's iterations and seconds when it stopped
-    it = 0                                      # the iterations of the networks still running
+    run = _StackFinish(torch, fits, layers, nc, rows, eval_every, step0, lam)
+    active = [k for k in range(K) if run.reasons[k] is None]
+    while active and time.perf_counter() - run.t0 < float(seconds) * K:
+        if max_iterations is not None and run.it >= max_iterations:
+            for k in active:
+                run.stop(k, "max_iterations")
+            break
+        loss0, lam_a, moved = run.iterate(active)
+        if progress is not None:
+            progress(run.it, loss0, lam_a)
+        for a, k in enumerate(active):
+            run.judge(k, loss0[a], moved[a])
+        active = [k for k in active if run.reasons[k] is None]
+    return run.close(active)
 
-    def validate(k, loss):
-        th = theta[k].clone()
-        fits[k].net = lambda x: net.forward(th, x)
-        hist = states[k]["history"]
+
+class _StackFinish:
+    """One :func:`finish_stack` run: the K networks' weights θ (K, P) float64 and, per network, its rows
+    (:class:`RowFeed`), λ, best weights and score, validations since the best, stop reason, and the iterations
+    and seconds when it stopped; :attr:`it` counts the iterations of the networks still running.  Made, the
+    starting weights are validated and a network that already meets its goals stops."""
+
+    def __init__(self, torch, fits, layers, nc, rows, eval_every, step0, lam):
+        K = len(fits)
+        self.torch, self.fits, self.nc = torch, fits, nc
+        self.rows = int(rows or nc.lm_rows)
+        self.eval_every = int(eval_every or nc.lm_eval_every)
+        self.step0 = [0] * K if step0 is None else [int(s) for s in step0]
+        self.net = net = FlatMLP(torch, layers[0], getattr(fits[0], "dev", None))
+        for lay in layers[1:]:
+            if FlatMLP(torch, lay).shapes != net.shapes:
+                raise ValueError("finish_stack: the networks of one stack must have one shape")
+        self.theta = torch.stack([net.flatten(lay) for lay in layers])          # (K, P) float64
+        self.t0 = time.perf_counter()
+        self.states = [f.state for f in fits]
+        self.base_seconds = [float(st.get("seconds", 0.0)) for st in self.states]
+        self.lams = [float(lam)] * K
+        self.reasons, self.since_best = [None] * K, [0] * K
+        self.iters, self.ended = [0] * K, [0.0] * K      # each network's iterations and seconds when it stopped
+        self.it = 0                                       # the iterations of the networks still running
+        self.feeds = [RowFeed(f, self.rows) for f in fits]
+        self.best_theta = [self.theta[k].clone() for k in range(K)]
+        self.best = [self.validate(k, None) for k in range(K)]
+        for k in range(K):
+            if nc.stop_at_goals and fits[k].goals_met():
+                self.stop(k, "goals")
+
+    def validate(self, k, loss):
+        """Network ``k``'s validation on its current weights (its records marked ``phase = "lm"``); its score."""
+        th = self.theta[k].clone()
+        self.fits[k].net = lambda x: self.net.forward(th, x)
+        hist = self.states[k]["history"]
         n_hist = len(hist)
-        with torch.no_grad():
-            score, _ = fits[k].validate(step0[k] + it, None if loss is None else torch.as_tensor(loss),
-                                        base_seconds[k] + time.perf_counter() - t0)
+        with self.torch.no_grad():
+            score, _ = self.fits[k].validate(self.step0[k] + self.it,
+                                             None if loss is None else self.torch.as_tensor(loss),
+                                             self.base_seconds[k] + time.perf_counter() - self.t0)
         for rec in hist[n_hist:]:
             rec["phase"] = "lm"
         return score
 
-    def stop(k, reason):
-        reasons[k], iters[k], ended[k] = reason, it, time.perf_counter() - t0
+    def stop(self, k, reason):
+        self.reasons[k], self.iters[k], self.ended[k] = reason, self.it, time.perf_counter() - self.t0
 
-    feeds = [RowFeed(f, rows) for f in fits]
-    best_theta = [theta[k].clone() for k in range(K)]
-    best = [validate(k, None) for k in range(K)]
-    for k in range(K):
-        if nc.stop_at_goals and fits[k].goals_met():
-            stop(k, "goals")
-    active = [k for k in range(K) if reasons[k] is None]
-    while active and time.perf_counter() - t0 < float(seconds) * K:
-        if max_iterations is not None and it >= max_iterations:
-            for k in active:
-                stop(k, "max_iterations")
-            break
-        batches = [feeds[k].next() for k in active]
+    def iterate(self, active):
+        """One iteration of the networks ``active``: each its next rows, the K Gauss–Newton systems formed as one
+        batched product and the damped steps taken (:func:`_damped_step`).  Returns (the rows' losses before the
+        step, the λs after it, which networks moved)."""
+        torch, net, fits = self.torch, self.net, self.fits
+        f32, f64 = torch.float32, torch.float64
+        batches = [self.feeds[k].next() for k in active]
         X = torch.stack([b["X"].to(f32) for b in batches])                 # (A, n, in)
-        idx = torch.as_tensor(active, device=theta.device)
+        idx = torch.as_tensor(active, device=self.theta.device)
         with torch.no_grad():
-            hs = net.activations(theta[idx], X)
+            hs = net.activations(self.theta[idx], X)
             z = hs[-1]                                                        # (A, n, out)
             rs = [fits[k].lm_residual(z[a], batches[a]) for a, k in enumerate(active)]
             r = torch.stack([q[0] for q in rs])
-            A, g = net.normal_equations(theta[idx], hs, torch.stack([q[1].expand_as(q[0]) for q in rs]), r)
+            A, g = net.normal_equations(self.theta[idx], hs, torch.stack([q[1].expand_as(q[0]) for q in rs]), r)
             A, g = A.to(f64), g.to(f64)                                       # (A, P, P), (A, P)
             del hs
             loss0 = (r.to(f64) ** 2).mean((1, 2)).tolist()
-            lam_a = [lams[k] for k in active]
-            th, moved = _damped_step(torch, net, theta[idx], X, A, g, lam_a, loss0,
+            lam_a = [self.lams[k] for k in active]
+            th, moved = _damped_step(torch, net, self.theta[idx], X, A, g, lam_a, loss0,
                                      lambda a, z1: float((fits[active[a]].lm_residual(z1, batches[a])[0].to(f64) ** 2)
                                                          .mean()))
-            theta[idx] = th
-        it += 1
+            self.theta[idx] = th
+        self.it += 1
         for a, k in enumerate(active):
-            lams[k] = lam_a[a]
-            states[k]["samples"] = int(states[k].get("samples", 0)) + rows
-        if progress is not None:
-            progress(it, loss0, lam_a)
-        for a, k in enumerate(active):
-            converged = not moved[a] and lams[k] > 1e8     # no step lowers the loss: at a minimum of what rows can tell
-            if it % eval_every and not converged:
-                continue
-            score = validate(k, loss0[a])
-            if not math.isfinite(score):
-                stop(k, "diverged")
-                continue
-            if score < best[k]:
-                best[k], best_theta[k], since_best[k] = score, theta[k].clone(), 0
-            else:
-                since_best[k] += 1
-            if nc.stop_at_goals and fits[k].goals_met():
-                best_theta[k] = theta[k].clone()
-                stop(k, "goals")
-            elif since_best[k] >= nc.patience:
-                stop(k, "early_stop")
-            elif converged:
-                stop(k, "converged")
-        active = [k for k in active if reasons[k] is None]
-    for k in active:
-        if reasons[k] is None:                      # the wall budget ran out
-            stop(k, "time_budget")
-    for k in range(K):
-        if reasons[k] in ("time_budget", "max_iterations") and iters[k] % eval_every:
-            score = validate(k, None)
-            if math.isfinite(score) and score < best[k]:
-                best[k], best_theta[k] = score, theta[k].clone()
-        states[k]["lm"] = {"iterations": iters[k], "seconds": ended[k], "rows": rows, "lambda": lams[k],
-                           "stop_reason": reasons[k], "best_val": best[k], "stacked_with": K}
-        states[k]["seconds"] = base_seconds[k] + ended[k]
-    return [net.layers(best_theta[k]) for k in range(K)]
+            self.lams[k] = lam_a[a]
+            self.states[k]["samples"] = int(self.states[k].get("samples", 0)) + self.rows
+        return loss0, lam_a, moved
+
+    def judge(self, k, loss, moved: bool):
+        """After an iteration: network ``k`` validated where it is due (every ``eval_every`` iterations, or when no
+        step lowers its loss), its best weights kept, and stopped at its goals, after ``patience`` validations
+        without a better score, when it diverges or when it has converged."""
+        nc = self.nc
+        converged = not moved and self.lams[k] > 1e8     # no step lowers the loss: at a minimum of what rows can tell
+        if self.it % self.eval_every and not converged:
+            return
+        score = self.validate(k, loss)
+        if not math.isfinite(score):
+            self.stop(k, "diverged")
+            return
+        if score < self.best[k]:
+            self.best[k], self.best_theta[k], self.since_best[k] = score, self.theta[k].clone(), 0
+        else:
+            self.since_best[k] += 1
+        if nc.stop_at_goals and self.fits[k].goals_met():
+            self.best_theta[k] = self.theta[k].clone()
+            self.stop(k, "goals")
+        elif self.since_best[k] >= nc.patience:
+            self.stop(k, "early_stop")
+        elif converged:
+            self.stop(k, "converged")
+
+    def close(self, active) -> list:
+        """The end: the networks still ``active`` stopped by the wall budget, a last validation of those the
+        budget or the iteration cap stopped between validations, each network's ``lm`` record and seconds written
+        to its state.  Returns the best layers, in order."""
+        for k in active:
+            if self.reasons[k] is None:                  # the wall budget ran out
+                self.stop(k, "time_budget")
+        for k in range(len(self.fits)):
+            if self.reasons[k] in ("time_budget", "max_iterations") and self.iters[k] % self.eval_every:
+                score = self.validate(k, None)
+                if math.isfinite(score) and score < self.best[k]:
+                    self.best[k], self.best_theta[k] = score, self.theta[k].clone()
+            self.states[k]["lm"] = {"iterations": self.iters[k], "seconds": self.ended[k], "rows": self.rows,
+                                    "lambda": self.lams[k], "stop_reason": self.reasons[k], "best_val": self.best[k],
+                                    "stacked_with": len(self.fits)}
+            self.states[k]["seconds"] = self.base_seconds[k] + self.ended[k]
+        return [self.net.layers(self.best_theta[k]) for k in range(len(self.fits))]
 
 
 def _damped_step(torch, net, th, X, A, g, lams: list, loss0: list, loss_of):
@@ -495,3 +542,107 @@ def _damped_step(torch, net, th, X, A, g, lams: list, loss0: list, loss_of):
                 lams[a] *= 4.0                      # not positive definite, or no lower loss: damp harder
         pending = [a for a in pending if not moved[a]]
     return th, moved
+
+
+# ----------------------------------------------------------------------------- a run's networks
+#: the first pool of a network that only runs the finish (Levenberg–Marquardt draws fresh rows per iteration; the
+#: pool gives the loss weights alone)
+FINISH_POOL = 1 << 16
+
+
+def finish_results(torch, fits, results, nc: NetConfig, keys, ckpt: str | None = None, log=None,
+                   progress: bool = False) -> None:
+    """The Levenberg–Marquardt finish of each network in
+    ``results`` (what :func:`~mi_neurallens.training.stacked.train_stack` returned for ``fits``), in place,
+    for ``nc.lm_minutes`` per network (and at most ``nc.lm_iterations``): skipped for networks that met their
+    goals already, for networks of more than :data:`MAX_PARAMS` weights and
+    when ``lm_minutes`` is 0.  The networks finish in stacks of :func:`lm_stack_size` (on a GPU all of a
+    shape at once, :func:`finish_stack`; on a CPU one by one).
+    A network that meets its goals here gets ``stop_reason = "goals"`` (Adam's is kept as
+    ``adam_stop_reason``).  With ``ckpt``, each finished network is saved to ``<ckpt>.lm.<key>.json`` and
+    a rerun takes it from there.  ``progress``: a bar per stack (seconds of its budget, iterations, loss)."""
+    if nc.lm_minutes <= 0:
+        return
+    todo = []
+    for j, (f, r, key) in enumerate(zip(fits, results, keys)):
+        st = r["state"]
+        if st.get("stop_reason") == "goals" or "lm" in st:
+            continue
+        P = n_params(r["layers"])
+        if P > MAX_PARAMS:
+            st["lm"] = {"skipped": f"{P} weights > {MAX_PARAMS}"}
+            continue
+        path = None if not ckpt else f"{ckpt}.lm.{key}.json"
+        if path and os.path.exists(path):
+            saved = json.loads(open(path).read())
+            r["layers"] = [(np.asarray(W, np.float64), np.asarray(b, np.float64)) for W, b in saved["layers"]]
+            r["state"] = saved["state"]
+            continue
+        todo.append(j)
+    if not todo:
+        return
+    shapes: dict = {}              # one stack per architecture (the base maps of a finish-only run may mix them)
+    for j in todo:
+        shapes.setdefault(tuple(np.shape(W) for W, _ in results[j]["layers"]), []).append(j)
+    stacks = []
+    for group in shapes.values():
+        P = n_params(results[group[0]]["layers"])
+        n_out = int(np.shape(results[group[0]]["layers"][-1][1])[0])
+        size = lm_stack_size(getattr(fits[group[0]], "dev", None), nc.lm_rows, n_out, P)
+        stacks += [(group[c:c + size], P) for c in range(0, len(group), size)]
+    for idx, P in stacks:
+        for j in idx:
+            fits[j].state = results[j]["state"]
+            if log:
+                log(getattr(fits[j], "desc", keys[j]), {"phase": "lm", "start_step": fits[j].state.get("step", 0),
+                                                        "weights": P, "stacked_with": len(idx)})
+        name = keys[idx[0]] if len(idx) == 1 else f"{keys[idx[0]]} + {len(idx) - 1}"
+        bar, tick = _lm_bar(progress, f"{name} finish", 60.0 * nc.lm_minutes * len(idx))
+        try:
+            got = finish_stack(torch, [fits[j] for j in idx], [results[j]["layers"] for j in idx], nc,
+                               seconds=60.0 * nc.lm_minutes, step0=[int(fits[j].state.get("step", 0)) for j in idx],
+                               max_iterations=nc.lm_iterations or None, progress=tick)
+        finally:
+            if bar is not None:
+                bar.close()
+        for j, layers in zip(idx, got):
+            r, st = results[j], fits[j].state
+            r["layers"], r["state"] = layers, st
+            st["adam_stop_reason"] = st.get("stop_reason")
+            if st["lm"]["stop_reason"] == "goals":
+                st["stop_reason"] = "goals"
+            if ckpt:
+                atomic_write_text(f"{ckpt}.lm.{keys[j]}.json",
+                                  json.dumps({"layers": [(W.tolist(), b.tolist()) for W, b in layers], "state": st}))
+
+
+#: a stack's Jacobians on a GPU stay below this (bytes; float32, with the scaled copy)
+LM_STACK_BYTES = 8 << 30
+
+
+def lm_stack_size(dev, rows: int, n_out: int, n_params_: int) -> int:
+    """How many networks the finish takes at once: one on a CPU (its cost is the Jacobian's
+    multiply-adds, which a stack does not reduce, and one network's is already a 100 MB array); on a GPU as
+    many as keep the stack's Jacobians within :data:`LM_STACK_BYTES` (32 ghost regressors: 7 GB)."""
+    if not str(dev).startswith("cuda"):
+        return 1
+    return max(1, LM_STACK_BYTES // max(2 * 4 * int(rows) * int(n_out) * int(n_params_), 1))
+
+
+def _lm_bar(enabled: bool, desc: str, seconds: float):
+    """(tqdm bar or None, callback ``(iteration, losses, λs)``) for one stack's finish: the bar counts the
+    seconds of its budget (it may end earlier, at the goals)."""
+    if not enabled:
+        return None, None
+    try:
+        from tqdm.auto import tqdm
+    except ImportError:  # pragma: no cover
+        return None, None
+    bar = tqdm(total=int(round(seconds)), desc=desc, unit="s", leave=False, dynamic_ncols=True)
+    t0 = time.perf_counter()
+
+    def tick(it, loss, lam):        # the stack's networks still running: their losses and λs
+        bar.n = min(int(time.perf_counter() - t0), bar.total)
+        run = f"{len(loss)} running, " if len(loss) > 1 else ""
+        bar.set_postfix_str(f"{run}iteration {it}, loss {max(loss):.3g}, λ {max(lam):.0e}")
+    return bar, tick

@@ -16,7 +16,8 @@ fused pass, or is ``torch.tanh`` where nothing compiles (and on a GPU).
 A map leaves the stack when it meets its goals (``NetConfig.goals``), stops improving (``patience``) or
 the group's budget ends; the stack then shrinks, so finished maps cost nothing.  What each network's
 problem is — its sample pool, loss, validation and fresh data — stays with its :class:`Problem` (the
-interface, below: :class:`~mi_neurallens.training.trainer.RegressorFit`, ``ClassifierFit``,
+interface, below: :class:`~mi_neurallens.training.regressor.RegressorFit`,
+:class:`~mi_neurallens.training.classifier.ClassifierFit`,
 :class:`~mi_neurallens.training.stop_head.StopFit`); this module only runs them together.
 
 Checkpoints (``<ckpt>.safetensors`` + ``.json``: weights, Adam moments, best weights, per-map state;
@@ -28,6 +29,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import subprocess
 import time
 
 import numpy as np
@@ -190,7 +192,10 @@ def training_tanh(torch, device=None):
             out.sum().backward()                  # compile the backward too, here, where it is timed
             if float((out.detach() - torch.tanh(probe.detach())).abs().max()) < 1e-6:
                 fn, how = RationalTanh.apply, "the render kernel's rational tanh, fused by torch.compile"
-        except Exception:          # no C++ compiler, unsupported platform: the exact torch.tanh
+        # no C++ compiler, an unsupported platform: the exact torch.tanh.  Dynamo's and Inductor's failures are
+        # RuntimeErrors (InvalidCxxCompiler, CppCompileError, BackendCompilerFailed, ...); ImportError where
+        # torch._dynamo is absent; OSError and CalledProcessError from running the compiler
+        except (RuntimeError, ImportError, OSError, subprocess.CalledProcessError):
             fn, how = torch.tanh, "torch.tanh (torch.compile failed)"
         how += f" ({time.perf_counter() - t0:.1f} s to compile)"
     _ACT[kind] = fn
@@ -390,114 +395,160 @@ def _train_one_stack(torch, dev, fits, nc, *, seeds, n_in: int, n_out: int, keys
     its loss or validation score is no longer finite (``"diverged"``: it keeps its best weights so far),
     at ``nc.max_steps`` or when the stack's wall-clock budget ends (``nc.max_minutes`` per map: K ×
     ``max_minutes`` for the stack, the time the maps would get one at a time)."""
-    K = len(fits)
-    net = StackedMLP(torch, dev, seeds, n_in, n_out, nc.hidden, nc.width, nc.activation)
-    opt = StackedAdam(net.params)
-    states = [f.state for f in fits]          # each fit logs its validations into its own state
-    best = [net.snapshot(j) for j in range(K)]
-    got = load_stack(ckpt, keys, net, opt, torch, dev) if ckpt else None
-    active = list(range(K))
-    step0 = 0
-    if got is not None:         # resumed: ``net`` and ``opt`` hold only the maps still training
-        states, best, active, step0 = got
-        for f, st in zip(fits, states):
-            f.state = st
-    rng = np.random.default_rng([int(seeds[0]), step0])
-    pools = PoolStack(torch, [fits[i] for i in active]) if active else None
-    if pools is not None:
-        pools.shuffle(rng)
-    if active:                  # compile the activation (forward and backward) before the clock starts
-        net.forward(torch.zeros((net.k, 8, n_in), device=dev)).sum().backward()
-        for q in net.params:
-            q.grad = None
-    t0 = time.perf_counter() - (states[active[0]]["seconds"] if active else 0.0)
-    last_ckpt = time.perf_counter()
-    step = step0
-    bar = Progress(K, nc, desc, progress, done=K - len(active), step=step, seconds=time.perf_counter() - t0)
+    run = _AdamStack(torch, dev, fits, nc, seeds, n_in, keys, ckpt, progress, desc,
+                     StackedMLP(torch, dev, seeds, n_in, n_out, nc.hidden, nc.width, nc.activation))
+    while run.active and run.step < nc.max_steps:
+        loss = run.adam_step()
+        done_now = []
+        if run.step % nc.eval_every == 0 or run.step == nc.max_steps:
+            done_now = run.validate_all(loss.detach())
+        done_now = run.check_budget(loss, done_now)
+        run.leave(done_now)
+        run.checkpoint()
+    return run.close()
 
-    def finish(i, reason):
-        states[i].update(stop_reason=reason, done=True, step=step, seconds=time.perf_counter() - t0)
 
-    def validate_all(loss):
+class _AdamStack:
+    """One stack's Adam run (:func:`_train_one_stack`): the stacked network and optimiser, each map's state and
+    best weights, the maps still training (:attr:`active`, indices into ``fits``), their pools, the step and the
+    clock.  Made, it resumes from the checkpoint ``ckpt`` where there is one, shuffles the pools with the stack's
+    random stream (seeded from (the first map's seed, the step it starts at)) and compiles the activation before
+    the clock starts."""
+
+    def __init__(self, torch, dev, fits, nc, seeds, n_in: int, keys, ckpt, progress: bool, desc: str, net):
+        self.torch, self.fits, self.nc, self.keys, self.ckpt = torch, fits, nc, keys, ckpt
+        self.K = K = len(fits)
+        self.net = net
+        self.opt = StackedAdam(net.params)
+        self.states = [f.state for f in fits]          # each fit logs its validations into its own state
+        self.best = [net.snapshot(j) for j in range(K)]
+        got = load_stack(ckpt, keys, net, self.opt, torch, dev) if ckpt else None
+        self.active = list(range(K))
+        self.step0 = 0
+        if got is not None:         # resumed: ``net`` and ``opt`` hold only the maps still training
+            self.states, self.best, self.active, self.step0 = got
+            for f, st in zip(fits, self.states):
+                f.state = st
+        self.rng = np.random.default_rng([int(seeds[0]), self.step0])
+        self.pools = PoolStack(torch, [fits[i] for i in self.active]) if self.active else None
+        if self.pools is not None:
+            self.pools.shuffle(self.rng)
+        if self.active:             # compile the activation (forward and backward) before the clock starts
+            net.forward(torch.zeros((net.k, 8, n_in), device=dev)).sum().backward()
+            for q in net.params:
+                q.grad = None
+        self.t0 = time.perf_counter() - (self.states[self.active[0]]["seconds"] if self.active else 0.0)
+        self.last_ckpt = time.perf_counter()
+        self.step = self.step0
+        self.bar = Progress(K, nc, desc, progress, done=K - len(self.active), step=self.step,
+                            seconds=time.perf_counter() - self.t0)
+
+    def end(self, i, reason):
+        """Map ``i`` stops training, for ``reason``."""
+        self.states[i].update(stop_reason=reason, done=True, step=self.step, seconds=time.perf_counter() - self.t0)
+
+    def adam_step(self):
+        """One step of every active map: their pools partly refreshed where it is due (every ``refresh_every``
+        steps), one random window of them as the batch, the loss and its gradient (the fused CPU kernel where the
+        problem has one, else autograd), Adam's update.  Returns the per-map losses ``(K,)``."""
+        nc, fits, pools, active = self.nc, self.fits, self.pools, self.active
+        if self.step > self.step0 and self.step % nc.refresh_every == 0:
+            k = int(pools.n * nc.refresh_fraction)
+            for j, i in enumerate(active):
+                pools.write(j, fits[i].fresh_rows(k), self.rng)
+            pools.shuffle(self.rng)
+        seconds = time.perf_counter() - self.t0
+        lr = lr_at(self.step, nc, seconds / self.K)       # the schedule's clock: the stack's budget is K × max_minutes
+        batch = pools.batch(int(self.rng.integers(0, pools.n - nc.batch + 1)), nc.batch)
+        loss = fused_step(self.net, fits[active[0]], batch, pools.const)
+        if loss is None:
+            loss = fits[active[0]].rows_loss(self.net.forward(batch["X"]), batch, pools.const)
+            loss.sum().backward()
+        self.opt.step(self.net.params, lr)
+        self.step += 1
+        for i in active:
+            self.states[i]["samples"] += nc.batch
+            self.states[i]["step"] = self.step
+        self.bar.step(self.step, len(active) * nc.batch)
+        return loss
+
+    def validate_all(self, loss):
         """Validate every active map; returns the indices (into ``active``) of maps that are done."""
+        torch, nc = self.torch, self.nc
         out = []
-        for j, i in enumerate(active):
-            f, st = fits[i], states[i]
-            f.net = net.one(j)
+        for j, i in enumerate(self.active):
+            f, st = self.fits[i], self.states[i]
+            f.net = self.net.one(j)
             with torch.no_grad():
-                score, postfix = f.validate(step, None if loss is None else loss[j], time.perf_counter() - t0)
+                score, postfix = f.validate(self.step, None if loss is None else loss[j],
+                                            time.perf_counter() - self.t0)
             if not math.isfinite(score) or (loss is not None and not bool(torch.isfinite(loss[j]))):
-                finish(i, "diverged")              # its best weights so far stay; the others go on
+                self.end(i, "diverged")              # its best weights so far stay; the others go on
                 out.append(j)
                 continue
             if score < st["best_val"]:
-                st.update(best_val=score, best_step=step, evals_since_best=0)
-                best[i] = net.snapshot(j)
+                st.update(best_val=score, best_step=self.step, evals_since_best=0)
+                self.best[i] = self.net.snapshot(j)
             else:
                 st["evals_since_best"] += 1
             if nc.stop_at_goals and f.goals_met():
-                best[i] = net.snapshot(j)          # the weights that met the goals
-                finish(i, "goals")
+                self.best[i] = self.net.snapshot(j)   # the weights that met the goals
+                self.end(i, "goals")
                 out.append(j)
             elif st["evals_since_best"] >= nc.patience:
-                finish(i, "early_stop")
+                self.end(i, "early_stop")
                 out.append(j)
         return out
 
-    while active and step < nc.max_steps:
-        if step > step0 and step % nc.refresh_every == 0:
-            k = int(pools.n * nc.refresh_fraction)
-            for j, i in enumerate(active):
-                pools.write(j, fits[i].fresh_rows(k), rng)
-            pools.shuffle(rng)
-        seconds = time.perf_counter() - t0
-        lr = lr_at(step, nc, seconds / K)       # the schedule's clock: the stack's budget is K × max_minutes
-        batch = pools.batch(int(rng.integers(0, pools.n - nc.batch + 1)), nc.batch)
-        loss = fused_step(net, fits[active[0]], batch, pools.const)
-        if loss is None:
-            loss = fits[active[0]].rows_loss(net.forward(batch["X"]), batch, pools.const)
-            loss.sum().backward()
-        opt.step(net.params, lr)
-        step += 1
-        for i in active:
-            states[i]["samples"] += nc.batch
-            states[i]["step"] = step
-        bar.step(step, len(active) * nc.batch)
-        done_now = []
-        if step % nc.eval_every == 0 or step == nc.max_steps:
-            done_now = validate_all(loss.detach())
-        seconds = time.perf_counter() - t0
-        for i in active:
-            states[i]["seconds"] = seconds
-        if seconds > nc.max_minutes * 60.0 * K:
-            if step % nc.eval_every != 0:            # this step was not validated yet
-                done_now = validate_all(loss.detach())
-            for i in active:
-                if not states[i].get("done"):
-                    finish(i, "time_budget")
-            done_now = list(range(len(active)))
-        if done_now:
-            keep = [j for j in range(len(active)) if j not in done_now]
-            bar.finished(len(done_now))
-            active = [active[j] for j in keep]
-            if keep:
-                net.take(keep)
-                opt.take(keep, torch)
-                pools.take(keep)
-        if ckpt and time.perf_counter() - last_ckpt > CHECKPOINT_SECONDS:
-            save_stack(ckpt, keys, net, opt, states, best, active, step)
-            last_ckpt = time.perf_counter()
-    if active:                                  # max_steps reached
-        if any(not states[i]["history"] or states[i]["history"][-1]["step"] != step for i in active):
-            validate_all(None)
-        for i in active:
-            if not states[i].get("done"):
-                finish(i, "max_steps")
-        active = []
-    bar.close()
-    if ckpt:
-        save_stack(ckpt, keys, net, opt, states, best, active, step)
-    return [{"layers": StackedMLP.layers(best[i]), "state": states[i]} for i in range(K)]
+    def check_budget(self, loss, done_now: list) -> list:
+        """After a step: the active maps' seconds, and where the stack's wall budget (K × ``max_minutes``) is spent,
+        every active map validated (unless this step was) and stopped.  Returns the maps done (indices into
+        ``active``): ``done_now``, or all of them."""
+        seconds = time.perf_counter() - self.t0
+        for i in self.active:
+            self.states[i]["seconds"] = seconds
+        if seconds > self.nc.max_minutes * 60.0 * self.K:
+            if self.step % self.nc.eval_every != 0:            # this step was not validated yet
+                done_now = self.validate_all(loss.detach())
+            for i in self.active:
+                if not self.states[i].get("done"):
+                    self.end(i, "time_budget")
+            done_now = list(range(len(self.active)))
+        return done_now
+
+    def leave(self, done_now: list):
+        """The maps ``done_now`` (indices into ``active``) leave the stack: its network, optimiser and pools shrink."""
+        if not done_now:
+            return
+        keep = [j for j in range(len(self.active)) if j not in done_now]
+        self.bar.finished(len(done_now))
+        self.active = [self.active[j] for j in keep]
+        if keep:
+            self.net.take(keep)
+            self.opt.take(keep, self.torch)
+            self.pools.take(keep)
+
+    def checkpoint(self):
+        """The stack saved to ``ckpt`` where :data:`CHECKPOINT_SECONDS` have passed since the last save."""
+        if self.ckpt and time.perf_counter() - self.last_ckpt > CHECKPOINT_SECONDS:
+            save_stack(self.ckpt, self.keys, self.net, self.opt, self.states, self.best, self.active, self.step)
+            self.last_ckpt = time.perf_counter()
+
+    def close(self) -> list:
+        """The end (``max_steps`` reached by the maps still active: validated unless this step was, and stopped);
+        the stack saved.  Returns ``{"layers", "state"}`` per map (its best weights), in the order of ``fits``."""
+        if self.active:                                  # max_steps reached
+            if any(not self.states[i]["history"] or self.states[i]["history"][-1]["step"] != self.step
+                   for i in self.active):
+                self.validate_all(None)
+            for i in self.active:
+                if not self.states[i].get("done"):
+                    self.end(i, "max_steps")
+            self.active = []
+        self.bar.close()
+        if self.ckpt:
+            save_stack(self.ckpt, self.keys, self.net, self.opt, self.states, self.best, self.active, self.step)
+        return [{"layers": StackedMLP.layers(self.best[i]), "state": self.states[i]} for i in range(self.K)]
 
 
 # ----------------------------------------------------------------------------- progress and ETA
@@ -563,11 +614,12 @@ def load_stack(path, keys, net, opt, torch, dev):
     ``net`` and ``opt`` restored to its active maps, or None (no or another or a broken checkpoint)."""
     if not (os.path.exists(path + ".safetensors") and os.path.exists(path + ".json")):
         return None
+    from safetensors import SafetensorError
     from safetensors.torch import load_file
     try:
         t = load_file(path + ".safetensors")
         meta = json.loads(open(path + ".json").read())
-    except Exception:
+    except (OSError, ValueError, SafetensorError):      # unreadable, not JSON (or not UTF-8), not safetensors
         return None
     if meta.get("keys") != list(keys):
         return None
@@ -593,7 +645,7 @@ def peek_stack(path, keys) -> dict:
             continue
         try:
             meta = json.loads(open(f + ".json").read())
-        except Exception:
+        except (OSError, ValueError):                   # unreadable or not JSON: no state to restore from it
             continue
         for k, st in zip(meta.get("keys", []), meta.get("states", [])):
             if k in keys:

@@ -24,15 +24,16 @@ from .config import NetConfig
 from .data import PathSampler, RegressorStream
 from .evaluate import heldout_valid, stop_errors
 from .input_box import fold_input_box, input_box, is_box
+from .levenberg import check_finishable, finish_results, widen_as_configured
+from .nets import load_torch, new_state, pick_device
+from .outputs import fit_output_transform
 from .stacked import Problem
-from .levenberg import check_refinable, widen_as_configured
-from .trainer import _torch, fit_output_transform, pick_device, polish_results
 
 
 def stop_loss_weights(mode: str, oscale) -> np.ndarray:
     """Per-column weights (2k,) of the stop head's standardised MSE.  ``goals``: ∝ the column's spread
     ``oscale`` (mm) over its goal, which is the same µm for every column — the regressor's rule
-    (:func:`~mi_neurallens.training.trainer.loss_weights`), normalised to mean 1 and floored at 0.05.  It
+    (:func:`~mi_neurallens.training.outputs.loss_weights`), normalised to mean 1 and floored at 0.05.  It
     moves the network's effort from the narrow columns (sy, whose spread the odd-y factor makes small) to the
     wide ones, where the µm error is: on the Canon EF's two worst three-crossing heads it gave 8.8 and 4.2 µm
     median where ``uniform`` gave 12.5 and 7.6 (and the physical MSE, ∝ ``oscale``², 12.5 and 5.1;
@@ -164,17 +165,17 @@ def train_stop_heads(lens, tms, nc: NetConfig, *, seeds, fresnel: bool = True, m
     ``like_streams``: streams of the same maps without the crossings (the regressors'), whose valid fractions
     and pilot bounds the streams built here take instead of tracing them again.
 
-    ``start``: one :class:`~mi_neurallens.neural.model.StopHead` per map to refine instead — no Adam, only the
+    ``start``: one :class:`~mi_neurallens.neural.model.StopHead` per map to finish instead — no Adam, only the
     Levenberg–Marquardt finish (``nc.lm_minutes``, which must be > 0) from its weights and output transform, its
     hidden layers first widened to ``nc.width`` where that is wider and the layer count is ``nc.hidden``
     (:func:`~mi_neurallens.training.levenberg.widen`: the same function, with room)."""
     if start is not None:
         table = "forward_stop" if tms[0].direction == "forward" else "stop"
-        check_refinable([(f"{tm.key} stop head", h.layers) for tm, h in zip(tms, start)], nc, "the stop heads'",
-                        table, f"--keep both --set {table}.hidden=3 --set {table}.width=32", what="refine-stop: ")
-    from ..neural.model import StopHead
-    from .stacked import pool_rows, train_stack
-    torch = _torch(threads)
+        check_finishable([(f"{tm.key} stop head", h.layers) for tm, h in zip(tms, start)], nc, "the stop heads'",
+                         table, f"--keep networks --set {table}.hidden=3 --set {table}.width=32",
+                         what="--finish-only stop-heads: ")
+    from .stacked import train_stack
+    torch = load_torch(threads)
     dev = pick_device(torch, device)
     torch.manual_seed(int(seeds[0]))
     t0 = time.perf_counter()
@@ -185,35 +186,12 @@ def train_stop_heads(lens, tms, nc: NetConfig, *, seeds, fresnel: bool = True, m
         if stream is None:
             ps = PathSampler(lens, tm.path_id, tm.direction, tm.z_in, tm.z_out, tm.domain, fresnel=fresnel, stops=True)
             stream = RegressorStream(ps, seeds[j], mcmc_threshold, like=None if like_streams is None else like_streams[j])
-        k = stream.ps.map.stop_crossings
-        if k == 0 or stream.ps.n_out != 5 + 2 * k:
-            raise NeuralLensError(f"map {tm.key} of '{lens.name}': its path never crosses the stop plane, or the "
-                                  "sampler was built without stops=True")
+        fit, k, tr, box = _stop_fit(torch, dev, lens, tm, nc, stream, seeds[j], len(tms),
+                                    None if start is None else start[j], fresnel, mcmc_threshold, n_val, log)
         ks.add(k)
-        center, scale_in, s_max = np.asarray(tm.input_center), np.asarray(tm.input_scale), tm.domain.s_max
-        xv, yv = heldout_valid(lens, (tm.path_id, tm.direction, tm.z_in, tm.z_out), tm.domain, n_val, seeds[j] + 7,
-                               mcmc_threshold, fresnel, stops=True)
-        _, x0, y0 = stream.sample(pool_rows(nc, len(tms), 4 * (4 + 2 * k)))
-        s0 = y0[:, 5:]
-        if nc.input_box and start is None:
-            center, scale_in = input_box(x0, center, scale_in)
-        boxes.append((center, scale_in))
-        xn0 = (x0 - center) / scale_in
-        if start is None:
-            tr = fit_output_transform(xn0, s0, "linear", odd_columns(x0[:, 2], s_max, k))
-        else:
-            if start[j].crossings != k:
-                raise NeuralLensError(f"map {tm.key}: the stop head to refine has {start[j].crossings} crossings, "
-                                      f"the path {k}")
-            tr = tuple(np.asarray(v, np.float64) for v in (start[j].skip, start[j].out_shift, start[j].out_scale))
+        fits.append(fit)
         transforms.append(tr)
-        state = {"step": 0, "best_val": math.inf, "best_step": 0, "history": [], "evals_since_best": 0,
-                 "seconds": 0.0, "samples": 0}
-        if start is not None:
-            state.update(step=int(start[j].training.get("steps", 0)), refined=True)
-        fits.append(StopFit(torch, dev, None, stream, (xv, yv[:, 5:]), (x0, s0), center=center, scale_in=scale_in,
-                            s_max=s_max, k=k, transform=tr, state=state,
-                            nc=nc, log=log, desc=f"{tm.key} stop head"))
+        boxes.append(box)
     if len(ks) != 1:
         raise NeuralLensError(f"train_stop_heads: one stack needs one crossing count, got {sorted(ks)}")
     k = ks.pop()
@@ -222,36 +200,82 @@ def train_stop_heads(lens, tms, nc: NetConfig, *, seeds, fresnel: bool = True, m
         res = train_stack(torch, dev, fits, nc, seeds=seeds, n_in=4, n_out=2 * k, keys=keys, progress=progress,
                           desc=f"stop heads ×{len(tms)}" if len(tms) > 1 else f"{keys[0]} stop head", log=log)
     else:
-        res = []
-        for tm, head, f in zip(tms, start, fits):
-            layers = [(np.asarray(W, np.float64), np.asarray(b, np.float64)) for W, b in head.layers]
-            layers, hidden = widen_as_configured(layers, nc.hidden, nc.width, [int(tm.path_id), int(nc.width), 7])
-            if hidden is not None:
-                f.state["widened_from"] = hidden
-                if log:
-                    log(f"{tm.key} stop head widened", {"from": "x".join(map(str, hidden)),
-                                                        "to": f"{nc.hidden}x{nc.width}"})
-            res.append({"layers": layers, "state": f.state})
-    polish_results(torch, fits, res, nc, keys, log=log, progress=progress)
-    out = []
-    for r, (skip, shift, oscale), seed, (cb, sb), tm in zip(res, transforms, seeds, boxes, tms):
-        st = r["state"]
-        box = None
-        if is_box((cb, sb), tm.input_center, tm.input_scale):
-            r["layers"], skip, shift = fold_input_box(r["layers"], skip, shift, (cb, sb),
-                                                      (tm.input_center, tm.input_scale))
-            box = {"center": [float(v) for v in cb], "scale": [float(v) for v in sb]}
-        training = {"config": dict(nc.__dict__), "steps": st["step"], "seconds": st["seconds"],
-                    "stop_reason": st.get("stop_reason"), "samples": st["samples"], "seed": int(seed),
-                    "wall_seconds": time.perf_counter() - t0, "stacked_with": len(tms), "history": st["history"]}
-        if st.get("lm"):
-            training["lm"] = st["lm"]
-        if box is not None:
-            training["input_box"] = box
-        if start is not None:
-            training["refined_from"] = {k_: start[len(out)].training.get(k_) for k_ in ("steps", "seconds", "config")}
-            if st.get("widened_from"):
-                training["widened_from"] = st["widened_from"]
-        out.append(StopHead(crossings=k, layers=r["layers"], skip=skip, out_scale=oscale, out_shift=shift,
-                            activation=nc.activation, odd_y=True, training=training))
-    return out
+        res = [_finish_start(tm, head, f, nc, log) for tm, head, f in zip(tms, start, fits)]
+    finish_results(torch, fits, res, nc, keys, log=log, progress=progress)
+    return [_stop_head(r, tr, box, tm, nc, k, seed, None if start is None else start[j], t0, len(tms))
+            for j, (r, tr, seed, box, tm) in enumerate(zip(res, transforms, seeds, boxes, tms))]
+
+
+def _stop_fit(torch, dev, lens, tm, nc: NetConfig, stream, seed: int, n_maps: int, s0, fresnel: bool,
+              mcmc_threshold: float, n_val: int, log):
+    """One map's stop-head problem for :func:`train_stop_heads`: (its :class:`StopFit`, the path's stop-plane
+    crossings, its output transform (skip, shift, oscale), the input normalisation (center, scale) it trains on).
+    Validated on ``n_val`` held-out float64 rays traced with ``seed + 7``; its first pool from ``stream``; the
+    transform fitted to that pool, or with ``s0`` (a stop head to finish) that head's."""
+    from .stacked import pool_rows
+    k = stream.ps.map.stop_crossings
+    if k == 0 or stream.ps.n_out != 5 + 2 * k:
+        raise NeuralLensError(f"map {tm.key} of '{lens.name}': its path never crosses the stop plane, or the "
+                              "sampler was built without stops=True")
+    center, scale_in, s_max = np.asarray(tm.input_center), np.asarray(tm.input_scale), tm.domain.s_max
+    xv, yv = heldout_valid(lens, (tm.path_id, tm.direction, tm.z_in, tm.z_out), tm.domain, n_val, seed + 7,
+                           mcmc_threshold, fresnel, stops=True)
+    _, x0, y0 = stream.sample(pool_rows(nc, n_maps, 4 * (4 + 2 * k)))
+    c0 = y0[:, 5:]
+    if nc.input_box and s0 is None:
+        center, scale_in = input_box(x0, center, scale_in)
+    xn0 = (x0 - center) / scale_in
+    if s0 is None:
+        tr = fit_output_transform(xn0, c0, "linear", odd_columns(x0[:, 2], s_max, k))
+    else:
+        if s0.crossings != k:
+            raise NeuralLensError(f"map {tm.key}: the stop head to finish has {s0.crossings} crossings, the path {k}")
+        tr = tuple(np.asarray(v, np.float64) for v in (s0.skip, s0.out_shift, s0.out_scale))
+    state = new_state()
+    if s0 is not None:        # "refined": a finish-only run's mark in the state, as it has been written
+        state.update(step=int(s0.training.get("steps", 0)), refined=True)
+    fit = StopFit(torch, dev, None, stream, (xv, yv[:, 5:]), (x0, c0), center=center, scale_in=scale_in,
+                  s_max=s_max, k=k, transform=tr, state=state, nc=nc, log=log, desc=f"{tm.key} stop head")
+    return fit, k, tr, (center, scale_in)
+
+
+def _finish_start(tm, head, fit, nc: NetConfig, log) -> dict:
+    """What the finish of ``head`` (the map ``tm``'s stop head) starts from: its layers, widened as configured
+    (:func:`~mi_neurallens.training.levenberg.widen_as_configured`; noted in ``fit.state`` and the log), and the
+    fit's state."""
+    layers = [(np.asarray(W, np.float64), np.asarray(b, np.float64)) for W, b in head.layers]
+    layers, hidden = widen_as_configured(layers, nc.hidden, nc.width, [int(tm.path_id), int(nc.width), 7])
+    if hidden is not None:
+        fit.state["widened_from"] = hidden
+        if log:
+            log(f"{tm.key} stop head widened", {"from": "x".join(map(str, hidden)), "to": f"{nc.hidden}x{nc.width}"})
+    return {"layers": layers, "state": fit.state}
+
+
+def _stop_head(r: dict, transform, trained_box, tm, nc: NetConfig, k: int, seed: int, s0, t0: float, n_maps: int):
+    """The :class:`~mi_neurallens.neural.model.StopHead` of one trained (or finished) result ``r``: its input box
+    folded back into the map's normalisation (:func:`~mi_neurallens.training.input_box.fold_input_box`), its
+    training record (configuration, steps, seconds, stop reason, samples, seed, history, the finish's, the box,
+    and with ``s0`` — the head it was finished from — that head's steps, seconds and configuration)."""
+    from ..neural.model import StopHead
+    skip, shift, oscale = transform
+    st = r["state"]
+    cb, sb = trained_box
+    box = None
+    if is_box((cb, sb), tm.input_center, tm.input_scale):
+        r["layers"], skip, shift = fold_input_box(r["layers"], skip, shift, (cb, sb),
+                                                  (tm.input_center, tm.input_scale))
+        box = {"center": [float(v) for v in cb], "scale": [float(v) for v in sb]}
+    training = {"config": dict(nc.__dict__), "steps": st["step"], "seconds": st["seconds"],
+                "stop_reason": st.get("stop_reason"), "samples": st["samples"], "seed": int(seed),
+                "wall_seconds": time.perf_counter() - t0, "stacked_with": n_maps, "history": st["history"]}
+    if st.get("lm"):
+        training["lm"] = st["lm"]
+    if box is not None:
+        training["input_box"] = box
+    if s0 is not None:          # "refined_from": the record's name in the model files written before "finish"
+        training["refined_from"] = {k_: s0.training.get(k_) for k_ in ("steps", "seconds", "config")}
+        if st.get("widened_from"):
+            training["widened_from"] = st["widened_from"]
+    return StopHead(crossings=k, layers=r["layers"], skip=skip, out_scale=oscale, out_shift=shift,
+                    activation=nc.activation, odd_y=True, training=training)

@@ -66,6 +66,19 @@ class ExactMap(TransportMap):
         return dataclasses.replace(res, valid=res.valid & (m >= 0.0),
                                    margin=dr.minimum(res.margin, m) if margin else res.margin)
 
+    def core_reduced_finite_dr(self, x, n_out: int, active=True):
+        """Reduced inputs ``x = (r, ωx, ωy, λ)`` (Dr.Jit) → (valid, the first ``n_out`` outputs of
+        :meth:`core_reduced_dr`: [x, y, dx, dy, T (, sx, sy, …)], reduced frame, mm), with the rays whose outputs
+        are not all finite made invalid: what a sampler of the map's data keeps (the training's
+        :class:`~mi_neurallens.training.data.PathSampler`, the backward domain's pilot,
+        :func:`~mi_neurallens.transport.planes.backward_domain`)."""
+        import drjit as dr
+        valid, outs, _ = self.core_reduced_dr(x, active)
+        outs = outs[:n_out]
+        for o in outs:
+            valid &= dr.isfinite(o)
+        return valid, outs
+
     def core_reduced_dr(self, x, active):
         res = self.trace_reduced(x, active=active)
         return res.valid, [res.position[0], res.position[1], res.direction[0], res.direction[1],

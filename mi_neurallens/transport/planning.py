@@ -116,6 +116,15 @@ class Domain:
             x[a:a + len(b), 3] = 538.0 - np.arctanh(_CIE_A - _CIE_B * b[:, 3]) * _CIE_C   # sample_cie_wavelength's λ
         return x
 
+    def u_to_x_dr(self, u):
+        """Unit-cube components (4 Dr.Jit floats) → reduced inputs (r, ωx, ωy, λ) in Dr.Jit: :meth:`u_to_x` in a
+        kernel."""
+        import drjit as dr
+        rho = self.s_max * dr.sqrt(u[1])
+        s, c = dr.sincos(math.pi * u[2])
+        lam, _ = sample_cie_wavelength(u[3])
+        return self.r_max * u[0], rho * c, rho * s, lam
+
     def x_to_u(self, x: np.ndarray) -> np.ndarray:
         x = np.asarray(x, dtype=np.float64)
         rho = np.hypot(x[:, 1], x[:, 2])

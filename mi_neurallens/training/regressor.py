@@ -1,0 +1,314 @@
+"""The regressor of a map: its training problem (:class:`RegressorFit`) and its training, several maps as one
+stack (:func:`train_regressors`), Adam then the Levenberg–Marquardt finish.
+
+A regressor predicts a ray's exit (position (x, y) on the output plane in mm, direction cosines (dx, dy),
+throughput T; reduced frame) from its normalised reduced inputs, as the standardised residual of a
+least-squares linear guess (:mod:`~mi_neurallens.training.outputs`).  Data are streamed from the tracer into
+an in-memory pool that is partly refreshed with fresh samples every ``refresh_every`` steps
+(:class:`~mi_neurallens.training.data.RegressorStream`; no data files).  Checkpoints resume a stack
+(:mod:`~mi_neurallens.training.stacked`); the data streams after a resume are re-seeded deterministically from
+(seed, map, step).
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from ..errors import NeuralLensError
+from .config import NetConfig
+from .data import RegressorStream
+from .input_box import fold_input_box, input_box, is_box
+from .levenberg import FINISH_POOL, finish_results
+from .nets import load_torch, new_state, pick_device
+from .outputs import (ODD_COLUMNS, edge_weights, fit_output_transform, loss_weights, odd_factor,
+                      wants_position_cos)
+from .stacked import Problem
+
+
+def train_regressor(stream: RegressorStream, val, nc: NetConfig, *, heading: int, center, scale_in, seed: int,
+                    ckpt: str | None, threads: int = 2, device: str = "auto", progress: bool = True,
+                    desc: str = "regressor", log=None, s_max: float | None = None) -> dict:
+    """Train one regressor.  ``val``: (x, y) float64 held-out (valid) samples for validation.
+    ``s_max`` (the domain's) is needed when ``nc.odd_y`` (see :func:`~mi_neurallens.training.outputs.odd_factor`)."""
+    p = dict(stream=stream, val=val, heading=heading, center=center, scale_in=scale_in, seed=seed, s_max=s_max,
+             key=desc)
+    return train_regressors([p], nc, ckpt=ckpt, threads=threads, device=device, progress=progress, log=log,
+                            desc=desc)[0]
+
+
+def train_regressors(problems, nc: NetConfig, *, ckpt: str | None = None, threads: int = 2, device: str = "auto",
+                     progress: bool = True, log=None, desc: str = "regressors", start=None) -> list:
+    """Train the regressors of several maps as one stack (:func:`~mi_neurallens.training.stacked.train_stack`),
+    then finish each with Levenberg–Marquardt for ``nc.lm_minutes``
+    (:func:`~mi_neurallens.training.levenberg.finish_results`).
+
+    ``problems``: one dict per map with ``stream`` (:class:`~mi_neurallens.training.data.RegressorStream`), ``val``
+    ((x, y) float64 held-out valid samples), ``heading``, ``center``, ``scale_in``, ``seed``, ``s_max`` (the
+    domain's; needed when ``nc.odd_y``) and ``key``.  ``start``: one trained regressor per map (as returned here,
+    or :func:`~mi_neurallens.training.keep.kept_network`): no Adam, only the Levenberg–Marquardt finish from those
+    weights and their output transform (what ``--finish-only maps`` runs).  Returns one result dict per map
+    (layers, output transform, training state), in order."""
+    from .stacked import peek_stack, pool_rows, train_stack
+    torch = load_torch(threads)
+    dev = pick_device(torch, device)
+    torch.manual_seed(int(problems[0]["seed"]))
+    keys = [p["key"] for p in problems]
+    prior = peek_stack(ckpt, keys)
+    n_pool = pool_rows(nc, len(problems), 4 * (4 + 5 + 5 + 1)) if start is None else FINISH_POOL
+    t_start = time.perf_counter()
+    fits = [_regressor_fit(torch, dev, p, nc, prior, None if start is None else start[j], n_pool, ckpt, log,
+                           f"{p['key']} regressor" if len(problems) > 1 else desc)
+            for j, p in enumerate(problems)]
+    if start is None:
+        res = train_stack(torch, dev, fits, nc, seeds=[p["seed"] for p in problems], n_in=4, n_out=5, keys=keys,
+                          ckpt=ckpt, progress=progress, desc=desc, log=log)
+    else:
+        res = [{"layers": s0["layers"], "state": f.state} for s0, f in zip(start, fits)]
+    finish_results(torch, fits, res, nc, keys, ckpt, log, progress)
+    out = []
+    for r, f, p in zip(res, fits, problems):
+        st = r["state"]
+        st["wall_seconds_total"] = time.perf_counter() - t_start
+        st["stacked_with"] = len(problems)
+        layers, skip, shift = r["layers"], np.asarray(f.skip), np.asarray(f.shift)
+        if is_box((f.center, f.scale_in), p["center"], p["scale_in"]):
+            layers, skip, shift = fold_input_box(layers, skip, shift, (f.center, f.scale_in),
+                                                 (p["center"], p["scale_in"]))
+        out.append({"layers": layers, "skip": skip, "out_shift": shift, "out_scale": np.asarray(f.oscale),
+                    "odd_y": f.odd_s is not None, "position_cos": f.position_cos, "state": st})
+    return out
+
+
+def _regressor_fit(torch, dev, p: dict, nc: NetConfig, prior: dict, s0, n_pool: int, ckpt, log, desc: str):
+    """The :class:`RegressorFit` of one problem ``p`` of :func:`train_regressors`: its state new, resumed from
+    ``prior`` (the stack's checkpointed states) or, with ``s0`` (a trained regressor), the start of only the
+    finish; its first pool of ``n_pool`` rows; whether it regresses position × |dz| and on which input box, and
+    its output transform — fitted to that pool when new, else as it was."""
+    from ..neural.model import position_cos
+    odd_s = None
+    if nc.odd_y:
+        if p.get("s_max") is None:
+            raise NeuralLensError("train_regressor: odd_y needs the domain's s_max")
+        odd_s = float(p["s_max"])
+    stream, center, scale_in = p["stream"], p["center"], p["scale_in"]
+    resumed = p["key"] in prior
+    state = prior[p["key"]] if resumed else new_state()
+    if s0 is not None:
+        if bool(s0["odd_y"]) != (odd_s is not None):
+            raise NeuralLensError(f"{p['key']}: the regressor to finish was trained with odd_y={s0['odd_y']}")
+        # "refined": the state's mark of a finish-only run since before it had that name (checkpoints carry it)
+        state = {**new_state(), "step": int(s0["state"].get("step", 0)), "refined": True}
+        state.update(odd_y=odd_s is not None, skip=np.asarray(s0["skip"]).tolist(),
+                     shift=np.asarray(s0["out_shift"]).tolist(), oscale=np.asarray(s0["out_scale"]).tolist())
+        resumed = True
+    elif resumed:
+        if bool(state.get("odd_y", False)) != (odd_s is not None):
+            raise NeuralLensError(f"{ckpt}: checkpoint was trained with odd_y={state.get('odd_y', False)}; "
+                                  "use another work directory or the same setting")
+        stream.reseed([int(p["seed"]), state["step"]])
+    u0, x0, y0 = stream.sample(n_pool)
+    # position_cos: decided once from the first pool (a finish-only run from its map, a resume from its checkpoint)
+    if s0 is not None:
+        cos = bool(s0.get("position_cos", False))
+    elif resumed:
+        cos = bool(state.get("position_cos", False))
+    else:
+        cos = wants_position_cos(nc.exit_position, y0)
+    state["position_cos"] = cos
+    # input_box: train on the valid rays' box (folded back at the end); a checkpoint resumes on the box it had
+    if nc.input_box and s0 is None and not resumed:
+        state["input_box"] = [v.tolist() for v in input_box(x0, center, scale_in)]
+    if "input_box" in state:
+        center, scale_in = (np.asarray(v, np.float64) for v in state["input_box"])
+    xn0 = (x0 - center) / scale_in
+    if not resumed:
+        transform = fit_output_transform(xn0, position_cos(y0) if cos else y0, nc.residual,
+                                         odd_factor(x0[:, 2], odd_s))
+        state.update(odd_y=odd_s is not None, skip=transform[0].tolist(), shift=transform[1].tolist(),
+                     oscale=transform[2].tolist())
+    else:
+        transform = tuple(np.asarray(state[n]) for n in ("skip", "shift", "oscale"))
+    return RegressorFit(torch, dev, None, nc, stream, p["val"], (u0, x0, y0), state=state, heading=p["heading"],
+                        center=center, scale_in=scale_in, transform=transform, odd_s=odd_s, position_cos=cos,
+                        log=log, desc=desc)
+
+
+class RegressorFit(Problem):
+    """One regressor's training problem, its pieces as methods (what :func:`train_regressor` runs and
+    tests call): the sample pool and its targets, the loss, validation and pool refresh.
+
+    ``transform`` = (skip, shift, oscale) of :func:`~mi_neurallens.training.outputs.fit_output_transform`; the
+    network's output ``p`` relates to the reduced-frame outputs ``y`` by ``y = M·(shift + skip·xn) + oscale·(M·p)``
+    with ``M`` the odd-y factor (1 unless ``odd_s``).  ``pool0`` = (u, x, y) of the first pool.
+    """
+
+    POOL = {"X": "X", "Y": "Y", "Yraw": "Yraw", "W": "Wedge"}   # inputs, targets, raw outputs, edge weights
+
+    def __init__(self, torch, dev, net, nc: NetConfig, stream, val, pool0, *, state, heading: int,
+                 center, scale_in, transform, odd_s, position_cos=False, log=None, desc="regressor"):
+        self.torch, self.dev, self.net, self.nc, self.stream = torch, dev, net, nc, stream
+        self.state, self.heading, self.log, self.desc = state, heading, log, desc
+        self.center, self.scale_in, self.odd_s = center, scale_in, odd_s
+        #: the map regresses the exit position times |dz| (:func:`~mi_neurallens.neural.model.position_cos`): its
+        #: targets, held-out outputs and validation errors are in that space (a ray's offset, not a plane's)
+        self.position_cos = bool(position_cos)
+        self.skip, self.shift, self.oscale = transform
+        self.T_skip, self.T_shift, self.T_scale = (self.f32(v) for v in transform)
+        u0, x0, y0 = pool0
+        xn0 = (x0 - center) / scale_in
+        self.sig_d2 = float(np.mean(self.oscale[2:4] ** 2))
+        self.W = self.f32(loss_weights(nc.loss_weights, self.oscale, y0))
+        # M of a batch from its normalised inputs (ωy = center + scale·xn)
+        self.wy_c, self.wy_s = float(center[2]), float(scale_in[2])
+        self.X = self.f32(xn0)
+        self.Y = self.f32(self.targets(x0, xn0, self.space(y0)))
+        self.Yraw = self.f32(y0)
+        self.Wedge = self.f32(edge_weights(stream.ps, u0, nc)) if nc.edge_weight > 0 else None
+        self.xv, self.yv = val[0], self.space(val[1])
+        self.xvn = (self.xv - center) / scale_in
+        self.Xv, self.Yv = self.f32(self.xvn), self.f32(self.targets(self.xv, self.xvn, self.yv))
+        # the validation rays within edge_margin of an aperture edge: their error is logged on its own
+        _, mv, _ = stream.ps.margin_u(stream.ps.domain.x_to_u(self.xv))
+        self.near_edge = mv < nc.edge_margin
+
+    def f32(self, a):
+        return self.torch.as_tensor(np.ascontiguousarray(a, dtype=np.float32), device=self.dev)
+
+    def space(self, y):
+        """Reduced-frame outputs ``y`` as this map regresses them: as they are, or with ``position_cos`` the
+        exit position times |dz|."""
+        if not self.position_cos:
+            return y
+        from ..neural.model import position_cos
+        return position_cos(y)
+
+    def targets(self, x, xn, y):
+        """What the network's output times M should equal: (y − M·(shift + skip·xn)) / scale."""
+        return (y - odd_factor(x[:, 2], self.odd_s) * (self.shift + xn @ self.skip.T)) / self.oscale
+
+    def outputs(self, x, xn, p):
+        """The inverse of :meth:`targets`: reduced-frame outputs from the network's output times M."""
+        return p * self.oscale + odd_factor(x[:, 2], self.odd_s) * (self.shift + xn @ self.skip.T)
+
+    def M_of(self, xb, const=None):
+        """The odd-y factor M of a batch of normalised inputs ``xb`` (…, B, 4) (ones unless ``odd_s``);
+        ``const``: the (stacked) constants of :meth:`constants`, default this map's."""
+        M = self.torch.ones(xb.shape[:-1] + (5,), device=xb.device, dtype=xb.dtype)
+        if self.odd_s is not None:
+            c = {"wy_c": self.wy_c, "wy_s": self.wy_s, "odd_s": self.odd_s} if const is None else const
+            m = (c["wy_c"] + c["wy_s"] * xb[..., 2]) / c["odd_s"]
+            for j in ODD_COLUMNS:
+                M[..., j] = m
+        return M
+
+    def dir3(self, dxy):
+        """Unit 3-vectors from (dx, dy) (…, 2) with dz of the map's heading."""
+        torch = self.torch
+        # floored above 0: √ has an infinite slope there, and a fisheye's grazing exit rays (|dz| → 0) turned Adam's
+        # gradient into NaN (a ray within 0.006° of 90° is all this floor changes)
+        dz = self.heading * torch.sqrt(torch.clamp(1.0 - (dxy * dxy).sum(-1, keepdim=True), min=1e-8))
+        v = torch.cat([dxy, dz], -1)
+        return v / v.norm(dim=-1, keepdim=True)
+
+    def predict(self, xb):
+        """Network output times M (compared with the targets) and M."""
+        M = self.M_of(xb)
+        return self.net(xb) * M, M
+
+    # -- the pieces :func:`~mi_neurallens.training.stacked.train_stack` runs --------------------------
+    def constants(self):
+        """This map's loss constants, shaped to broadcast against a (B, ·) batch (stacked: (K, B, ·))."""
+        t = self.torch
+        one = lambda v: t.as_tensor(np.float32(v), device=self.dev).reshape(1)
+        return {"W": self.W[None], "shift": self.T_shift[None], "skip": self.T_skip, "scale": self.T_scale[None],
+                "sig_d2": t.as_tensor(np.float32(self.sig_d2), device=self.dev), "wy_c": one(self.wy_c),
+                "wy_s": one(self.wy_s), "odd_s": one(self.odd_s if self.odd_s is not None else 1.0)}
+
+    def rows_loss(self, out, batch, const):
+        """The loss of a batch (dict of :meth:`pool` rows, (B, ·) or stacked (K, B, ·); ``out``: the
+        network's outputs on ``batch["X"]``), reduced over the samples only: weighted standardised MSE
+        (position and T; directions too unless ``cosine``) plus the cosine term 1 − cos of the exit
+        directions.  ``batch["W"]``: edge weights (absent: uniform)."""
+        nc = self.nc
+        xb, tb, yb_raw, wb = batch["X"], batch["Y"], batch["Yraw"], batch.get("W")
+        M = self.M_of(xb, const)
+        p = out * M
+        mean = (lambda v: v.mean(-1)) if wb is None else (lambda v: (v * wb).mean(-1))
+        if nc.direction_loss == "cosine":
+            l = mean((((p - tb) ** 2) * const["W"])[..., [0, 1, 4]].mean(-1)) * 3.0 / 5.0
+        else:
+            l = mean((((p - tb) ** 2) * const["W"]).mean(-1))
+        if nc.direction_loss in ("cosine", "mse+cosine"):
+            d_pred = M[..., 2:4] * (const["shift"][..., 2:4] + xb @ const["skip"][..., 2:4, :].transpose(-1, -2)) \
+                + const["scale"][..., 2:4] * p[..., 2:4]
+            # 1 − cos(a, b) = |â − b̂|²/2 for unit vectors (the stable form in float32)
+            cos_term = mean(((self.dir3(d_pred) - self.dir3(yb_raw[..., 2:4])) ** 2).sum(-1)) / (2.0 * const["sig_d2"])
+            l = l + nc.cosine_weight * cos_term * (2.0 / 5.0)
+        return l
+
+    #: RegressorFit's direction losses as the fused kernel's loss_regressor numbers them (else: MSE alone)
+    FUSED_COS_MODE = {"cosine": 1, "mse+cosine": 2}
+
+    def has_fused_loss(self) -> bool:
+        return self.T_skip.shape == (5, 4)
+
+    def fused_loss(self, kern, out, batch, const):
+        """:meth:`rows_loss` and its gradient in one pass of ``kern`` (:mod:`~mi_neurallens.training.fused_cpu`)."""
+        return kern.loss_regressor(self.torch, out, batch, const, odd=self.odd_s is not None,
+                                   cos_mode=self.FUSED_COS_MODE.get(self.nc.direction_loss, 0),
+                                   cosine_weight=self.nc.cosine_weight, heading=float(self.heading))
+
+    def lm_residual(self, z, batch):
+        """Levenberg–Marquardt's residuals of the network's outputs ``z`` (n, 5) on ``batch`` and their
+        derivative ∂r/∂z (:mod:`~mi_neurallens.training.levenberg`): the weighted standardised errors whose mean
+        square is the MSE part of :meth:`rows_loss` (the cosine term, which only re-weights the directions, is
+        left out)."""
+        w = self.torch.sqrt(self.W).to(z.dtype).expand(z.shape[0], -1)
+        if batch.get("W") is not None:
+            w = w * self.torch.sqrt(batch["W"]).to(z.dtype)[:, None]
+        M = self.M_of(batch["X"]).to(z.dtype)
+        return w * (z * M - batch["Y"].to(z.dtype)), w * M
+
+    def fresh_rows(self, k):
+        """``k`` fresh pool rows from the stream."""
+        ur, xr, yr = self.stream.sample(k)
+        xrn = (xr - self.center) / self.scale_in
+        out = {"X": self.f32(xrn), "Y": self.f32(self.targets(xr, xrn, self.space(yr))), "Yraw": self.f32(yr)}
+        if self.nc.edge_weight > 0:
+            out["W"] = self.f32(edge_weights(self.stream.ps, ur, self.nc))
+        return out
+
+    def goals_met(self) -> bool:
+        """The last validation meets ``nc.goal_position_um`` and ``nc.goal_direction_arcsec`` (median, p99),
+        with the margin ``nc.goal_margin``."""
+        r = self.state["history"][-1] if self.state["history"] else None
+        if r is None:
+            return False
+        g = self.nc.goal_margin
+        (pm, pp), (dm, dp) = self.nc.goal_position_um, self.nc.goal_direction_arcsec
+        return r["pos_um_med"] <= g * pm and r["pos_um_p99"] <= g * pp and r["dir_as_med"] <= g * dm \
+            and r["dir_as_p99"] <= g * dp
+
+    def validate(self, step, loss, seconds):
+        """Held-out errors, appended to the training history; returns (score, progress-bar postfix)."""
+        from .evaluate import regression_errors
+        with self.torch.no_grad():
+            pv, _ = self.predict(self.Xv)
+            vl = float(((pv - self.Yv) ** 2).mean())
+            yp = self.outputs(self.xv, self.xvn, pv.double().cpu().numpy())
+        m = regression_errors(yp, self.yv, self.heading)
+        rec = {"step": step, "loss": loss.item() if loss is not None else math.nan, "val_mse": vl,
+               "seconds": seconds,
+               "pos_um_med": m["position_um_median"], "pos_um_p99": m["position_um_p99"],
+               "dir_as_med": m["direction_arcsec_median"], "dir_as_p99": m["direction_arcsec_p99"],
+               "T_rel_med": m["throughput_rel_median"]}
+        if self.near_edge.any():
+            e = regression_errors(yp[self.near_edge], self.yv[self.near_edge], self.heading)
+            rec.update(edge_pos_um_med=e["position_um_median"], edge_pos_um_p99=e["position_um_p99"])
+        self.state["history"].append(rec)
+        if self.log:
+            self.log(self.desc, rec)
+        return vl, dict(val=f"{vl:.2e}", pos=f"{m['position_um_median']:.2f}µm",
+                        dir=f"{m['direction_arcsec_median']:.2f}\"")
