@@ -94,7 +94,8 @@ def test_exact_stop_crossing_is_where_the_ray_meets_the_stop_plane():
 @has_model
 def test_stop_head_meets_the_goal_on_held_out_rays():
     """The camera map's predicted stop crossing: median ≤ 2 µm, p99 ≤ 20 µm against float64 tracing."""
-    from mi_neurallens.training.evaluate import heldout_valid, stop_errors
+    from mi_neurallens.training.evaluate import stop_errors
+    from mi_neurallens.transport.sampling import heldout_valid
     lens = Lens.load("wide-22mm")
     tm = load_model(MODEL, lens).map("transmit", "backward")
     assert tm.stop_crossings == 1

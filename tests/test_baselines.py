@@ -16,7 +16,7 @@ from mi_neurallens.optics.glass import AIR, constant
 from mi_neurallens.optics.prescription import Surface
 from mi_neurallens.trace.api import float_type
 from mi_neurallens.trace.paths import interaction_step, resolve_path
-from mi_neurallens.training.data import Domain
+from mi_neurallens.transport.planning import Domain
 
 
 @pytest.fixture(scope="module")

@@ -335,7 +335,7 @@ def test_trainer_finishes_small_networks_and_a_finish_only_run_finishes_a_model(
     with no finish time is a clear error."""
     import dataclasses
     from mi_neurallens import NeuralLensError
-    from mi_neurallens.training import plan
+    from mi_neurallens.transport import planes as plan
     from mi_neurallens.training.config import load_config
     from mi_neurallens.training.maps import train_map
     from test_training import thick_lens

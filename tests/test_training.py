@@ -11,7 +11,8 @@ from mi_neurallens import Lens, NeuralLensError
 from mi_neurallens.optics.glass import AIR, constant
 from mi_neurallens.optics.prescription import Surface
 from mi_neurallens.trace.api import float_type
-from mi_neurallens.training import data, plan
+from mi_neurallens.training import data
+from mi_neurallens.transport import planes as plan, sampling
 from mi_neurallens.transport import planning
 from mi_neurallens.training.config import load_config
 
@@ -44,7 +45,7 @@ def test_cie_sampling_matches_mitsuba_and_its_pdf():
 def test_domain_u_to_x_is_the_cie_sample_and_inverts_across_its_blocks():
     """u_to_x works in blocks of 2¹⁶ rows: every row, those of a partial last block too, is the closed form
     (r_max·u₀, the disc point of (u₁, u₂), sample_cie_wavelength(u₃)), and x_to_u inverts it."""
-    dom = data.Domain(12.5, 0.3)
+    dom = planning.Domain(12.5, 0.3)
     u = np.random.default_rng(2).random(((1 << 16) + 777, 4)) * 0.998 + 0.001
     x = dom.u_to_x(u)
     rho, th = 0.3 * np.sqrt(u[:, 1]), math.pi * u[:, 2]
@@ -56,7 +57,7 @@ def test_domain_u_to_x_is_the_cie_sample_and_inverts_across_its_blocks():
 
 def test_generator_wavelength_histogram_follows_cie():
     lens = thick_lens()
-    ps = data.PathSampler(lens, 0, "forward", -1.0, 60.0, data.Domain(8.0, 0.1))
+    ps = sampling.PathSampler(lens, 0, "forward", -1.0, 60.0, planning.Domain(8.0, 0.1))
     u, y = ps.random_valid(1 << 18, seed=5)
     lam = ps.domain.u_to_x(u)[:, 3]
     edges = np.linspace(360, 830, 48)
@@ -77,19 +78,19 @@ def test_mcmc_samples_valid_and_cover_valid_region():
     z_front, z_rear = plan.planes(lens, s0)
     dom = plan.forward_domain(lens, z_front, 45.0)
     pid = 2560
-    ps = data.PathSampler(lens, pid, "forward", z_front, z_rear, dom)
+    ps = sampling.PathSampler(lens, pid, "forward", z_front, z_rear, dom)
     rng = np.random.default_rng(3)
-    m = data.MCMCSampler(ps, rng, n_chains=1 << 13, p_large=0.3, sigma=0.03, seed_rays=1 << 20)
+    m = sampling.MCMCSampler(ps, rng, n_chains=1 << 13, p_large=0.3, sigma=0.03, seed_rays=1 << 20)
     for _ in range(8):
         m.step()
     u, x, y = m.sample(1 << 17)
     assert 0.05 < m.acceptance < 1.0
     # every sample is valid when re-traced (float32 tracer), and in float64 all but a rounding few
     assert ps.valid_u(u).all()
-    ps64 = data.PathSampler(lens, pid, "forward", z_front, z_rear, dom, precision="float64")
+    ps64 = sampling.PathSampler(lens, pid, "forward", z_front, z_rear, dom, precision="float64")
     assert ps64.valid_u(u).mean() > 0.999
     # coverage: marginal histograms match rejection sampling (uniform over the valid region)
-    ur, _, _, st = data.rejection_sample(ps, 1 << 17, np.random.default_rng(4))
+    ur, _, _, st = sampling.rejection_sample(ps, 1 << 17, np.random.default_rng(4))
     for k in range(4):
         hm, _ = np.histogram(u[:, k], np.linspace(0, 1, 21))
         hr, _ = np.histogram(ur[:, k], np.linspace(0, 1, 21))
@@ -107,7 +108,7 @@ def test_stream_keeps_the_rows_a_launch_traced_beyond_a_call():
     valid rays a call does not take are handed out by the next calls (no new launch until they run out),
     every row once, all valid and uniform like a single large draw; a reseed drops them."""
     lens = thick_lens()
-    ps = data.PathSampler(lens, 0, "forward", -1.0, 60.0, data.Domain(8.0, 0.1))
+    ps = sampling.PathSampler(lens, 0, "forward", -1.0, 60.0, planning.Domain(8.0, 0.1))
     st = data.RegressorStream(ps, seed=3, bounded=False)
     t0 = ps.rays_traced
     u1, x1, y1 = st.sample(4096)
@@ -119,7 +120,7 @@ def test_stream_keeps_the_rows_a_launch_traced_beyond_a_call():
     assert len(np.unique(u, axis=0)) == len(u)        # no row handed out twice
     assert ps.valid_u(u).all()
     np.testing.assert_allclose(ps.domain.u_to_x(u1), x1)
-    ref, _, _, _ = data.rejection_sample(ps, len(u), np.random.default_rng(9))
+    ref, _, _, _ = sampling.rejection_sample(ps, len(u), np.random.default_rng(9))
     for k in range(4):
         hm, _ = np.histogram(u[:, k], np.linspace(0, 1, 11))
         hr, _ = np.histogram(ref[:, k], np.linspace(0, 1, 11))
@@ -144,10 +145,10 @@ def test_film_reach_keeps_exactly_the_rays_that_come_near_the_film():
     reach = plan.film_reach(lens, s_range, 1.5 * 21.6333)
     free = plan.forward_domain(lens, z_front, 45.0)
     dom = plan.forward_domain(lens, z_front, 45.0, reach=reach)
-    assert data.Domain.from_dict(dom.to_dict()) == dom and data.Domain.from_dict(free.to_dict()).reach is None
+    assert planning.Domain.from_dict(dom.to_dict()) == dom and planning.Domain.from_dict(free.to_dict()).reach is None
     u = np.random.default_rng(2).random((1 << 18, 4))
-    v0, y0 = data.PathSampler(lens, 3072, "forward", z_front, z_rear, free, precision="float64").trace_u(u)
-    ps = data.PathSampler(lens, 3072, "forward", z_front, z_rear, dom, precision="float64")
+    v0, y0 = sampling.PathSampler(lens, 3072, "forward", z_front, z_rear, free, precision="float64").trace_u(u)
+    ps = sampling.PathSampler(lens, 3072, "forward", z_front, z_rear, dom, precision="float64")
     v1, y1 = ps.trace_u(u)
 
     def radius(y, z):
@@ -170,13 +171,13 @@ def test_film_reach_keeps_exactly_the_rays_that_come_near_the_film():
 
 
 def test_bounded_rejection_is_uniform_over_the_valid_region_and_wastes_fewer_rays():
-    """Pilot-traced bounds (training/bounds.py) must not change the sampled distribution: every valid
+    """Pilot-traced bounds (transport/bounds.py) must not change the sampled distribution: every valid
     ray of an independent pilot lies inside the boxes, and the marginals match plain rejection."""
     lens = Lens.load("wide-22mm")
     s0, _ = plan.sensor_distance_range(lens, 300.0)
     z_front, z_rear = plan.planes(lens, s0)
     dom = plan.backward_domain(lens, 0, z_rear, z_front, np.random.default_rng(0), n=1 << 20)
-    ps = data.PathSampler(lens, 0, "backward", z_rear, z_front, dom)
+    ps = sampling.PathSampler(lens, 0, "backward", z_rear, z_front, dom)
     b = ps.build_bounds(np.random.default_rng(1), n_pilot=1 << 21)
     assert b is not None and b.missed == 0.0
     assert b.volume_fraction(dom) < 0.4                      # a real reduction of the sampled volume
@@ -184,7 +185,7 @@ def test_bounded_rejection_is_uniform_over_the_valid_region_and_wastes_fewer_ray
     ub, yb = ps.random_valid(1 << 21, 12, bounds=True)
     assert len(ub) > 3 * len(ur)                             # acceptance 12 % -> ~58 %
     # the returned u addresses its own sample, and the sample is valid in float64 too
-    ps64 = data.PathSampler(lens, 0, "backward", z_rear, z_front, dom, precision="float64")
+    ps64 = sampling.PathSampler(lens, 0, "backward", z_rear, z_front, dom, precision="float64")
     v64, y64 = ps64.trace_u(ub[:20000])
     assert v64.mean() > 0.999
     np.testing.assert_allclose(y64[v64, :2], yb[:20000][v64, :2], atol=2e-3)
@@ -196,7 +197,7 @@ def test_bounded_rejection_is_uniform_over_the_valid_region_and_wastes_fewer_ray
     hb, _, _ = np.histogram2d(ub[:, 0], ub[:, 1], 8, [[0, 1], [0, 1]])
     assert 0.5 * np.abs(hr / hr.sum() - hb / hb.sum()).sum() < 0.02
     # a bounds that cut the valid region would be caught by `missed`
-    from mi_neurallens.training.bounds import ValidBounds
+    from mi_neurallens.transport.bounds import ValidBounds
     cut = ValidBounds(b.r_edges, b.wx_lo, 0.5 * (b.wx_lo + b.wx_hi), b.wy_lo, b.wy_hi)
     assert not cut.contains(dom.u_to_x(ur)).all()
 
@@ -209,9 +210,9 @@ def test_a_stop_stream_takes_the_regressor_streams_pilot_and_still_samples_its_v
     s0, _ = plan.sensor_distance_range(lens, 300.0)
     z_front, z_rear = plan.planes(lens, s0)
     dom = plan.backward_domain(lens, 0, z_rear, z_front, np.random.default_rng(0), n=1 << 20)
-    reg = data.RegressorStream(data.PathSampler(lens, 0, "backward", z_rear, z_front, dom), seed=1)
+    reg = data.RegressorStream(sampling.PathSampler(lens, 0, "backward", z_rear, z_front, dom), seed=1)
     assert reg.ps.bounds is not None
-    ps = data.PathSampler(lens, 0, "backward", z_rear, z_front, dom, stops=True)
+    ps = sampling.PathSampler(lens, 0, "backward", z_rear, z_front, dom, stops=True)
     st = data.RegressorStream(ps, seed=2, like=reg)
     assert ps.rays_traced == 0 and ps.bounds is reg.ps.bounds and st.fraction == reg.fraction
     u, x, y = st.sample(50_000)
@@ -222,16 +223,16 @@ def test_a_stop_stream_takes_the_regressor_streams_pilot_and_still_samples_its_v
         h1, _ = np.histogram(u[:, k], np.linspace(0, 1, 11))
         h2, _ = np.histogram(ur[:, k], np.linspace(0, 1, 11))
         assert 0.5 * np.abs(h1 / h1.sum() - h2 / h2.sum()).sum() < 0.02, k
-    other = data.PathSampler(lens, 0, "backward", z_rear, z_front, data.Domain(dom.r_max * 0.5, dom.s_max), stops=True)
+    other = sampling.PathSampler(lens, 0, "backward", z_rear, z_front, planning.Domain(dom.r_max * 0.5, dom.s_max), stops=True)
     with pytest.raises(NeuralLensError, match="not this sampler's map"):
         data.RegressorStream(other, seed=3, like=reg)
 
 
 def test_classifier_samples_are_balanced_with_boundary_points():
     lens = thick_lens()
-    ps = data.PathSampler(lens, 0, "backward", 52.0, -1.0, data.Domain(12.0, 0.4))
+    ps = sampling.PathSampler(lens, 0, "backward", 52.0, -1.0, planning.Domain(12.0, 0.4))
     rng = np.random.default_rng(0)
-    u, _, _, st = data.rejection_sample(ps, 20000, rng)
+    u, _, _, st = sampling.rejection_sample(ps, 20000, rng)
     x, lab = data.classifier_samples(ps, u, 30000, rng)
     assert 0.3 < lab.mean() < 0.8
     assert st["acceptance"] < 0.6          # the natural mix is mostly blocked, the training mix is not
@@ -249,7 +250,7 @@ def test_aperture_margin_is_the_validity_boundary(blades, path):
     if blades:
         lens = lens.with_surface(lens.stop_index, blades=blades)
     pid = all_ghosts(lens)[0][0] if path == "ghost" else 0
-    ps = data.PathSampler(lens, pid, "backward", 52.0, -1.0, data.Domain(12.0, 0.4), precision="float64")
+    ps = sampling.PathSampler(lens, pid, "backward", 52.0, -1.0, planning.Domain(12.0, 0.4), precision="float64")
     rng = np.random.default_rng(3)
     u = rng.random((60000, 4))
     valid, m, hard = ps.margin_u(u)
@@ -502,7 +503,7 @@ def test_tiny_training_run_learns(tmp_path):
     with pytest.raises(NeuralLensError, match="planes"):
         train_map(lens, 0, "backward", z_rear + 1.0, z_front, dom, cfg, None, keep="regressor", base=tb)
     with pytest.raises(NeuralLensError, match="domain"):
-        train_map(lens, 0, "backward", z_rear, z_front, data.Domain(dom.r_max * 2, dom.s_max), cfg, None,
+        train_map(lens, 0, "backward", z_rear, z_front, planning.Domain(dom.r_max * 2, dom.s_max), cfg, None,
                   keep="regressor", base=tb)
     with pytest.raises(NeuralLensError, match="choose one of"):
         train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, None, keep="weights", base=tb)
@@ -520,8 +521,8 @@ def test_edge_weighted_regressor_loss():
     from mi_neurallens.training.outputs import edge_weights
     from mi_neurallens.training.regressor import train_regressor
     lens = thick_lens()
-    ps = data.PathSampler(lens, 0, "backward", 52.0, -1.0, data.Domain(12.0, 0.4))
-    u, x, y, _ = data.rejection_sample(ps, 40000, np.random.default_rng(0))
+    ps = sampling.PathSampler(lens, 0, "backward", 52.0, -1.0, planning.Domain(12.0, 0.4))
+    u, x, y, _ = sampling.rejection_sample(ps, 40000, np.random.default_rng(0))
     _, m, _ = ps.margin_u(u)
     w = edge_weights(ps, u, NetConfig(edge_weight=9.0, edge_margin=0.02))
     np.testing.assert_allclose(w, 1.0 + 9.0 * np.exp(-m / 0.02), rtol=1e-6)
@@ -560,8 +561,8 @@ def test_a_fisheye_camera_map_regresses_its_exit_position_times_dz(tmp_path):
         s0, _ = plan.sensor_distance_range(lens, "auto")
         zf, zr = plan.planes(lens, s0)
         dom = plan.backward_domain(lens, 0, zr, zf, np.random.default_rng(0), n=1 << 17)
-        ps = data.PathSampler(lens, 0, "backward", zr, zf, dom)
-        _, x, y, _ = data.rejection_sample(ps, n, np.random.default_rng(1))
+        ps = sampling.PathSampler(lens, 0, "backward", zr, zf, dom)
+        _, x, y, _ = sampling.rejection_sample(ps, n, np.random.default_rng(1))
         return ps, dom, x, y
 
     assert not wants_position_cos("auto", camera_rays("dgauss-50mm", 4000)[3])
@@ -606,8 +607,8 @@ def test_a_regressor_trained_on_its_input_box_is_returned_in_the_maps_normalisat
     from mi_neurallens.training.outputs import odd_factor
     from mi_neurallens.training.regressor import train_regressor
     lens = thick_lens()
-    ps = data.PathSampler(lens, 0, "backward", 52.0, -1.0, data.Domain(12.0, 0.4))
-    _, x, y, _ = data.rejection_sample(ps, 8000, np.random.default_rng(0))
+    ps = sampling.PathSampler(lens, 0, "backward", 52.0, -1.0, planning.Domain(12.0, 0.4))
+    _, x, y, _ = sampling.rejection_sample(ps, 8000, np.random.default_rng(0))
     center, scale = x.mean(0) + [3.0, 0.1, 0.1, 0.0], 6.0 * x.std(0)     # a domain far wider than the valid rays
     nc = NetConfig(hidden=2, width=16, batch=1024, pool=30000, refresh_every=100, eval_every=100, max_steps=400,
                    max_minutes=1.0, warmup_steps=20, lr=1e-2, patience=100, input_box=True)

@@ -4,7 +4,7 @@
 
 * exit-position error (µm) and exit-direction error (arcsec), median and p99, on rays valid under
   BOTH the tracer and the method (held-out valid rays: uniform over the valid region, or the
-  Metropolis sampler for rare ghosts — :func:`~mi_neurallens.training.evaluate.heldout_valid`), each
+  Metropolis sampler for rare ghosts — :func:`~mi_neurallens.transport.sampling.heldout_valid`), each
   rotated by a random angle about the axis so the lens-space (not only the reduced-frame) map is tested;
 * relative throughput error |T − T_ref| / T_ref (median, p99);
 * valid-mask agreement: IoU of the method's valid set with the tracer's on rays uniform over the whole
@@ -124,8 +124,7 @@ def time_eval_dr(m, o, d, lam, repeats: int = 3) -> float:
 def evaluate_path(lens, path_id: int, direction: str, methods=DEFAULT_METHODS, n: int = 20000, seed: int = 4242,
                   time_rays: int = 1 << 18, model=None, fitted_opts=None, log=print) -> dict:
     """Every metric of every method on one path (see the module docstring)."""
-    from ..training.data import PathSampler
-    from ..training.evaluate import heldout_valid
+    from ..transport.sampling import PathSampler, heldout_valid
     from ..transport import ExactMap
     model = bundled_model(lens) if model is None else model
     z_in, z_out = default_map_planes(lens, direction, model)

@@ -7,7 +7,7 @@ direction cosines (dx, dy), Fresnel throughput T — the same as the neural regr
 
 Data: valid rays traced exactly (float64) over the domain the neural map uses, with the training code's
 samplers (uniform over the valid region by rejection, or the Metropolis sampler for rare paths:
-:func:`mi_neurallens.training.evaluate.heldout_valid`), ``n_samples`` of them (default 20 000; lentil
+:func:`mi_neurallens.transport.sampling.heldout_valid`), ``n_samples`` of them (default 20 000; lentil
 uses 15 000).  That sampler is the one import of ``mi_neurallens.training`` here, made inside the fit
 (:class:`FittedMap`'s constructor) only: a fitted map is fitted when it is built.
 
@@ -87,7 +87,7 @@ class FittedMap(BaselineMap):
         self.valid_mode = valid
         # --- regressor data and fit
         if data is None:                # the fit's data: the training's held-out sampler (its one use here)
-            from ..training.evaluate import heldout_valid
+            from ..transport.sampling import heldout_valid
             data = heldout_valid(lens, (self.path_id, direction, self.z_in, self.z_out), d, n_samples, seed,
                                  fresnel=fresnel)
         x, y = data

@@ -82,8 +82,8 @@ def _overrides(sets):
 
 def _focus_text(lens, setting) -> str:
     """The focus range a training supports, for its header (and the check that the lens can focus it, before any
-    work: :func:`~mi_neurallens.training.plan.sensor_distance_range` raises otherwise)."""
-    from ..training import plan
+    work: :func:`~mi_neurallens.transport.planes.sensor_distance_range` raises otherwise)."""
+    from ..transport import planes as plan
     s0, s1 = plan.sensor_distance_range(lens, setting)
     d = plan.close_focus_mm(lens, setting)
     if not d:

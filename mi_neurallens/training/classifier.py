@@ -15,7 +15,9 @@ import numpy as np
 
 from ..errors import NeuralLensError
 from .config import NetConfig
-from .data import Domain, PathSampler, classifier_samples
+from ..transport.planning import Domain
+from ..transport.sampling import PathSampler
+from .data import classifier_samples
 from .evaluate import map_outputs_np
 from .levenberg import FINISH_POOL, finish_results
 from .nets import load_torch, new_state, pick_device
@@ -35,7 +37,7 @@ def train_classifiers(problems, nc: NetConfig, *, ckpt: str | None = None, threa
                       progress: bool = True, log=None, desc: str = "classifiers", start=None) -> list:
     """Train the classifiers of several maps as one stack, then (margin target only) finish each with
     Levenberg–Marquardt for ``nc.lm_minutes`` (:func:`~mi_neurallens.training.levenberg.finish_results`).
-    ``problems``: one dict per map with ``ps`` (:class:`~mi_neurallens.training.data.PathSampler`),
+    ``problems``: one dict per map with ``ps`` (:class:`~mi_neurallens.transport.sampling.PathSampler`),
     ``valid_u_source`` (n → (n, 4) valid unit-cube samples), ``val`` ((x, label) natural-mix held-out),
     ``center``, ``scale_in``, ``seed`` and ``key``.  ``start``: one trained classifier per map (``{"layers", …}``):
     only the finish, from those weights.  Returns ``{"layers", "state"}`` per map, in order."""

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..constants import ARCSEC_PER_RAD
-from .data import MCMCSampler, PathSampler, rejection_sample, valid_fraction
+from ..transport.sampling import PathSampler, heldout_valid
 
 ARCSEC = ARCSEC_PER_RAD
 
@@ -59,30 +59,6 @@ def stop_errors(s_pred: np.ndarray, s_true: np.ndarray) -> dict:
             "stop_um_p99": float(np.percentile(e, 99)), "stop_um_max": float(e.max())}
 
 
-def heldout_valid(lens, tm_or_spec, domain, n: int, seed: int, mcmc_threshold: float = 0.02,
-                  fresnel: bool = True, stops: bool = False):
-    """(x, y) float64 valid held-out samples of a map (independent seed); ``stops``: y also holds the
-    stop-plane crossings (:class:`~mi_neurallens.training.data.PathSampler`)."""
-    path_id, direction, z_in, z_out = tm_or_spec
-    ps = PathSampler(lens, path_id, direction, z_in, z_out, domain, fresnel=fresnel, precision="float64",
-                     stops=stops)
-    rng = np.random.default_rng(seed)
-    if valid_fraction(ps, rng, 1 << 18) >= mcmc_threshold:
-        _, x, y, _ = rejection_sample(ps, n, rng)
-    else:
-        m = MCMCSampler(ps, rng, n_chains=min(n, 1 << 14), burn_in=32)
-        # thin the chain (every 4th step) to reduce correlation in the held-out set
-        xs, ys = [], []
-        while sum(len(a) for a in xs) < n:
-            for _ in range(3):
-                m.step()
-            u, yy = m.step()
-            xs.append(ps.domain.u_to_x(u))
-            ys.append(yy)
-        x, y = np.concatenate(xs)[:n], np.concatenate(ys)[:n]
-    return x, y
-
-
 def boundary_distance(ps: PathSampler, xn_wrong: np.ndarray, label_true: np.ndarray, center, scale,
                       rng, n_dir: int = 32, radii=None) -> np.ndarray:
     """For each point (normalised coordinates), the smallest radius at which a random perturbation has
@@ -113,7 +89,7 @@ def boundary_distance(ps: PathSampler, xn_wrong: np.ndarray, label_true: np.ndar
 def evaluate_map(lens, tm, n: int = 200_000, seed: int = 999, mcmc_threshold: float = 0.02,
                  fresnel: bool = True, boundary: bool = True, reg_data=None) -> dict:
     """Every metric of one :class:`~mi_neurallens.neural.model.NeuralMap`."""
-    from .data import Domain
+    from ..transport.planning import Domain
     dom = Domain.from_dict(tm.domain)
     rng = np.random.default_rng(seed)
     k = tm.stop_crossings

@@ -1,7 +1,7 @@
 """A network trained on its valid rays' bounding box, folded back into the map's own input normalisation.
 
 A learned map normalises its reduced inputs (r, ωx, ωy, λ) over its whole sampled domain
-(:meth:`~mi_neurallens.training.data.Domain.norm_center_scale`): its classifier must see every ray.  The
+(:meth:`~mi_neurallens.transport.planning.Domain.norm_center_scale`): its classifier must see every ray.  The
 regressor and the stop head only ever see the *valid* rays, and a ghost's may fill a corner of that domain
 (the Canon EF's ghost 278528: ωy in the lowest quarter of its range, ωx in 60 %), so the network resolves its
 function inside a small part of its inputs' range.  With ``NetConfig.input_box`` such a network trains on

@@ -25,7 +25,9 @@ import numpy as np
 from ..errors import NeuralLensError
 from .classifier import calibrate_classifier, train_classifiers
 from .config import NetConfig, TrainConfig, parse_size
-from .data import Domain, PathSampler, RegressorStream
+from ..transport.planning import Domain
+from ..transport.sampling import PathSampler, heldout_valid
+from .data import RegressorStream
 from .evaluate import map_outputs_np
 from .keep import (FINISHED_RECORD, carry_history, check_finish_only, check_keep, finishing_config, kept_network,
                    run_mode, stop_heads_only, widened)
@@ -46,7 +48,6 @@ def regressor_problem(lens, spec, stream, seed: int, key: str, cfg: TrainConfig)
     """One map's problem for :func:`~mi_neurallens.training.regressor.train_regressors`: ``spec`` = (path_id,
     direction, z_in, z_out, domain), ``stream`` its :class:`~mi_neurallens.training.data.RegressorStream`,
     validated on ≤ 20 000 held-out valid rays traced with ``seed + 7``."""
-    from .evaluate import heldout_valid
     p, d, zi, zo, dom = spec
     center, scale_in = dom.norm_center_scale()
     val = heldout_valid(lens, (p, d, zi, zo), dom, min(cfg.heldout, 20_000), seed + 7, cfg.mcmc_threshold,
@@ -57,7 +58,7 @@ def regressor_problem(lens, spec, stream, seed: int, key: str, cfg: TrainConfig)
 
 def classifier_problem(lens, spec, ps, stream, seed: int, key: str, cfg: TrainConfig) -> dict:
     """One map's problem for :func:`~mi_neurallens.training.classifier.train_classifiers`: ``ps`` its float32
-    :class:`~mi_neurallens.training.data.PathSampler`, valid inputs drawn from ``stream``; validated on the
+    :class:`~mi_neurallens.transport.sampling.PathSampler`, valid inputs drawn from ``stream``; validated on the
     natural mix (:data:`CLASSIFIER_VALIDATION` rays uniform over the domain, float64 labels, ``seed + 11``) —
     large, because only the few rays near the boundary tell two good classifiers apart (0.02 % of 400 k = 80
     errors)."""
@@ -318,7 +319,7 @@ def _add_stop_heads(lens, bases, cfg: TrainConfig, seeds, progress: bool, log, f
     stop-crossing count, :func:`_stop_heads_of`), each with its held-out stop metrics; the classifiers,
     regressors and their metrics are unchanged.  ``finish`` (``finish_only = "stop-heads"``): each base's stop head
     through the finish again instead, widened first where the config's ``stop`` width asks."""
-    from .evaluate import heldout_valid, stop_errors
+    from .evaluate import stop_errors
     if bases and cfg.net("stop", bases[0].direction).max_minutes <= 0:
         raise NeuralLensError("--keep networks trains only stop heads, and stop.max_minutes = 0 asks for none")
     if finish:

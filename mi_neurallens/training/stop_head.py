@@ -21,8 +21,9 @@ import numpy as np
 
 from ..errors import NeuralLensError
 from .config import NetConfig
-from .data import PathSampler, RegressorStream
-from .evaluate import heldout_valid, stop_errors
+from ..transport.sampling import PathSampler, heldout_valid
+from .data import RegressorStream
+from .evaluate import stop_errors
 from .input_box import fold_input_box, input_box, is_box
 from .levenberg import check_finishable, finish_results, widen_as_configured
 from .nets import load_torch, new_state, pick_device

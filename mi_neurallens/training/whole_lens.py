@@ -2,7 +2,7 @@
 
 :func:`train_lens` is a short sequence of steps: the base model a run builds on (:func:`_base_model`), the
 model file it continues (:func:`_open_model`), the maps to train and their domains (:func:`_plan_maps`: planes and
-sensor distances from :mod:`~mi_neurallens.training.plan`, backward domains pilot-traced and cached in the work
+sensor distances from :mod:`~mi_neurallens.transport.planes`, backward domains pilot-traced and cached in the work
 directory, ghosts ranked as the flare ranks them), the base's other maps carried over (:func:`_carry_base`), the
 maps of each direction trained together (:func:`_train_directions`, through
 :func:`~mi_neurallens.training.maps.train_maps`) with the file re-saved after each, then each ghost map verified
@@ -22,9 +22,9 @@ import numpy as np
 
 from ..errors import NeuralLensError
 from ..fileio import atomic_write_text
-from . import plan
+from ..transport import planes as plan
 from .config import NETWORK_KINDS, TrainConfig, budget_minutes, minutes_text
-from .data import Domain
+from ..transport.planning import Domain
 from .keep import mode_text, run_mode, stop_heads_only
 from .maps import train_maps
 from .stacked import STEP_CHOICE, TANH_CHOICE

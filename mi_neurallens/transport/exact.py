@@ -70,7 +70,7 @@ class ExactMap(TransportMap):
         """Reduced inputs ``x = (r, ωx, ωy, λ)`` (Dr.Jit) → (valid, the first ``n_out`` outputs of
         :meth:`core_reduced_dr`: [x, y, dx, dy, T (, sx, sy, …)], reduced frame, mm), with the rays whose outputs
         are not all finite made invalid: what a sampler of the map's data keeps (the training's
-        :class:`~mi_neurallens.training.data.PathSampler`, the backward domain's pilot,
+        :class:`~mi_neurallens.transport.sampling.PathSampler`, the backward domain's pilot,
         :func:`~mi_neurallens.transport.planes.backward_domain`)."""
         import drjit as dr
         valid, outs, _ = self.core_reduced_dr(x, active)

@@ -2,7 +2,7 @@
 
 Render time needs these as much as training does (a baseline map built with no model file takes the planes and
 domains a neural map would have), so they live here, beside the reduced :class:`~.planning.Domain`, and import
-neither torch nor ``mi_neurallens.training``; ``training/plan.py`` takes them from here.
+neither torch nor ``mi_neurallens.training``.
 
 Planes (lens space, mm, +z toward the sensor; stored in every model file):
 
@@ -22,7 +22,6 @@ focus and the field margin — are written here once (:data:`DEFAULT_CLOSE_FOCUS
 from __future__ import annotations
 
 import math
-import os
 
 import numpy as np
 

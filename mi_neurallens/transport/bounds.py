@@ -82,7 +82,7 @@ class ValidBounds:
     @staticmethod
     def build(ps, rng: np.random.Generator, n_pilot: int = 1 << 22, min_valid: int = 20_000,
               max_missed: float = 1e-4, **kw):
-        """Bounds for the :class:`~mi_neurallens.training.data.PathSampler` ``ps`` from a uniform pilot
+        """Bounds for the :class:`~mi_neurallens.transport.sampling.PathSampler` ``ps`` from a uniform pilot
         of ``n_pilot`` rays, checked on a second independent pilot.  Returns ``None`` (sample the whole
         domain) when the pilot finds fewer than ``min_valid`` valid rays, or when more than
         ``max_missed`` of the second pilot's valid rays fall outside the boxes (the bounds would bias
