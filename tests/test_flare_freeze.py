@@ -47,7 +47,7 @@ def test_frozen_learned_flare_equals_the_traced_one():
     for seed, n in ((0, 1 << 14), (1, 3 << 13), (2, 1 << 14)):
         a, b = traced.render(seed=seed, samples=n).total, frozen.render(seed=seed, samples=n).total
         assert _same(a, b), f"seed {seed}: frozen and traced flares differ"
-    assert frozen._frozen["pilot"].n_recordings == len(sigs) and not frozen._unfrozen
+    assert frozen.kernels.frozen["pilot"].n_recordings == len(sigs) and not frozen.kernels.unfrozen
     params = mi.traverse(scene)
     key = next(k for k in params.keys() if k.endswith("position"))
     params[key] = mi.ScalarPoint3f(-0.4, 0.1, 5.0)
@@ -64,7 +64,7 @@ def test_frozen_exact_flare_equals_the_traced_one():
         n = (1 << 14) + 4096 * (seed % 2)
         a, b = traced.render(seed=seed, samples=n).total, frozen.render(seed=seed, samples=n).total
         assert _same(a, b)
-        counts.append(frozen._frozen["splat"].n_recordings if "splat" in frozen._frozen else 0)
+        counts.append(frozen.kernels.frozen["splat"].n_recordings if "splat" in frozen.kernels.frozen else 0)
     # one recording per ghost (two within a whole test run, where Dr.Jit records each once more — after the
     # second or the third render, depending on what ran before), then replays
     assert 2 <= counts[-1] <= 4 and counts[-1] == counts[-2] == counts[-3], counts
@@ -83,8 +83,8 @@ def test_a_kernel_that_cannot_be_frozen_runs_traced(monkeypatch):
     for seed in range(2):           # a signature is recorded at its second use
         a, b = traced.render(seed=seed).total, frozen.render(seed=seed).total
         assert _same(a, b)
-    assert frozen._unfrozen
-    assert all("not specified as an input" in why for why in frozen._unfrozen.values())
+    assert frozen.kernels.unfrozen
+    assert all("not specified as an input" in why for why in frozen.kernels.unfrozen.values())
 
 
 def test_lens_sensors_keep_their_python_data_out_of_drjit_traversal():
@@ -117,7 +117,7 @@ def test_lens_flare_integrator_replays_its_kernels_across_renders():
             params.update()
         images.append(np.array(mi.render(scene, seed=1)))
         renderers.append(integ._cached[1])
-        recordings.append({k: f.n_recordings for k, f in renderers[-1]._frozen.items()})
+        recordings.append({k: f.n_recordings for k, f in renderers[-1].kernels.frozen.items()})
     assert renderers[1] is renderers[0] and renderers[2] is renderers[0], "the renderer was not kept"
     assert recordings[2] == recordings[1], "a moved camera recorded the kernels again"
     ref = FlareRenderer(scene, 0, FlareOptions(mode="auto", ghosts=[2560, 4608], samples=1 << 14,

@@ -71,8 +71,8 @@ def main(argv=None):
                 rows.append({"mode": mode, "freeze": freeze, "log2_samples": s, "new_s": new, "again_s": again,
                              "learned": sum(1 for st in fr.render(seed=0, samples=1 << 12).stats
                                             if st.evaluator == "neural"),
-                             "recordings": {k: f.n_recordings for k, f in fr._frozen.items()},
-                             "unfrozen": len(fr._unfrozen)})
+                             "recordings": {k: f.n_recordings for k, f in fr.kernels.frozen.items()},
+                             "unfrozen": len(fr.kernels.unfrozen)})
                 print(f"{mode:6s} freeze={freeze!s:5s} 2^{s}: new {new:.3f} s, again {again:.3f} s "
                       f"recordings {rows[-1]['recordings']}", flush=True)
     fits = []

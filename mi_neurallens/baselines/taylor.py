@@ -93,7 +93,10 @@ class _Ctx:
 
 def surface_step(lens, step, state, h: int, z_p: float, ctx: _Ctx, fresnel: bool = True):
     """One step on series (or floats): ``state`` = (x, y, u, v) on plane ``z_p`` travelling with heading
-    ``h`` → ((x', y', u', v') on the step's vertex plane, h', z_vertex, Fresnel factor, hit (X, Y))."""
+    ``h`` → ((x', y', u', v') on the step's vertex plane, h', z_vertex, Fresnel factor, hit (X, Y)).
+
+    The module's three stages: the hit point (:func:`_intersect`), the bend about the surface normal there
+    (:func:`_normal`, :func:`_bend`) with its Fresnel factor, back to the vertex plane along the new direction."""
     x, y, u, v = state
     zv = float(lens.vertex_z[step.surface])
     surf = lens.surfaces[step.surface]
@@ -103,7 +106,38 @@ def surface_step(lens, step, state, h: int, z_p: float, ctx: _Ctx, fresnel: bool
     asph = tuple(a for a in surf.aspheric)
     while asph and asph[-1] == 0.0:
         asph = asph[:-1]
-    # --- intersection
+    t = _intersect(c, k, asph, (x, y, u, v, w), pz, h)
+    X, Y, Zr = x + t * u, y + t * v, pz + t * w
+    if step.kind == "stop":
+        return (X, Y, u, v), h, zv, None, (X, Y)
+    nx, ny, nz = _normal(c, k, asph, X, Y, Zr, h)
+    cos_i = -(u * nx + v * ny + w * nz)
+    u2, v2, w2, h2, F = _bend(step, surf, (u, v, w), h, (nx, ny, nz), cos_i, ctx, fresnel)
+    # --- back to the vertex plane along the new direction
+    t2 = -Zr / w2
+    return (X + t2 * u2, Y + t2 * v2, u2, v2), h2, zv, F, (X, Y)
+
+
+def _sag_slope(c, k, asph, s):
+    """Sag and d(sag)/ds of a surface of curvature ``c`` (1/mm), conic ``k`` and even aspheric coefficients
+    ``asph`` (of r⁴, r⁶, …) at s = r² (mm²)."""
+    if c != 0.0:
+        root = _sqrt(1.0 - (1.0 + k) * c * c * s)
+        sag, dsag = c * s / (1.0 + root), (c * 0.5) / root
+    else:
+        sag, dsag = s * 0.0, s * 0.0
+    p, dp = 0.0, 0.0
+    for i in reversed(range(len(asph))):
+        p = p * s + asph[i]
+        dp = dp * s + (i + 2) * asph[i]
+    return sag + p * s * s, dsag + dp * s
+
+
+def _intersect(c, k, asph, ray, pz, h):
+    """Distance t along the ray ``ray`` = (x, y, u, v, w) (position on its plane, direction cosines, dz), whose
+    plane lies ``pz`` (mm) from the surface's vertex, to the surface (curvature ``c``, conic ``k``, aspheric
+    ``asph``) met with heading ``h``: the closed-form quadric root, refined by Newton iterations on an asphere."""
+    x, y, u, v, w = ray
     if c == 0.0:
         t = -pz / w
     else:
@@ -113,28 +147,17 @@ def surface_step(lens, step, state, h: int, z_p: float, ctx: _Ctx, fresnel: bool
         cc = c * (x * x + y * y) + (ck * pz * pz - 2.0 * pz)
         sq = _sqrt(hb * hb - a * cc)
         t = cc / (sq - hb) if h > 0 else -cc / (hb + sq)
-
-    def sag_slope(s):
-        if c != 0.0:
-            root = _sqrt(1.0 - (1.0 + k) * c * c * s)
-            sag, dsag = c * s / (1.0 + root), (c * 0.5) / root
-        else:
-            sag, dsag = s * 0.0, s * 0.0
-        p, dp = 0.0, 0.0
-        for i in reversed(range(len(asph))):
-            p = p * s + asph[i]
-            dp = dp * s + (i + 2) * asph[i]
-        return sag + p * s * s, dsag + dp * s
-
     if asph:
         for _ in range(ASPHERE_NEWTON):
             X, Y, Zr = x + t * u, y + t * v, pz + t * w
-            sag, dsag = sag_slope(X * X + Y * Y)
+            sag, dsag = _sag_slope(c, k, asph, X * X + Y * Y)
             t = t - (Zr - sag) / (w - dsag * 2.0 * (X * u + Y * v))
-    X, Y, Zr = x + t * u, y + t * v, pz + t * w
-    if step.kind == "stop":
-        return (X, Y, u, v), h, zv, None, (X, Y)
-    # --- normal (toward −z), facing the ray
+    return t
+
+
+def _normal(c, k, asph, X, Y, Zr, h):
+    """The unit surface normal at the hit point (``X``, ``Y``, ``Zr`` from the vertex; mm), toward −z, turned to
+    face a ray of heading ``h``."""
     if c == 0.0 and not asph:
         nx, ny, nz = X * 0.0, Y * 0.0, X * 0.0 - 1.0
     elif not asph:
@@ -143,13 +166,22 @@ def surface_step(lens, step, state, h: int, z_p: float, ctx: _Ctx, fresnel: bool
             inv = 1.0 / _sqrt(nx * nx + ny * ny + nz * nz)
             nx, ny, nz = nx * inv, ny * inv, nz * inv
     else:
-        _, dsag = sag_slope(X * X + Y * Y)
+        _, dsag = _sag_slope(c, k, asph, X * X + Y * Y)
         nx, ny, nz = 2.0 * dsag * X, 2.0 * dsag * Y, X * 0.0 - 1.0
         inv = 1.0 / _sqrt(nx * nx + ny * ny + nz * nz)
         nx, ny, nz = nx * inv, ny * inv, nz * inv
     if h < 0:
         nx, ny, nz = -nx, -ny, -nz
-    cos_i = -(u * nx + v * ny + w * nz)
+    return nx, ny, nz
+
+
+def _bend(step, surf, d, h, normal, cos_i, ctx, fresnel):
+    """Refract (``step.kind`` T) or reflect the direction ``d`` = (u, v, w) of heading ``h`` about ``normal`` at
+    incidence ``cos_i``, between the step's media: ``(u', v', w', h', F)``, F the Fresnel factor (0 for a reflection
+    between identical media; None where there is none: ``fresnel`` False, or a transmission between identical
+    media)."""
+    u, v, w = d
+    nx, ny, nz = normal
     m1, m2 = step.media
     n1, n2 = ctx.n(m1), ctx.n(m2)
     F = None
@@ -175,9 +207,7 @@ def surface_step(lens, step, state, h: int, z_p: float, ctx: _Ctx, fresnel: bool
             eta = n1 / n2
             cos_t = _sqrt(1.0 - eta * eta * (1.0 - cos_i * cos_i))
             F = _reflectance(surf, n1, n2, cos_i, cos_t, ctx)
-    # --- back to the vertex plane along the new direction
-    t2 = -Zr / w2
-    return (X + t2 * u2, Y + t2 * v2, u2, v2), h2, zv, F, (X, Y)
+    return u2, v2, w2, h2, F
 
 
 def _reflectance(surf, n1, n2, cos_i, cos_t, ctx):

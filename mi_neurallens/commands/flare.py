@@ -91,15 +91,34 @@ def _norm_png(path, img, ref_max=None, exposure=0.0):
 
 def run(args) -> int:
     from .render import _resolution, load_scene
-    from ..errors import NeuralLensError
-    from ..flare.options import FlareOptions, parse_id_list
-    from ..flare.render import FlareRenderer
     res = _resolution(args.resolution) if args.resolution else None
     scene = load_scene(args.scene, variant=args.variant, lens=args.lens, resolution=res, params=args.params,
                        sets=args.sets)
     sensor = scene.sensors()[0]
     W, H = (int(v) for v in sensor.film().crop_size())
     n = args.samples or (args.spp * W * H if args.spp else 1 << 22)
+    kw = _options(args, int(n), _model(args, sensor))
+    out = args.output or os.path.splitext(os.path.basename(args.scene))[0] + "_flare.png"
+    base = os.path.splitext(out)[0]
+    report = {"scene": args.scene, "samples_per_light": int(n), "film": [W, H]}
+    modes = ("exact", "neural") if args.compare else (args.mode,)
+    results = {}
+    for mode in modes:
+        results[mode], report[mode] = _render(args, scene, sensor, mode, kw)
+    if not args.compare:
+        _write(args, results[args.mode], out, base)
+    else:
+        _write_comparison(args, results["exact"], results["neural"], out, base, report)
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(report, f, indent=1)
+    return 0
+
+
+def _model(args, sensor):
+    """The neural model of the learned ghosts: ``--model``, else — for ``--compare`` or mode neural on a
+    ``realistic_lens`` scene — the bundled model of the sensor's very lens (same fingerprint) where there is one,
+    else None (the sensor's own, if any)."""
     model = args.model
     if model is None and (args.compare or args.mode == "neural") and getattr(sensor, "model", None) is None:
         # a realistic_lens scene: the learned ghosts of its lens's bundled model, when there is one for
@@ -114,65 +133,73 @@ def run(args) -> int:
                 print(f"neural ghosts: {path}", file=sys.stderr)
             except ModelError:
                 pass
-    kw = dict(samples=int(n), ghosts=parse_id_list(args.ghosts) or None, exclude_ghosts=parse_id_list(args.exclude),
-              max_ghosts=args.max_ghosts, coating=args.coating, blades=args.blades, model=model,
-              auto_max_error_px=args.auto_max_error, auto_max_flare_error=args.auto_max_flare_error, mlp=args.mlp,
-              freeze=args.freeze, boundary_band=args.boundary_band, iris_band=args.iris_band,
-              auto_max_cost=args.auto_max_cost)
-    out = args.output or os.path.splitext(os.path.basename(args.scene))[0] + "_flare.png"
-    base = os.path.splitext(out)[0]
-    report = {"scene": args.scene, "samples_per_light": int(n), "film": [W, H]}
-    modes = ("exact", "neural") if args.compare else (args.mode,)
-    results = {}
-    for mode in modes:
-        fr = FlareRenderer(scene, sensor, FlareOptions(mode=mode, **kw))
-        if not fr.lights:
-            raise NeuralLensError(f"{args.scene}: no point, spot or directional emitter to flare")
-        t0 = time.perf_counter()
-        r = fr.render(seed=args.seed, per_ghost=args.per_ghost or args.compare)
-        secs = time.perf_counter() - t0
-        results[mode] = r
-        report[mode] = {"seconds": secs, "ghosts": [s.as_dict() for s in r.stats]}
-        print(f"{mode}: {len(set(s.path_id for s in r.stats))} path(s) x {len(fr.lights)} light(s) in {secs:.2f} s",
+    return model
+
+
+def _options(args, n: int, model) -> dict:
+    """The :class:`~mi_neurallens.flare.options.FlareOptions` fields of the command line but ``mode``, for ``n``
+    samples per light."""
+    from ..flare.options import parse_id_list
+    return dict(samples=n, ghosts=parse_id_list(args.ghosts) or None, exclude_ghosts=parse_id_list(args.exclude),
+                max_ghosts=args.max_ghosts, coating=args.coating, blades=args.blades, model=model,
+                auto_max_error_px=args.auto_max_error, auto_max_flare_error=args.auto_max_flare_error, mlp=args.mlp,
+                freeze=args.freeze, boundary_band=args.boundary_band, iris_band=args.iris_band,
+                auto_max_cost=args.auto_max_cost)
+
+
+def _render(args, scene, sensor, mode: str, kw: dict):
+    """The flare in ``mode``, its statistics printed per (light, ghost): ``(FlareResult, report entry)``."""
+    from ..errors import NeuralLensError
+    from ..flare.options import FlareOptions
+    from ..flare.render import FlareRenderer
+    fr = FlareRenderer(scene, sensor, FlareOptions(mode=mode, **kw))
+    if not fr.lights:
+        raise NeuralLensError(f"{args.scene}: no point, spot or directional emitter to flare")
+    t0 = time.perf_counter()
+    r = fr.render(seed=args.seed, per_ghost=args.per_ghost or args.compare)
+    secs = time.perf_counter() - t0
+    print(f"{mode}: {len(set(s.path_id for s in r.stats))} path(s) x {len(fr.lights)} light(s) in {secs:.2f} s",
+          file=sys.stderr)
+    for s in r.stats:
+        why = s.why_traced or (fr.auto_reason(s.path_id) if mode == "auto" and s.evaluator == "exact"
+                               and s.path_id else None)
+        print(f"  ghost {s.path_id:>8} {str(tuple(s.surfaces)):>9} {s.evaluator:6} {s.light:16} "
+              f"samples {s.samples:>9}  reach sensor: before {s.fraction_before:6.3f}  after "
+              f"{s.fraction_after:6.3f}" + (f"  (traced: {why})" if why else "")
+              + (f"  (edges traced" + (f", band {s.band:g}" if s.band > 0 else ", the iris's")
+                 + f": {s.traced / max(s.samples, 1):.1%} of its samples)" if s.band > 0 or s.traced else ""),
               file=sys.stderr)
-        for s in r.stats:
-            why = s.why_traced or (fr.auto_reason(s.path_id) if mode == "auto" and s.evaluator == "exact"
-                                   and s.path_id else None)
-            print(f"  ghost {s.path_id:>8} {str(tuple(s.surfaces)):>9} {s.evaluator:6} {s.light:16} "
-                  f"samples {s.samples:>9}  reach sensor: before {s.fraction_before:6.3f}  after "
-                  f"{s.fraction_after:6.3f}" + (f"  (traced: {why})" if why else "")
-                  + (f"  (edges traced" + (f", band {s.band:g}" if s.band > 0 else ", the iris's")
-                     + f": {s.traced / max(s.samples, 1):.1%} of its samples)" if s.band > 0 or s.traced else ""),
-                  file=sys.stderr)
-    if not args.compare:
-        r = results[args.mode]
-        from ..render_utils import write_exr
-        write_exr(base + ".exr", r.total)
-        _norm_png(out, r.total, exposure=args.exposure)
-        if args.per_ghost:
-            for pid, img in r.ghosts.items():
-                _norm_png(f"{base}_ghost{pid}.png", img, exposure=args.exposure)
-        print(f"wrote {out} and {base}.exr")
-    else:
-        ex, ne = results["exact"], results["neural"]
-        m_all = mape(ne.total, ex.total)
-        report["mape_all"] = m_all
-        report["mape_per_ghost"] = {}
-        ref_max = float(np.percentile(ex.total[ex.total > 0], 99.5)) if (ex.total > 0).any() else 1.0
-        err = np.abs(ne.total - ex.total)
-        _norm_png(out, np.concatenate([ex.total, ne.total, err * 10.0], 1), ref_max, args.exposure)
-        print(f"MAPE all ghosts (neural vs exact): {m_all:.4f}")
-        for pid in ex.ghosts:
-            if pid in ne.ghosts:
-                mg = mape(ne.ghosts[pid], ex.ghosts[pid])
-                report["mape_per_ghost"][str(pid)] = mg
-                print(f"  ghost {pid:>8}: MAPE {mg:.4f}")
-                if args.per_ghost:
-                    a, b = ex.ghosts[pid], ne.ghosts[pid]
-                    _norm_png(f"{base}_ghost{pid}.png", np.concatenate([a, b, np.abs(b - a) * 10], 1),
-                              None, args.exposure)
-        print(f"wrote {out} (exact | neural | 10x |error|)")
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(report, f, indent=1)
-    return 0
+    return r, {"seconds": secs, "ghosts": [s.as_dict() for s in r.stats]}
+
+
+def _write(args, r, out, base):
+    """One mode's flare: ``base``.exr, the PNG ``out`` and with ``--per-ghost`` one PNG per ghost."""
+    from ..render_utils import write_exr
+    write_exr(base + ".exr", r.total)
+    _norm_png(out, r.total, exposure=args.exposure)
+    if args.per_ghost:
+        for pid, img in r.ghosts.items():
+            _norm_png(f"{base}_ghost{pid}.png", img, exposure=args.exposure)
+    print(f"wrote {out} and {base}.exr")
+
+
+def _write_comparison(args, ex, ne, out, base, report):
+    """``--compare``: exact | neural | 10× |error| side by side in ``out`` (and per ghost with ``--per-ghost``),
+    the MAPE of all ghosts and of each printed and kept in ``report``."""
+    m_all = mape(ne.total, ex.total)
+    report["mape_all"] = m_all
+    report["mape_per_ghost"] = {}
+    ref_max = float(np.percentile(ex.total[ex.total > 0], 99.5)) if (ex.total > 0).any() else 1.0
+    err = np.abs(ne.total - ex.total)
+    _norm_png(out, np.concatenate([ex.total, ne.total, err * 10.0], 1), ref_max, args.exposure)
+    print(f"MAPE all ghosts (neural vs exact): {m_all:.4f}")
+    for pid in ex.ghosts:
+        if pid in ne.ghosts:
+            mg = mape(ne.ghosts[pid], ex.ghosts[pid])
+            report["mape_per_ghost"][str(pid)] = mg
+            print(f"  ghost {pid:>8}: MAPE {mg:.4f}")
+            if args.per_ghost:
+                a, b = ex.ghosts[pid], ne.ghosts[pid]
+                _norm_png(f"{base}_ghost{pid}.png", np.concatenate([a, b, np.abs(b - a) * 10], 1),
+                          None, args.exposure)
+    print(f"wrote {out} (exact | neural | 10x |error|)")

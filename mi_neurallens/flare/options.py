@@ -39,12 +39,12 @@ class FlareOptions:
     #: classifier decides; the margin classifiers' logit is ≈ 40 × the aperture margin there, so 0.4 traces the
     #: rays within ≈ 0.01 of an aperture edge (docs/flares.md, "Exact edges").  In mode auto a floor: a ghost whose
     #: verified records pass the gate only with a wider band is rendered with that band
-    #: (:meth:`~mi_neurallens.flare.render.FlareRenderer.map_band`)
+    #: (:meth:`~mi_neurallens.flare.policy.FlarePolicy.map_band`)
     boundary_band: float = 0.0
     #: learned ghosts rendered through an iris other than the trained one (stopped down, or bladed: the iris is
     #: tested on the maps' predicted stop-plane crossings): a sample whose predicted crossing lies within
     #: ``iris_band`` × 3 × its stop head's held-out p99 crossing error of the iris's edge is traced exactly
-    #: instead, like the classifier's undecided ones (:func:`~mi_neurallens.flare.render.iris_band_mm`).
+    #: instead, like the classifier's undecided ones (:func:`~mi_neurallens.flare.evaluator.iris_band_mm`).
     #: None: ``boundary_band`` in mode neural; in mode auto at least 1 (the verified records were measured at
     #: the trained iris); 0: off
     iris_band: float | None = None
@@ -80,7 +80,7 @@ class FlareOptions:
     #: compilation")
     mlp: str = "auto"
     #: replay each ghost's kernels instead of tracing them again (``dr.freeze``): learned maps of one architecture
-    #: share one recording, and a renderer's later renders replay all of them (FlareRenderer._kernel)
+    #: share one recording, and a renderer's later renders replay all of them (FlareKernels.run, flare/kernels.py)
     freeze: bool = True
 
     def validate(self):

@@ -310,7 +310,7 @@ class NeuralMap(TransportMap):
         """What the kernel source of this map depends on besides its numbers, with ``mlp`` in
         :data:`PARAM_MODES` (there every number is a kernel input, so maps of one signature record the same
         kernel and one recording of a frozen function, ``dr.freeze``, serves them all:
-        :mod:`mi_neurallens.flare.render`); None for literals (the kernel is this map's alone)."""
+        :mod:`mi_neurallens.flare.kernels`); None for literals (the kernel is this map's alone)."""
         if self.mlp not in PARAM_MODES:
             return None
         sh = self.stop_head

@@ -378,9 +378,6 @@ def plot_lens(lens, path_or_ax, fields_deg=None, wavelengths_nm=(LAMBDA_F, LAMBD
     d line solid).  ``rays_per_fan``: rays per field and wavelength across the real pupil.
     Returns the path written, or the ``Axes``.
     """
-    from matplotlib.figure import Figure
-    from matplotlib.lines import Line2D
-
     rays_per_fan = int(rays_per_fan)
     if rays_per_fan < 1:
         raise LensError(f"rays_per_fan must be ≥ 1, got {rays_per_fan}")
@@ -389,21 +386,8 @@ def plot_lens(lens, path_or_ax, fields_deg=None, wavelengths_nm=(LAMBDA_F, LAMBD
         raise LensError(f"wavelengths must be positive numbers of nm, got {list(wavelengths_nm)}")
     wl_prim = wavelengths[int(np.argmin([abs(w - LAMBDA_D) for w in wavelengths]))]
     par = lens.paraxial(wl_prim)
-    if fields_deg is None:
-        hf = half_field_deg(lens, wl_prim, image_radius_mm)
-        fields = [f * hf for f in FIELD_FRACTIONS]
-        labels = ["on axis", "0.7 field", "full field"]
-    else:
-        fields = [float(f) for f in fields_deg]
-        if any(not (math.isfinite(f) and 0 <= abs(f) < 90) for f in fields):
-            raise LensError(f"field angles must be in (−90°, 90°), got {list(fields_deg)}")
-        labels = [""] * len(fields)
-        hf = max(abs(f) for f in fields) if fields else 0.0
-    colors = [FIELD_COLORS[k] if len(fields) <= 3 else None for k in range(len(fields))]
-    if len(fields) > 3:
-        import matplotlib
-        cmap = matplotlib.colormaps["viridis"]
-        colors = [cmap(k / max(1, len(fields) - 1)) for k in range(len(fields))]
+    fields, labels, hf = _fields(lens, fields_deg, wl_prim, image_radius_mm)
+    colors = _field_colors(len(fields))
     styles = _line_styles(wavelengths)
 
     own_fig = not hasattr(path_or_ax, "plot")
@@ -412,8 +396,59 @@ def plot_lens(lens, path_or_ax, fields_deg=None, wavelengths_nm=(LAMBDA_F, LAMBD
     z0 = _start_z(lens)
     track = lens.image_z - z0
     stub = 0.10 * track
+    polylines, deaths, y_img = _fan_polylines(lens, fields, wavelengths, rays_per_fan, z0, stub, colors, styles)
 
-    # ---------------------------------------------------------------- rays
+    # ---------------------------------------------------------------- limits and figure
+    r_lens = max(s.semi_diameter for s in lens.surfaces)
+    zi = lens.image_z
+    h_plane = max(max(y_img, default=0.0) * 1.12, 0.35 * r_lens)
+    zmin = min([z0 - stub] + [float(np.nanmin(z)) for z, *_ in polylines])
+    xlim = (zmin - 0.02 * track, zi + 0.04 * track)
+    y_rays = max([float(np.nanmax(np.abs(y))) for _, y, *_ in polylines], default=0.0)
+    ymax = max(r_lens * 1.25, h_plane * 1.1, min(y_rays * 1.04, 1.6 * r_lens),
+               max((s.housing_radius or 0.0) for s in lens.surfaces) * 1.15)
+    if own_fig:
+        fig, ax, ymax = _new_figure(xlim, ymax, title, dpi)
+    else:
+        ax = path_or_ax
+        fig = None
+
+    _draw_lens(ax, lens)
+    _draw_rays(ax, polylines, deaths)
+    _draw_axis(ax, par, zi, h_plane, zmin, track)
+    _frame_axes(ax, xlim, ymax)
+    _title(ax, lens, par, title, hf, fields_deg is None, wl_prim)
+    _legend(ax, fig, fields, labels, colors, wavelengths, styles, bool(deaths))
+
+    if not own_fig:
+        return ax
+    return _save(fig, path_or_ax)
+
+
+def _fields(lens, fields_deg, wl_prim, image_radius_mm):
+    """The fans' field angles (degrees), their legend labels and the half field (or the largest angle given)."""
+    if fields_deg is None:
+        hf = half_field_deg(lens, wl_prim, image_radius_mm)
+        return [f * hf for f in FIELD_FRACTIONS], ["on axis", "0.7 field", "full field"], hf
+    fields = [float(f) for f in fields_deg]
+    if any(not (math.isfinite(f) and 0 <= abs(f) < 90) for f in fields):
+        raise LensError(f"field angles must be in (−90°, 90°), got {list(fields_deg)}")
+    return fields, [""] * len(fields), (max(abs(f) for f in fields) if fields else 0.0)
+
+
+def _field_colors(n: int) -> list:
+    """One colour per field: :data:`FIELD_COLORS` for up to three, else a viridis ramp."""
+    if n <= 3:
+        return [FIELD_COLORS[k] for k in range(n)]
+    import matplotlib
+    cmap = matplotlib.colormaps["viridis"]
+    return [cmap(k / max(1, n - 1)) for k in range(n)]
+
+
+def _fan_polylines(lens, fields, wavelengths, rays_per_fan, z0, stub, colors, styles):
+    """The traced fans as drawn: ``polylines`` [(z, y, colour, line style)] (mm; each with a short incoming stub
+    of length ``stub`` before the first surface), ``deaths`` [(z, y, colour)] where blocked rays end, and
+    ``y_img``, the image heights |y| (mm) of the rays that pass."""
     polylines, deaths, y_img = [], [], []
     targets = np.linspace(-STOP_FILL, STOP_FILL, rays_per_fan) * lens.stop.semi_diameter \
         if rays_per_fan > 1 else np.zeros(1)
@@ -422,58 +457,53 @@ def plot_lens(lens, path_or_ax, fields_deg=None, wavelengths_nm=(LAMBDA_F, LAMBD
     wl_pairs = np.array([w for _, w in pairs])
     hs = _aim(lens, th_pairs, wl_pairs, z0, targets) if pairs else np.zeros((0, len(targets)))
     keep = np.all(np.isfinite(hs), axis=1)
-    if keep.any():
-        pts, valid = _trace_fans(lens, th_pairs[keep][:, None], hs[keep],
-                                 wl_pairs[keep][:, None], z0)
-        pts = pts.reshape(int(keep.sum()), len(targets), *pts.shape[1:])
-        valid = valid.reshape(int(keep.sum()), len(targets))
-        for kk, k in enumerate(np.nonzero(keep)[0]):
-            fi, w = pairs[k]
-            sgn = 1.0 if fields[fi] >= 0 else -1.0
-            for j in range(len(targets)):
-                p = pts[kk, j]
-                p = p[np.all(np.isfinite(p), axis=1)].copy()
-                if len(p) < 2:
-                    continue
-                p[:, 1] *= sgn
-                d0 = p[1] - p[0]
-                p[0] = p[1] - d0 / (np.linalg.norm(d0) or 1.0) * stub     # a short incoming stub
-                polylines.append((p[:, 2], p[:, 1], colors[fi], styles[w]))
-                if valid[kk, j]:
-                    y_img.append(abs(p[-1, 1]))
-                else:
-                    deaths.append((p[-1, 2], p[-1, 1], colors[fi]))
+    if not keep.any():
+        return polylines, deaths, y_img
+    pts, valid = _trace_fans(lens, th_pairs[keep][:, None], hs[keep],
+                             wl_pairs[keep][:, None], z0)
+    pts = pts.reshape(int(keep.sum()), len(targets), *pts.shape[1:])
+    valid = valid.reshape(int(keep.sum()), len(targets))
+    for kk, k in enumerate(np.nonzero(keep)[0]):
+        fi, w = pairs[k]
+        sgn = 1.0 if fields[fi] >= 0 else -1.0
+        for j in range(len(targets)):
+            p = pts[kk, j]
+            p = p[np.all(np.isfinite(p), axis=1)].copy()
+            if len(p) < 2:
+                continue
+            p[:, 1] *= sgn
+            d0 = p[1] - p[0]
+            p[0] = p[1] - d0 / (np.linalg.norm(d0) or 1.0) * stub     # a short incoming stub
+            polylines.append((p[:, 2], p[:, 1], colors[fi], styles[w]))
+            if valid[kk, j]:
+                y_img.append(abs(p[-1, 1]))
+            else:
+                deaths.append((p[-1, 2], p[-1, 1], colors[fi]))
+    return polylines, deaths, y_img
 
-    # ---------------------------------------------------------------- limits and figure
-    surfs = lens.surfaces
-    r_lens = max(s.semi_diameter for s in surfs)
-    zi = lens.image_z
-    h_plane = max(max(y_img, default=0.0) * 1.12, 0.35 * r_lens)
-    zmin = min([z0 - stub] + [float(np.nanmin(z)) for z, *_ in polylines])
-    xlim = (zmin - 0.02 * track, zi + 0.04 * track)
-    y_rays = max([float(np.nanmax(np.abs(y))) for _, y, *_ in polylines], default=0.0)
-    ymax = max(r_lens * 1.25, h_plane * 1.1, min(y_rays * 1.04, 1.6 * r_lens),
-               max((s.housing_radius or 0.0) for s in surfs) * 1.15)
+
+def _new_figure(xlim, ymax, title, dpi):
+    """A figure sized to the drawing's aspect (z range ``xlim``, y range ±``ymax``, mm): ``(fig, ax, ymax)``, the
+    y range widened for a long, slim lens."""
+    from matplotlib.figure import Figure
     xspan = xlim[1] - xlim[0]
-    if own_fig:
-        w_in = 12.0
-        ax_w = w_in - 1.0
-        ax_h = ax_w * 2 * ymax / xspan
-        if ax_h < 3.0:            # long, slim lenses: show more y rather than a sliver
-            ax_h = 3.0
-            ymax = 0.5 * ax_h * xspan / ax_w
-        if ax_h > 7.5:            # short, fat lenses: narrow the figure instead of padding it
-            ax_h = 7.5
-            w_in = max(7.0, 1.0 + ax_h * xspan / (2 * ymax))
-        n_title = 2 + (1 if title else 0)
-        fig = Figure(figsize=(w_in, ax_h + 1.3 + 0.2 * n_title + (0.25 if w_in < 11 else 0.0)),
-                     dpi=dpi, layout="constrained")
-        ax = fig.add_subplot(1, 1, 1)
-    else:
-        ax = path_or_ax
-        fig = None
+    w_in = 12.0
+    ax_w = w_in - 1.0
+    ax_h = ax_w * 2 * ymax / xspan
+    if ax_h < 3.0:            # long, slim lenses: show more y rather than a sliver
+        ax_h = 3.0
+        ymax = 0.5 * ax_h * xspan / ax_w
+    if ax_h > 7.5:            # short, fat lenses: narrow the figure instead of padding it
+        ax_h = 7.5
+        w_in = max(7.0, 1.0 + ax_h * xspan / (2 * ymax))
+    n_title = 2 + (1 if title else 0)
+    fig = Figure(figsize=(w_in, ax_h + 1.3 + 0.2 * n_title + (0.25 if w_in < 11 else 0.0)),
+                 dpi=dpi, layout="constrained")
+    return fig, fig.add_subplot(1, 1, 1), ymax
 
-    _draw_lens(ax, lens)
+
+def _draw_rays(ax, polylines, deaths):
+    """The fans' polylines, and a × where each blocked ray ends."""
     for z, y, c, ls in polylines:
         ax.plot(z, y, color=c, ls=ls, lw=0.75 if ls == "-" else 0.7, alpha=0.9 if ls == "-" else 0.75,
                 zorder=3, solid_capstyle="round")
@@ -481,6 +511,10 @@ def plot_lens(lens, path_or_ax, fields_deg=None, wavelengths_nm=(LAMBDA_F, LAMBD
         dz, dy, dc = zip(*deaths)
         ax.scatter(dz, dy, marker="x", s=16, c=list(dc), linewidths=1.1, zorder=7)
 
+
+def _draw_axis(ax, par, zi, h_plane, zmin, track):
+    """The image plane at ``zi`` (±``h_plane``, mm), the optical axis and the paraxial cardinal marks on it
+    (entrance and exit pupils, rear focal point) that lie in the drawing."""
     ax.plot([zi, zi], [-h_plane, h_plane], color="#333333", lw=1.6, zorder=5)
     ax.annotate("image plane", (zi, h_plane), xytext=(-3, 3), textcoords="offset points", ha="right",
                 va="bottom", fontsize=8, zorder=6)
@@ -493,6 +527,9 @@ def plot_lens(lens, path_or_ax, fields_deg=None, wavelengths_nm=(LAMBDA_F, LAMBD
             ax.annotate(lab, (z, 0.0), xytext=(0, -10), textcoords="offset points", ha="center",
                         va="top", fontsize=7, color="#555555", zorder=6)
 
+
+def _frame_axes(ax, xlim, ymax):
+    """Limits (mm), equal aspect, labels and a light grid."""
     ax.set_xlim(*xlim)
     ax.set_ylim(-ymax, ymax)
     ax.set_aspect("equal", adjustable="box")
@@ -503,6 +540,11 @@ def plot_lens(lens, path_or_ax, fields_deg=None, wavelengths_nm=(LAMBDA_F, LAMBD
     for side in ("top", "right"):
         ax.spines[side].set_visible(False)
 
+
+def _title(ax, lens, par, title, hf, half_field: bool, wl_prim):
+    """The title: ``title`` (if any), the lens's EFL and f-number, then its paraxial data and focus and the
+    half field ``hf`` (degrees; ``half_field`` False: the largest field given)."""
+    zi = lens.image_z
     head = f"{lens.name}: EFL {par.efl:.2f} mm, f/{par.fnumber:.2f}"
     try:
         fd = par.focus_distance_for(par.sensor_distance)
@@ -511,28 +553,29 @@ def plot_lens(lens, path_or_ax, fields_deg=None, wavelengths_nm=(LAMBDA_F, LAMBD
         focus = f"image plane {par.bfl - par.sensor_distance:.2f} mm in front of F′"
     sub = (f"BFL {par.bfl:.2f} mm · track {lens.total_track:.2f} mm · image plane z = {zi:.2f} mm, "
            f"{focus} · "
-           + (f"half field {hf:.1f}°" if fields_deg is None else f"max field {hf:.1f}°")
+           + (f"half field {hf:.1f}°" if half_field else f"max field {hf:.1f}°")
            + f" · paraxial at {wl_prim:g} nm")
     ax.set_title((title + "\n" if title else "") + head + "\n" + sub, fontsize=10, loc="left")
 
+
+def _legend(ax, fig, fields, labels, colors, wavelengths, styles, blocked: bool):
+    """One entry per field and per wavelength (and for the blocked rays' ×): below the axes of our own figure
+    ``fig``, else inside ``ax``."""
+    from matplotlib.lines import Line2D
     handles = []
     for fi, th in enumerate(fields):
         lab = f"{abs(th):.1f}°" + (f" ({labels[fi]})" if labels[fi] else "")
         handles.append(Line2D([], [], color=colors[fi], lw=2, label=lab))
     for w in wavelengths:
         handles.append(Line2D([], [], color="#444444", ls=styles[w], lw=1.0, label=f"{w:g} nm"))
-    if deaths:
+    if blocked:
         handles.append(Line2D([], [], color="#444444", marker="x", ls="", label="ray blocked"))
-    if own_fig:     # below the axes, in the space constrained layout reserves for it
+    if fig is not None:     # below the axes, in the space constrained layout reserves for it
         ncol = len(handles) if fig.get_figwidth() >= 11 else (len(handles) + 1) // 2
         fig.legend(handles=handles, loc="outside lower center", fontsize=8, ncol=ncol, frameon=False,
                    handlelength=2.6, columnspacing=1.4)
     else:
         ax.legend(handles=handles, loc="best", fontsize=7, ncol=2, framealpha=0.85)
-
-    if not own_fig:
-        return ax
-    return _save(fig, path_or_ax)
 
 
 def _image_format(path) -> str:

@@ -108,11 +108,28 @@ class PupilBounds:
         return ok
 
     def _build_exit_pupil(self, nc: int, nf: int):
+        """The exit-pupil table (cx, ax, ay) at the :attr:`node_r` film radii (mm, sampling plane, rotated frame):
+        passing rays found on a coarse grid over the rear-element disk (:meth:`_coarse_boxes`), then on a fine
+        grid over each radius's box (:meth:`_fine_cells`), enclosed node by node (:meth:`_node_ellipses`) and
+        grown until the interpolated ellipses enclose them (:meth:`_enclose`), plus 1 %."""
         lams = BOUND_WAVELENGTHS_NM if self.setup.lambda_dependent else (550.0,)
         sub = 4
         rj = np.arange(self.K * sub + 1) * (self.delta / sub)
+        box, n_coarse = self._coarse_boxes(rj, nc, lams)
+        pts, n_fine = self._fine_cells(rj, box, nf, lams)
+        cx, ax, ay = self._node_ellipses(pts, rj.size, sub)
+        self._enclose(pts, rj, sub, cx, ax, ay)
+        ax *= 1.01
+        ay *= 1.01
+        self.build_stats = {"film_radii": int(rj.size), "rays_traced": int(n_coarse * len(lams) + n_fine * len(lams)),
+                            "wavelengths_nm": list(lams)}
+        return cx, ax, ay
+
+    def _coarse_boxes(self, rj, nc: int, lams):
+        """Coarse pass over the rear-element disk (half plane y >= 0) of each film radius ``rj`` (mm), an
+        ``nc`` × ``nc``/2 grid: per radius the box (x0, x1, y1) of its passing points, 1.5 cells wider (NaN where
+        none passes), and the number of grid points traced per wavelength."""
         J = rj.size
-        # ---- coarse pass over the rear-element disk (half plane y >= 0)
         rho = self._naive_radius(rj)
         gx = (np.arange(nc) + 0.5) / nc * 2.0 - 1.0
         gy = (np.arange(nc // 2) + 0.5) / (nc // 2)
@@ -131,12 +148,17 @@ class PupilBounds:
             if ok[j].any():
                 xs, ys = X.reshape(J, m)[j][ok[j]], Y.reshape(J, m)[j][ok[j]]
                 box[j] = [xs.min() - 1.5 * hc[j], xs.max() + 1.5 * hc[j], ys.max() + 1.5 * hc[j]]
-        have = ~np.isnan(box[:, 0])
-        if not have.any():
+        if np.isnan(box[:, 0]).all():
             from ..errors import NeuralLensError
             raise NeuralLensError(f"lens '{self.lens.name}': no ray from the sensor passes through the lens "
                                   "(check fstop, focus and sensor size)")
-        # ---- fine pass over each coarse box
+        return box, ok.size
+
+    def _fine_cells(self, rj, box, nf: int, lams):
+        """Fine pass over each coarse ``box`` (an ``nf`` × ``nf``/2 grid): ``{j: (x, y, hx, hy)}``, the passing
+        points of film radius ``rj[j]`` and the fine cell's size (mm), and the number of points traced per
+        wavelength."""
+        have = ~np.isnan(box[:, 0])
         fx = (np.arange(nf) + 0.5) / nf
         fy = (np.arange(nf // 2) + 0.5) / (nf // 2)
         FX, FY = np.meshgrid(fx, fy, indexing="ij")
@@ -153,7 +175,12 @@ class PupilBounds:
         for a, j in enumerate(idx):
             if okf[a].any():
                 pts[j] = (Xf[a][okf[a]], Yf[a][okf[a]], hx[a], hy[a])
-        # ---- nodes: each node's own ellipse first (cells expanded to their far corner) ...
+        return pts, okf.size
+
+    def _node_ellipses(self, pts, J: int, sub: int):
+        """Each node's own ellipse (cx, ax, ay): the passing cells (:meth:`_fine_cells`, expanded to their far
+        corner) of the ``J`` film radii within one sub-step (of ``sub`` per node) of it; an empty node copies the
+        nearest non-empty one (rays there then fail)."""
         K = self.K
         cx, ax, ay = np.full(K + 1, np.nan), np.full(K + 1, np.nan), np.full(K + 1, np.nan)
         for k in range(K + 1):
@@ -166,12 +193,17 @@ class PupilBounds:
             cx[k], ax[k], ay[k] = 0.5 * (lo + hi), 0.5 * (hi - lo), top
         good = ~np.isnan(cx)
         gi = np.nonzero(good)[0]
-        for k in range(K + 1):   # empty nodes copy the nearest non-empty one (rays there then fail)
+        for k in range(K + 1):
             if not good[k]:
                 n = gi[np.argmin(np.abs(gi - k))]
                 cx[k], ax[k], ay[k] = cx[n], ax[n], ay[n]
-        # ... then grow the axes until the INTERPOLATED ellipse at every traced film radius encloses
-        # all of that radius's passing cells (so the bounds are conservative where they are used)
+        return cx, ax, ay
+
+    def _enclose(self, pts, rj, sub: int, cx, ax, ay):
+        """Grow the axes ``ax``, ``ay`` (in place) until the INTERPOLATED ellipse at every traced film radius
+        ``rj`` encloses all of that radius's passing cells ``pts``, so the bounds are conservative where they are
+        used."""
+        K = self.K
         hr = self.delta / sub
         for _ in range(4):
             grow = np.ones(K + 1)
@@ -189,11 +221,6 @@ class PupilBounds:
             ay *= grow
             if grow.max() <= 1.0:
                 break
-        ax *= 1.01
-        ay *= 1.01
-        self.build_stats = {"film_radii": int(J), "rays_traced": int(ok.size * len(lams) + okf.size * len(lams)),
-                            "wavelengths_nm": list(lams)}
-        return cx, ax, ay
 
     # ------------------------------------------------------------------ evaluation
     def params_np(self, r):

@@ -50,6 +50,51 @@ class TraceResult:
     stop_points: list | None = None
 
 
+def _media_indices(lam_nm):
+    """``n_of(m)``: (n, 1/n) of medium ``m`` at each ray's wavelength ``lam_nm`` (nm), computed once per trace."""
+    media_n: dict = {}
+
+    def n_of(m):
+        if m not in media_n:
+            n = m.coefficients[0] if m.is_constant else m.dr_index(lam_nm)
+            media_n[m] = (n, 1.0 / n)
+        return media_n[m]
+    return n_of
+
+
+class _Rays:
+    """The rays of one trace as they go through the path's steps (component tuples, lens space, mm): position,
+    direction, validity and Fresnel throughput ``T`` (None until a factor comes), with ``record`` the points passed
+    and the validity at each, and the stop-plane crossings.  With ``margin``, the aperture bookkeeping: ``soft`` =
+    alive as far as non-aperture failures go; ``m`` = smallest aperture margin met while soft (later values of a
+    failed ray are meaningless and ignored); ``hard`` = failed for a non-aperture reason while every aperture so
+    far was passed."""
+
+    def __init__(self, o, d, active, record: bool, margin: bool):
+        x, y, z = o
+        self.x, self.y, self.z = x, y, z
+        self.dx, self.dy, self.dz = d
+        self.record, self.margin = record, margin
+        valid = dr.full(dr.mask_t(x), True, dr.width(x)) & active
+        self.valid = valid
+        self.T = None
+        self.pts = [(x, y, z)] if record else None
+        self.stop_points = []
+        self.alive = [valid] if record else None
+        self.soft = valid if margin else None
+        self.m = dr.full(type(x), 1e3, dr.width(x)) if margin else None
+        self.hard = ~valid if margin else None
+
+    def note(self, m_k):
+        """An aperture's margin ``m_k`` met: the smallest so far, where the rays are still soft."""
+        self.m = dr.select(self.soft, dr.minimum(self.m, m_k), self.m)
+
+    def fail(self, ok):
+        """A non-aperture condition ``ok``: rays failing it while every aperture so far was passed fail hard."""
+        self.hard = self.hard | (self.soft & ~ok & (self.m >= 0.0))
+        self.soft = self.soft & ok
+
+
 class LensTracer:
     """Exact tracer of one lens.  Cheap to construct; kernels are cached by Dr.Jit per path.
 
@@ -92,116 +137,117 @@ class LensTracer:
         ``z_out``: output plane (default :meth:`default_output_z`).  Returns the ray where it
         crosses the output plane.  ``margin``: also return :attr:`TraceResult.margin` and
         :attr:`TraceResult.hard_fail`.
+
+        The path's steps are unrolled here, in Python: each one records the same Dr.Jit operations, in the
+        same order, into the one kernel of this (lens, path) — move to the surface (:meth:`_advance`), the
+        stop (:meth:`_stop`) or the clear aperture (:meth:`_clear_aperture`), the incidence
+        (:meth:`_incidence`), then refraction or reflection with its Fresnel factor (:meth:`_interact`).
         """
         spec = self.path(path, direction)
-        lens = self.lens
-        media_n: dict = {}
-
-        def n_of(m):
-            """(n, 1/n) of medium ``m`` at each ray's wavelength, computed once per trace."""
-            if m not in media_n:
-                n = m.coefficients[0] if m.is_constant else m.dr_index(lam_nm)
-                media_n[m] = (n, 1.0 / n)
-            return media_n[m]
-
-        x, y, z = o
-        dx, dy, dz = d
-        valid = dr.full(dr.mask_t(x), True, dr.width(x)) & active
-        T = None
-        pts = [(x, y, z)] if record else None
-        stop_points = []
-        alive = [valid] if record else None
-        # margin mode: `soft` = alive as far as non-aperture failures go; `m` = smallest aperture
-        # margin met while soft (later values of a failed ray are meaningless and ignored); `hard` =
-        # failed for a non-aperture reason while every aperture so far was passed
-        soft = valid if margin else None
-        m = dr.full(type(x), 1e3, dr.width(x)) if margin else None
-        hard = ~valid if margin else None
-
-        def note(m_k):
-            nonlocal m
-            m = dr.select(soft, dr.minimum(m, m_k), m)
-
-        def fail(ok):
-            nonlocal soft, hard
-            hard = hard | (soft & ~ok & (m >= 0.0))
-            soft = soft & ok
-
+        n_of = _media_indices(lam_nm)
+        w = _Rays(o, d, active, record, margin)
         for si, step in enumerate(spec.steps):
             g = self.geom[step.surface]
-            t, ok = g.intersect((x, y, z), (dx, dy, dz), step.heading)
-            valid = valid & ok
-            if si > 0:
-                valid = valid & (t > 0.0)
-            if margin:
-                fail(ok & (t > 0.0) if si > 0 else ok)
-            x, y, z = dr.fma(t, dx, x), dr.fma(t, dy, y), dr.fma(t, dz, z)
-            if record:
-                pts.append((x, y, z))
-                alive.append(valid)
+            self._advance(w, g, step, si)
             if step.kind == "stop":
-                stop_points.append((x, y))
-                valid = valid & self.iris.contains_dr(x, y)
-                if margin:
-                    note(self.iris.margin_dr(x, y))
+                self._stop(w)
                 continue
-            rad = step.clear_radius
-            valid = valid & (dr.fma(x, x, y * y) <= rad * rad)
-            if margin:
-                note(1.0 - dr.fma(x, x, y * y) / (rad * rad))
+            self._clear_aperture(w, step.clear_radius)
+            normal, cos_i = self._incidence(w, g, step.heading)
+            self._interact(w, step, normal, cos_i, n_of, lam_nm)
+        return self._to_output(w, direction, z_out)
 
-            h = step.heading
-            nx, ny, nz = g.normal((x, y, z))
-            if h < 0:
-                nx, ny, nz = -nx, -ny, -nz
-            cos_i = -(dx * nx + dy * ny + dz * nz)
-            valid = valid & (cos_i > 0.0)
-            if margin:
-                fail(cos_i > 0.0)
+    @staticmethod
+    def _advance(w, g, step, si):
+        """Move the rays ``w`` to the surface of ``step`` (geometry ``g``); rays that miss it, or (after the first
+        step) would go backward to meet it, fail."""
+        t, ok = g.intersect((w.x, w.y, w.z), (w.dx, w.dy, w.dz), step.heading)
+        w.valid = w.valid & ok
+        if si > 0:
+            w.valid = w.valid & (t > 0.0)
+        if w.margin:
+            w.fail(ok & (t > 0.0) if si > 0 else ok)
+        w.x, w.y, w.z = dr.fma(t, w.dx, w.x), dr.fma(t, w.dy, w.y), dr.fma(t, w.dz, w.z)
+        if w.record:
+            w.pts.append((w.x, w.y, w.z))
+            w.alive.append(w.valid)
 
-            surf = lens.surfaces[step.surface]
-            m1, m2 = step.media
-            same = m1 == m2
-            (n1, _), (n2, inv_n2) = n_of(m1), n_of(m2)
+    def _stop(self, w):
+        """The rays ``w`` on the stop plane: their crossing kept (:attr:`TraceResult.stop_points`), the iris's
+        test (round or bladed) applied."""
+        w.stop_points.append((w.x, w.y))
+        w.valid = w.valid & self.iris.contains_dr(w.x, w.y)
+        if w.margin:
+            w.note(self.iris.margin_dr(w.x, w.y))
 
-            if step.kind == "T":
-                if same:
-                    continue  # a dummy surface between identical media: no bending, no loss
+    @staticmethod
+    def _clear_aperture(w, rad):
+        """The rays ``w`` on a surface must lie within its clear radius ``rad`` (mm)."""
+        w.valid = w.valid & (dr.fma(w.x, w.x, w.y * w.y) <= rad * rad)
+        if w.margin:
+            w.note(1.0 - dr.fma(w.x, w.x, w.y * w.y) / (rad * rad))
+
+    @staticmethod
+    def _incidence(w, g, h):
+        """The surface normal at the rays ``w`` (geometry ``g``), facing rays of heading ``h``, and the cosine of
+        incidence; rays that meet the surface from the wrong side fail."""
+        nx, ny, nz = g.normal((w.x, w.y, w.z))
+        if h < 0:
+            nx, ny, nz = -nx, -ny, -nz
+        cos_i = -(w.dx * nx + w.dy * ny + w.dz * nz)
+        w.valid = w.valid & (cos_i > 0.0)
+        if w.margin:
+            w.fail(cos_i > 0.0)
+        return (nx, ny, nz), cos_i
+
+    def _interact(self, w, step, normal, cos_i, n_of, lam_nm):
+        """Refract (``T``) or reflect (``R``) the rays ``w`` at the surface of ``step``, between its media, and
+        multiply their throughput by the Fresnel factor (with ``fresnel``)."""
+        surf = self.lens.surfaces[step.surface]
+        m1, m2 = step.media
+        same = m1 == m2
+        (n1, _), (n2, inv_n2) = n_of(m1), n_of(m2)
+
+        if step.kind == "T":
+            if same:
+                return  # a dummy surface between identical media: no bending, no loss
+            eta = n1 * inv_n2
+            (w.dx, w.dy, w.dz), cos_t, tir = refract((w.dx, w.dy, w.dz), normal, cos_i, eta)
+            w.valid = w.valid & ~tir
+            if w.margin:
+                w.fail(~tir)
+            if self.fresnel:
+                R = self._reflectance(surf, n1, n2, cos_i, cos_t, lam_nm)
+                w.T = (1.0 - R) if w.T is None else w.T * (1.0 - R)
+        else:
+            (w.dx, w.dy, w.dz) = reflect((w.dx, w.dy, w.dz), normal, cos_i)
+            if same:
+                w.T = w.x * 0.0
+            elif self.fresnel:
                 eta = n1 * inv_n2
-                (dx, dy, dz), cos_t, tir = refract((dx, dy, dz), (nx, ny, nz), cos_i, eta)
-                valid = valid & ~tir
-                if margin:
-                    fail(~tir)
-                if self.fresnel:
-                    R = self._reflectance(surf, n1, n2, cos_i, cos_t, lam_nm)
-                    T = (1.0 - R) if T is None else T * (1.0 - R)
-            else:
-                (dx, dy, dz) = reflect((dx, dy, dz), (nx, ny, nz), cos_i)
-                if same:
-                    T = x * 0.0
-                elif self.fresnel:
-                    eta = n1 * inv_n2
-                    k = 1.0 - eta * eta * (1.0 - cos_i * cos_i)
-                    cos_t = dr.sqrt(dr.maximum(k, 0.0))
-                    R = dr.select(k < 0.0, 1.0, self._reflectance(surf, n1, n2, cos_i, cos_t, lam_nm))
-                    T = R if T is None else T * R
+                k = 1.0 - eta * eta * (1.0 - cos_i * cos_i)
+                cos_t = dr.sqrt(dr.maximum(k, 0.0))
+                R = dr.select(k < 0.0, 1.0, self._reflectance(surf, n1, n2, cos_i, cos_t, lam_nm))
+                w.T = R if w.T is None else w.T * R
 
-        # continue to the output plane
+    def _to_output(self, w, direction, z_out) -> TraceResult:
+        """Continue the rays ``w`` to the output plane ``z_out`` (default :meth:`default_output_z`); rays heading
+        away from it fail."""
         zo = self.default_output_z(direction) if z_out is None else float(z_out)
-        valid = valid & ((dz > 0.0) if direction == FORWARD else (dz < 0.0))
-        if margin:
-            fail((dz > 0.0) if direction == FORWARD else (dz < 0.0))
-        t = (zo - z) / dz
-        x, y = dr.fma(t, dx, x), dr.fma(t, dy, y)
+        w.valid = w.valid & ((w.dz > 0.0) if direction == FORWARD else (w.dz < 0.0))
+        if w.margin:
+            w.fail((w.dz > 0.0) if direction == FORWARD else (w.dz < 0.0))
+        t = (zo - w.z) / w.dz
+        x, y = dr.fma(t, w.dx, w.x), dr.fma(t, w.dy, w.y)
         z = x * 0.0 + zo
-        if record:
-            pts.append((x, y, z))
-            alive.append(valid)
-        if T is None:
-            T = x * 0.0 + 1.0
-        if margin:
-            return TraceResult((x, y, z), (dx, dy, dz), T, valid, pts, alive, m, hard, stop_points)
-        return TraceResult((x, y, z), (dx, dy, dz), T, valid, pts, alive, stop_points=stop_points)
+        if w.record:
+            w.pts.append((x, y, z))
+            w.alive.append(w.valid)
+        T = x * 0.0 + 1.0 if w.T is None else w.T
+        if w.margin:
+            return TraceResult((x, y, z), (w.dx, w.dy, w.dz), T, w.valid, w.pts, w.alive, w.m, w.hard,
+                               w.stop_points)
+        return TraceResult((x, y, z), (w.dx, w.dy, w.dz), T, w.valid, w.pts, w.alive, stop_points=w.stop_points)
 
     @staticmethod
     def _reflectance(surf, n1, n2, cos_i, cos_t, lam_nm):
