@@ -12,6 +12,7 @@ TMP=$(mktemp -d)
 trap 'rm -rf "$TMP"' EXIT
 
 echo "[wheel] building"
+rm -rf build   # setuptools packs a stale build/lib too (a module since removed would ship)
 $PY -m pip wheel -q --disable-pip-version-check --no-deps -w "$TMP/dist" . >/dev/null
 ls -l "$TMP"/dist/*.whl
 $PY -m venv "$TMP/venv"
