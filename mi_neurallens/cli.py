@@ -43,6 +43,7 @@ def main(argv=None) -> int:
     from .errors import NeuralLensError
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)     # the command line, as typed (train records it)
     if not getattr(args, "func", None):
         parser.print_help()
         return 2

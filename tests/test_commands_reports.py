@@ -151,6 +151,16 @@ def test_train_command_keeps_the_bundled_regressor(tmp_path, capsys):
         assert c["exact_us"] > 0 and c["samples_log2"] == 16
     assert model.maps["forward.288"].metrics["flare"] == old_288_flare
     assert model.extra["training_time"]["flare_verification_seconds"] > 0
+    # the file says how it was made: the command as typed, the recipe it read (and its text), the package, the
+    # machine; evaluate prints it
+    (run,) = model.extra["runs"]
+    assert run["command"].startswith("mi-neurallens train wide-22mm --paths 192 --keep regressor --out ")
+    assert run["recipe"]["file"] == "wide-22mm.toml" and "[regressor]" in run["recipe"]["text"]
+    assert run["config_digest"] == new.training["config_digest"] and run["mi_neurallens"]
+    from mi_neurallens.commands.evaluate import provenance_text
+    made = provenance_text(model)
+    assert "run 1: `mi-neurallens train wide-22mm --paths 192" in made and "recipe wide-22mm.toml" in made
+    assert "not recorded" in provenance_text(load_model(bundled_model_path("dgauss-50mm")))
     # the output file now exists: another --keep run into it must say which model it builds on (an earlier
     # run's file is never taken silently), while a rerun of the same command resumes from the same base
     assert main(["train", "wide-22mm", "--paths", "288", "--keep", "regressor", "--out", str(tmp_path),

@@ -77,6 +77,8 @@ def run(args):
                               "or --flare-cost")
     path = args.model if os.path.exists(args.model) else bundled_model_path(args.model)
     probe = load_model(path)
+    made = provenance_text(probe)
+    print(made, flush=True)
     lens = Lens.load(args.lens or probe.lens_name)
     model = load_model(path, lens)
     rows, out = [], {"model": os.path.abspath(path), "lens": lens.name, "fingerprint": lens.fingerprint(),
@@ -104,7 +106,8 @@ def run(args):
     how = (f"`mi-neurallens evaluate {args.model} --recorded`: the held-out metrics recorded in the file at training "
            f"(each map's own held-out rays and seed)" if args.recorded else
            f"`mi-neurallens evaluate {args.model} -n {args.n} --seed {args.seed}`")
-    md = f"# Held-out accuracy of `{os.path.basename(path)}` ({lens.name})\n\n{how}\n\n" + markdown_table(model, rows)
+    md = (f"# Held-out accuracy of `{os.path.basename(path)}` ({lens.name})\n\n{made}\n\n{how}\n\n"
+          + markdown_table(model, rows))
     jp = args.json or _beside(path) + ".eval.json"
     mp = args.markdown or _beside(path) + ".eval.md"
     atomic_write_text(jp, json.dumps(out, indent=1))
@@ -116,6 +119,30 @@ def run(args):
     if args.flare_cost:
         _flare_cost(args, path, model)
     return 0
+
+
+def provenance_text(model) -> str:
+    """How the model file was made, from its own metadata: each training run's command, recipe, package version,
+    date and machine (``extra["runs"]``, written by ``mi-neurallens train``), and the training time it records;
+    a file written before runs were recorded says so, with the number of distinct configurations its maps were
+    trained with (each map's ``training["config_digest"]``)."""
+    extra = model.extra or {}
+    lines = ["How this model was made:"]
+    runs = [r for r in extra.get("runs", []) if isinstance(r, dict)]
+    for i, r in enumerate(runs, 1):
+        recipe = (r.get("recipe") or {}).get("file") or "the defaults (no recipe)"
+        lines.append(f"* run {i}: `{r.get('command', '?')}` — {r.get('started', '?')}{' (resumed)' if r.get('resumed') else ''}; "
+                     f"recipe {recipe}, configuration {r.get('config_digest', '?')}; mi-neurallens "
+                     f"{r.get('mi_neurallens', '?')}; {r.get('machine', '?')}")
+    if not runs:
+        digests = {m.training.get("config_digest") for m in model.maps.values() if m.training}
+        lines.append(f"* the runs are not recorded (the file was written before `mi-neurallens train` recorded its "
+                     f"command); its {len(model.maps)} maps were trained with {len(digests)} configuration(s) "
+                     f"(each map's `training` record holds its settings, seed and times)")
+    seconds = (extra.get("training_time") or {}).get("seconds")
+    if seconds:
+        lines.append(f"* training time recorded by the last run: {seconds / 60:.1f} min")
+    return "\n".join(lines)
 
 
 def _beside(path: str) -> str:

@@ -141,10 +141,11 @@ def run(args):
     from ..training.config import default_config_path, load_config
     args.keep, args.finish_only = _mode(args)
     lenses = [Lens.load(name) for name in args.lens]
-    cfgs, outs = [], []
+    cfgs, outs, cfg_paths = [], [], []
     for spec, lens in zip(args.lens, lenses):
         cfg_path = args.config or default_config_path(lens.name)
         cfg = load_config(cfg_path, lens=lens.name, overrides=_overrides(args.sets))
+        cfg_paths.append(cfg_path)
         if args.no_verify:
             cfg.verify_flare = False
         out_dir = args.out or default_out_dir(spec, lens.name)
@@ -164,8 +165,8 @@ def run(args):
         for name, path in got["models"].items():
             _report(path)
         return 0
-    for lens, cfg, out in zip(lenses, cfgs, outs):
-        _train_one(args, lens, cfg, out)
+    for lens, cfg, out, cfg_path in zip(lenses, cfgs, outs, cfg_paths):
+        _train_one(args, lens, cfg, out, provenance(getattr(args, "argv", sys.argv[1:]), cfg_path, cfg))
     return 0
 
 
@@ -217,7 +218,26 @@ def _keep_base(args, lens, out) -> str:
     return base
 
 
-def _train_one(args, lens, cfg, out):
+def provenance(argv, cfg_path: str | None, cfg) -> dict:
+    """What a model file records of the run that trained it (``extra["runs"]``, printed by ``evaluate``): the
+    command line, the recipe (its file name and text, or the defaults) and the configuration's digest, the
+    package's version, the date (UTC) and the machine."""
+    import datetime
+    import platform
+    import shlex
+    from .. import __version__
+    recipe = None
+    if cfg_path:
+        with open(cfg_path, encoding="utf-8") as f:
+            recipe = {"file": os.path.basename(cfg_path), "text": f.read()}
+    return {"command": "mi-neurallens " + " ".join(shlex.quote(str(a)) for a in argv),
+            "recipe": recipe, "config_digest": cfg.digest(), "mi_neurallens": __version__,
+            "started": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+            "machine": f"{platform.system()} {platform.machine()}, {os.cpu_count()} CPUs, "
+                       f"{platform.processor() or 'unknown processor'}, Python {platform.python_version()}"}
+
+
+def _train_one(args, lens, cfg, out, prov=None):
     from ..training.whole_lens import train_lens
 
     def log(desc, rec):
@@ -238,5 +258,5 @@ def _train_one(args, lens, cfg, out):
         raise NeuralLensError("--base names where --keep or --finish-only take their networks from; give one of "
                               "them too")
     train_lens(lens, cfg, out, paths=args.paths, progress=not args.no_progress, log=log,
-               keep=args.keep, finish_only=args.finish_only, base_path=base)
+               keep=args.keep, finish_only=args.finish_only, base_path=base, provenance=prov)
     _report(out)

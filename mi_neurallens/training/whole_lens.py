@@ -86,7 +86,7 @@ def select_maps(cfg: TrainConfig, paths: str | None):
 # ----------------------------------------------------------------------------- the run
 def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, workdir: str | None = None,
                progress: bool = True, log=None, keep: str | None = None, base_path: str | None = None,
-               finish_only: str | None = None):
+               finish_only: str | None = None, provenance: dict | None = None):
     """Plan, train and save every selected map of ``lens`` to ``out_path`` (re-saved atomically after each
     direction's maps, so an interruption loses at most the maps in progress — whose networks resume from
     checkpoints in ``workdir``, default ``<out_path>.work``).
@@ -95,6 +95,10 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
     "stop-heads": only the Levenberg–Marquardt finish of those networks): build each selected map on the same map
     of the model file ``base_path`` (:mod:`~mi_neurallens.training.keep`; ``keep``'s old spellings are
     accepted); the base model's maps that are not selected are carried over unchanged.
+
+    ``provenance`` (the command line, recipe, package version, date and machine of this run: what
+    ``mi-neurallens train`` passes) is appended to the file's ``extra["runs"]``, which ``mi-neurallens evaluate``
+    prints: a model says how it was made.
 
     Then, with ``cfg.verify_flare``, every selected ghost map without a verified flare record is rendered against
     the tracer and its record kept in the file (:func:`~mi_neurallens.flare.verify.record_flare_errors`; the
@@ -111,6 +115,7 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
     workdir = workdir or (out_path + ".work")
     os.makedirs(workdir, exist_ok=True)
     model = _open_model(lens, cfg, out_path, z_planes, s_range)
+    record_run(model, provenance)
     todo = _plan_maps(lens, cfg, model, select_maps(cfg, paths), z_planes, s_range, workdir)
     if base_model is not None:
         _carry_base(model, base_model, todo)
@@ -147,6 +152,20 @@ def _base_model(lens, keep, finish_only, base_path):
                               "finished (base_path)")
     from ..neural.model import load_model
     return load_model(base_path, lens)
+
+
+def record_run(model, provenance: dict | None) -> None:
+    """Append a run's ``provenance`` to ``model.extra["runs"]``; a rerun of the same command with the same
+    configuration (resuming an interrupted run) updates the last entry instead of adding one."""
+    if not provenance:
+        return
+    runs = [r for r in model.extra.get("runs", []) if isinstance(r, dict)]
+    same = ("command", "config_digest")
+    if runs and all(runs[-1].get(k) == provenance.get(k) for k in same):
+        runs[-1] = {**provenance, "started": runs[-1].get("started", provenance.get("started")), "resumed": True}
+    else:
+        runs.append(dict(provenance))
+    model.extra["runs"] = runs
 
 
 def _open_model(lens, cfg: TrainConfig, out_path: str, z_planes, s_range):
