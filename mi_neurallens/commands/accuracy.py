@@ -34,7 +34,7 @@ def add_parser(subparsers):
     p.add_argument("--flare-n", type=int, default=200_000, help="rays per wavelength for flare images (0: skip)")
     p.add_argument("--fitted-valid", default="auto", help="fitted validity: auto, classifier, aperture, all")
     p.add_argument("--seed", type=int, default=4242)
-    p.add_argument("--out", default=os.path.join("benchmarks", "results"), help="output folder")
+    p.add_argument("--out", default=os.path.join("out", "accuracy"), help="output folder (default out/accuracy)")
     p.add_argument("--figure", help="flare figure path (default <out>/baseline_flare_<lens>.png)")
     p.set_defaults(func=run)
     return p
