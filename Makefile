@@ -21,14 +21,19 @@ test-slow: setup
 	$(PY) -m pytest -q -ra -m slow
 
 # The maintained benchmarks, each writing its JSON into $(OUT)/bench/ (docs/performance.md says which figure
-# comes from which); `python docs/make_performance.py --from $(OUT)/bench` then takes the new figures.
+# comes from which); `python docs/make_performance.py --from $(OUT)/bench` then takes the new figures. About 40 min
+# on 2 cores; run it on an idle machine.
+BENCH_LENSES ?= wide-22mm ood-59mm canon-ef-24mm-f1.4l canon-rf-24mm-f1.4l-vcm
 bench: setup
 	$(PY) benchmarks/bench_tracer.py --out $(OUT)/bench/bench_tracer.json
-	$(PY) benchmarks/bench_mlp.py --out $(OUT)/bench/bench_mlp.json
-	$(PY) benchmarks/bench_render.py --out $(OUT)/bench/bench_render.json
+	for lens in $(BENCH_LENSES); do \
+	    $(PY) benchmarks/bench_mlp.py --lens $$lens --out $(OUT)/bench/mlp_$$lens.json || exit 1; \
+	    $(PY) benchmarks/bench_render.py --lens $$lens --out $(OUT)/bench/render_$$lens.json || exit 1; \
+	done
 	$(PY) benchmarks/bench_flare.py --out $(OUT)/bench/bench_flare.json
 	$(PY) benchmarks/equal_time.py --out $(OUT)/bench/equal_time.json
 	$(PY) benchmarks/bench_baselines.py --out $(OUT)/bench/bench_baselines.json
+	$(PY) -m mi_neurallens accuracy wide-22mm --out $(OUT)/bench
 
 # The generated parts of the docs (figure tables, plugin parameters, lists of bundled lenses and models).
 docs: setup

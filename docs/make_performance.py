@@ -6,8 +6,8 @@
     python docs/make_performance.py --check               # write nothing; exit 1 if a generated block differs
 
 ``docs/performance/`` holds one JSON file per benchmark run, exactly as the benchmark wrote it
-(``bench_tracer.json``, ``bench_mlp.json``, ``bench_render.json``, ``bench_flare.json``, ``equal_time.json``,
-``bench_baselines.json``, ``accuracy_<lens>.json``; GPU runs in ``gpu/``: ``render_<lens>.json``, ``mlp_<lens>.json``
+(``bench_tracer.json``, ``mlp_<lens>.json`` and ``render_<lens>.json`` per lens, ``bench_flare.json``,
+``equal_time.json``, ``bench_baselines.json``, ``accuracy_<lens>.json``; GPU runs in ``gpu/``: ``render_<lens>.json``, ``mlp_<lens>.json``
 and the suite's ``gpu.txt``), and ``sources.json``: for each file the command, the machine, the date and the
 commit it was measured at.  ``--from`` / ``--gpu-from`` copy the files a run wrote and record their source (the
 machine read from /proc/cpuinfo, or ``--machine TEXT``).  The learned maps' accuracy comes from the evaluation
@@ -38,9 +38,9 @@ if ROOT not in sys.path:            # this tree's package, not an installed one
 
 PERF = os.path.join(ROOT, "docs", "performance")
 MODELS = os.path.join(ROOT, "mi_neurallens", "data", "lenses", "models")
-#: the CPU benchmark files docs/performance/ takes from a run (``make bench`` writes the first six)
-CPU_FILES = ("bench_tracer.json", "bench_mlp.json", "bench_render.json", "bench_flare.json", "equal_time.json",
-             "bench_baselines.json")
+#: the CPU benchmark files docs/performance/ takes from a run (``make bench`` writes them, and ``mlp_<lens>.json`` /
+#: ``render_<lens>.json`` per lens)
+CPU_FILES = ("bench_tracer.json", "bench_flare.json", "equal_time.json", "bench_baselines.json")
 #: how each file is made when its run did not record its own command (the Makefile's ``bench`` target)
 DEFAULT_COMMANDS = {f: f"python benchmarks/{f[:-5]}.py" for f in CPU_FILES}
 PERF_PAGE, README = "docs/performance.md", "README.md"
@@ -92,8 +92,10 @@ class Results:
     def __init__(self, perf: str = PERF, models: str = MODELS):
         self.cpu = {}
         for p in sorted(glob.glob(os.path.join(perf, "*.json"))):
-            if os.path.basename(p) != "sources.json":
+            if os.path.basename(p) != "sources.json" and not os.path.basename(p).startswith(("render_", "mlp_")):
                 self.cpu[os.path.basename(p)] = _load(p)
+        self.cpu_render = {_lens_of(p, "render_"): _load(p) for p in sorted(glob.glob(os.path.join(perf, "render_*.json")))}
+        self.cpu_mlp = {_lens_of(p, "mlp_"): _load(p) for p in sorted(glob.glob(os.path.join(perf, "mlp_*.json")))}
         self.gpu_render = {_lens_of(p, "render_"): _load(p) for p in sorted(glob.glob(os.path.join(perf, "gpu", "render_*.json")))}
         self.gpu_mlp = {_lens_of(p, "mlp_"): _load(p) for p in sorted(glob.glob(os.path.join(perf, "gpu", "mlp_*.json")))}
         src = os.path.join(perf, "sources.json")
@@ -152,38 +154,13 @@ def _pow2(n):
 
 
 def mlp_table(r: Results) -> str:
-    d = r.cpu.get("bench_mlp.json")
-    if not d:
-        return "*No run stored.*\n"
-    rows_in = d.get("rows", {})
-    exact = rows_in.get(EXACT_MLP, {}).get("mrays_per_s")
-    rows = [[k, num(v.get("mrays_per_s")), ratio(div(v.get("mrays_per_s"), exact), 2), num(v.get("first_call_s"), 2)]
-            for k, v in rows_in.items()]
-    nets = ""
-    if d.get("hidden_widths"):
-        c, g = d["hidden_widths"]
-        nets = f", classifier {len(c)}×{max(c)} + regressor {len(g)}×{max(g)}"
-    head = f"`{d.get('lens', '')}`'s camera map{nets}, {_pow2(d.get('rays'))} backward rays, {d.get('threads', '?')} threads.\n\n"
-    return head + table(["evaluation", "M rays/s", "÷ exact tracer", "first call incl. compile (s)"], rows) + "\n" \
-        + r.source("bench_mlp.json")
+    """The camera map alone against the tracer, per lens, on the CPU (``mlp_<lens>.json``)."""
+    return lens_mlp_table(r, r.cpu_mlp, "", 1.0, "M")
 
 
 def render_table(r: Results) -> str:
-    d = r.cpu.get("bench_render.json")
-    if not d:
-        return "*No run stored.*\n"
-    res = d.get("results", {})
-    real = res.get("realistic_lens", {}).get("render_s")
-    rows = [[f"`{k}`", num(v.get("render_s")), ratio(v.get("ratio_vs_thinlens"), 3),
-             ratio(div(v.get("render_s"), real), 3) if k.startswith(("realistic_lens", "neural_lens")) else "",
-             num(div(v.get("paths_per_s"), 1e6)), num(div(v.get("ray_generation_per_s"), 1e6))]
-            for k, v in res.items()]
-    w, h = (d.get("resolution") or ["?", "?"])[:2]
-    head = (f"The {_scene(d.get('scene'))} at {w}×{h}, {d.get('spp', '?')} spp, lens `{d.get('lens', '')}`, "
-            f"{d.get('variant', '')}; `perspective` and `thinlens` at the lens's front principal plane with its paraxial "
-            f"field of view; best of {d.get('repeats', '?')} interleaved renders after a warm-up.\n\n")
-    return head + table(["sensor", "render (s)", "× thinlens", "× realistic_lens", "M paths/s",
-                         "camera rays alone (M rays/s)"], rows) + "\n" + r.source("bench_render.json")
+    """A whole frame through each sensor, per lens, on the CPU (``render_<lens>.json``)."""
+    return lens_render_table(r, r.cpu_render, "")
 
 
 def _scene(s):
@@ -335,10 +312,16 @@ def baselines_accuracy_table(r: Results) -> str:
 
 
 def gpu_render_table(r: Results) -> str:
-    if not r.gpu_render:
-        return "*No GPU run stored.*\n"
+    return lens_render_table(r, r.gpu_render, "gpu/")
+
+
+def lens_render_table(r: Results, runs: dict, folder: str) -> str:
+    """One row per lens of ``runs`` (lens → bench_render.py's JSON, stored as ``<folder>render_<lens>.json``):
+    thinlens, realistic_lens and neural_lens render times at each ``ray_kernel`` measured, their ratio."""
+    if not runs:
+        return "*No run stored.*\n"
     rows, some = [], None
-    for lens, d in r.gpu_render.items():
+    for lens, d in runs.items():
         some = some or d
         res = d.get("results", {})
         kernels = d.get("ray_kernels") or ["auto"]
@@ -360,29 +343,42 @@ def gpu_render_table(r: Results) -> str:
             f"sensor with `ray_kernel` {ks}; best of {some.get('repeats', '?')} renders after a warm-up.\n\n")
     header = ["lens", "thinlens s", f"realistic_lens s ({ks})", f"neural_lens s ({ks})"] + \
         [f"neural ÷ realistic, {k}" for k in kernels] + ["neural ÷ realistic, each at its faster"]
-    return head + table(header, rows) + "\n" + r.source(f"gpu/render_{next(iter(r.gpu_render))}.json")
+    return head + table(header, rows) + "\n" + r.source(f"{folder}render_{next(iter(runs))}.json")
 
 
 def gpu_mlp_table(r: Results) -> str:
-    if not r.gpu_mlp:
-        return "*No GPU run stored.*\n"
-    rows, some = [], None
-    for lens, d in r.gpu_mlp.items():
+    return lens_mlp_table(r, r.gpu_mlp, "gpu/", 1e3, "G")
+
+
+def lens_mlp_table(r: Results, runs: dict, folder: str, scale: float, unit: str) -> str:
+    """One row per lens of ``runs`` (lens → bench_mlp.py's JSON, stored as ``<folder>mlp_<lens>.json``): the exact
+    tracer, the fused network and cooperative vectors in ``unit`` rays/s (M rays/s ÷ ``scale``); on CUDA (fp16
+    cooperative vectors) their exit position x error against the fp32 network's."""
+    if not runs:
+        return "*No run stored.*\n"
+    rows, some, fp16 = [], None, False
+    for lens, d in runs.items():
         some = some or d
         rows_in = d.get("rows", {})
         ex = rows_in.get(EXACT_MLP, {}).get("mrays_per_s")
         fu = rows_in.get(FUSED_MLP, {}).get("mrays_per_s")
         co = rows_in.get(COOP_MLP, {})
         x = (co.get("diff_vs_cpu_style_per_output") or {}).get("x", {})
-        rows.append([f"`{lens}`", num(div(ex, 1e3)), num(div(fu, 1e3)), ratio(div(fu, ex), 2),
-                     num(div(co.get("mrays_per_s"), 1e3)), ratio(div(co.get("mrays_per_s"), ex), 2),
+        fp16 = fp16 or x.get("p99") is not None
+        rows.append([f"`{lens}`", num(div(ex, scale)), num(div(fu, scale)), ratio(div(fu, ex), 2),
+                     num(div(co.get("mrays_per_s"), scale)), ratio(div(co.get("mrays_per_s"), ex), 2),
                      num(1e3 * x["p99"], 2) if x.get("p99") is not None else "—"])
-    head = (f"Each bundled camera map alone on {_pow2(some.get('rays'))} backward rays, {some.get('variant', '')}, best "
-            f"of 5; cooperative vectors run in fp16 on CUDA: their exit position x against the fp32 network's, in µm "
-            f"(p99 over the rays that pass).\n\n")
-    return head + table(["lens", "exact tracer G rays/s", "learned, fused G rays/s", "fused ÷ tracer",
-                         "cooperative vectors G rays/s", "coopvec ÷ tracer", "coopvec x error µm p99"], rows) + "\n" \
-        + r.source(f"gpu/mlp_{next(iter(r.gpu_mlp))}.json")
+    head = (f"Each bundled camera map alone on {_pow2(some.get('rays'))} backward rays, "
+            f"{some.get('variant') or 'llvm_ad_rgb'}, {some.get('threads', '?')} threads, best of 5")
+    header = ["lens", f"exact tracer {unit} rays/s", f"learned, fused {unit} rays/s", "fused ÷ tracer",
+              f"cooperative vectors {unit} rays/s", "coopvec ÷ tracer"]
+    if fp16:
+        head += ("; cooperative vectors run in fp16 on CUDA: their exit position x against the fp32 network's, in µm "
+                 "(p99 over the rays that pass)")
+        header.append("coopvec x error µm p99")
+    else:
+        rows = [row[:-1] for row in rows]
+    return head + ".\n\n" + table(header, rows) + "\n" + r.source(f"{folder}mlp_{next(iter(runs))}.json")
 
 
 # ------------------------------------------------------------------------------------------------ comparisons
@@ -404,18 +400,12 @@ def comparisons(r: Results) -> list:
         if value is not None:
             out.append(dict(what=what, value=value, higher=higher, machine=r.short(name), anchor=anchor))
 
-    d = r.cpu.get("bench_mlp.json")
-    if d:
-        rows = d.get("rows", {})
-        add("camera rays per second, the learned map ÷ the tracer",
-            div(rows.get(FUSED_MLP, {}).get("mrays_per_s"), rows.get(EXACT_MLP, {}).get("mrays_per_s")),
-            True, "bench_mlp.json", "camera-rays")
-    d = r.cpu.get("bench_render.json")
-    if d:
-        res = d.get("results", {})
-        add("render time, `neural_lens` ÷ `realistic_lens`",
-            div(res.get("neural_lens", {}).get("render_s"), res.get("realistic_lens", {}).get("render_s")),
-            False, "bench_render.json", "render-time")
+    if r.cpu_mlp:
+        add("camera rays per second, the learned map ÷ the tracer", _mlp_ratios(r.cpu_mlp), True,
+            f"mlp_{next(iter(r.cpu_mlp))}.json", "camera-rays")
+    if r.cpu_render:
+        add("render time, `neural_lens` ÷ `realistic_lens`", _render_ratios(r.cpu_render), False,
+            f"render_{next(iter(r.cpu_render))}.json", "render-time")
     d = r.cpu.get("equal_time.json")
     if d:
         eq_spp, eq_t = [], []
@@ -434,19 +424,29 @@ def comparisons(r: Results) -> list:
             _range([div(x.get("neural_pilot", {}).get("samples_per_s"), x.get("exact_pilot", {}).get("samples_per_s"))
                     for x in d.get("rows", [])]), True, "bench_flare.json", "lens-flare")
     if r.gpu_mlp:
-        add("camera rays per second, the learned map ÷ the tracer",
-            _range([div(x.get("rows", {}).get(FUSED_MLP, {}).get("mrays_per_s"),
-                        x.get("rows", {}).get(EXACT_MLP, {}).get("mrays_per_s")) for x in r.gpu_mlp.values()]),
-            True, f"gpu/mlp_{next(iter(r.gpu_mlp))}.json", "on-a-gpu")
+        add("camera rays per second, the learned map ÷ the tracer", _mlp_ratios(r.gpu_mlp), True,
+            f"gpu/mlp_{next(iter(r.gpu_mlp))}.json", "on-a-gpu")
     if r.gpu_render:
-        v = []
-        for x in r.gpu_render.values():
-            res, fast = x.get("results", {}), x.get("fastest", {})
-            v.append(div(res.get(fast.get("neural_lens"), {}).get("render_s"),
-                         res.get(fast.get("realistic_lens"), {}).get("render_s")))
-        add("render time, `neural_lens` ÷ `realistic_lens` (each at its faster `ray_kernel`)", _range(v), False,
-            f"gpu/render_{next(iter(r.gpu_render))}.json", "on-a-gpu")
+        add("render time, `neural_lens` ÷ `realistic_lens` (each at its faster `ray_kernel`)",
+            _render_ratios(r.gpu_render), False, f"gpu/render_{next(iter(r.gpu_render))}.json", "on-a-gpu")
     return out
+
+
+def _mlp_ratios(runs: dict):
+    """The fused camera map's rate ÷ the tracer's, over the lenses of ``runs`` (lens → bench_mlp.py's JSON)."""
+    return _range([div(x.get("rows", {}).get(FUSED_MLP, {}).get("mrays_per_s"),
+                       x.get("rows", {}).get(EXACT_MLP, {}).get("mrays_per_s")) for x in runs.values()])
+
+
+def _render_ratios(runs: dict):
+    """neural_lens's render time ÷ realistic_lens's, each at its faster ``ray_kernel``, over the lenses of ``runs``
+    (lens → bench_render.py's JSON)."""
+    v = []
+    for x in runs.values():
+        res, fast = x.get("results", {}), x.get("fastest", {})
+        v.append(div(res.get(fast.get("neural_lens", "neural_lens"), {}).get("render_s"),
+                     res.get(fast.get("realistic_lens", "realistic_lens"), {}).get("render_s")))
+    return _range(v)
 
 
 def _range(values):
@@ -593,6 +593,10 @@ def take_run(src: str, names: list, dest: str, machine: tuple, command_of) -> li
 
 
 def _cpu_command(name, d):
+    for prefix, script in (("mlp_", "bench_mlp"), ("render_", "bench_render")):
+        if name.startswith(prefix):          # the Makefile's per-lens runs: the command line without --out
+            cmd = d.get("command") if isinstance(d.get("command"), str) else ""
+            return cmd.split(" --out ")[0] or f"python benchmarks/{script}.py --lens {name[len(prefix):-5]}"
     if isinstance(d.get("command"), str) and d["command"].strip():
         cmd = d["command"].split(" --out ")[0]
         return cmd if not name.startswith("accuracy_") else cmd + " --out out/bench"
@@ -619,7 +623,8 @@ def main(argv=None) -> int:
     ap.add_argument("--check", action="store_true", help="write nothing; exit 1 if a generated block differs")
     a = ap.parse_args(argv)
     if a.src:
-        names = list(CPU_FILES) + sorted(os.path.basename(p) for p in glob.glob(os.path.join(a.src, "accuracy_*.json")))
+        names = list(CPU_FILES) + sorted(os.path.basename(p) for p in glob.glob(os.path.join(a.src, "*.json"))
+                                         if os.path.basename(p).startswith(("accuracy_", "mlp_", "render_")))
         m = (a.machine, a.machine.split(",")[0]) if a.machine else detect_machine()
         print("took", ", ".join(take_run(a.src, names, PERF, m, _cpu_command)) or "nothing")
     if a.gpu_from:
