@@ -76,8 +76,7 @@ class FlareOptions:
     model: object = None               #: NeuralLensModel or a file (default: the sensor's model)
     #: how learned ghost maps enter their kernels: "fused" (weights as literals: a kernel per map), "shared"
     #: (every number a kernel input, the weights in packed buffers on LLVM: one kernel per architecture),
-    #: "coopvec", or "auto" (shared from SHARED_FROM learned maps of one render on; docs/results.md, "One
-    #: compilation")
+    #: "coopvec", or "auto" (shared from SHARED_FROM learned maps of one render on: flare/policy.py says why)
     mlp: str = "auto"
     #: replay each ghost's kernels instead of tracing them again (``dr.freeze``): learned maps of one architecture
     #: share one recording, and a renderer's later renders replay all of them (FlareKernels.run, flare/kernels.py)

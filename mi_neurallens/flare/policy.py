@@ -21,7 +21,7 @@ from .options import BASELINE_MODES, FlareError
 #: kernel inputs (``"shared"``: one compilation per architecture, ≈ 1 s on a CPU with packed weights) instead
 #: of literals (one compilation per map, 1–8 s each): the first render on an empty kernel cache is then the
 #: shorter one from two maps on; warm, the literals are 2 ms (3×16 maps) to 60 ms (5×32) per map and render
-#: faster, which repays their compilation after 100–500 renders (docs/results.md, "One compilation")
+#: faster, which repays their compilation after 100–500 renders
 SHARED_FROM = 2
 
 

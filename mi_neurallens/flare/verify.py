@@ -29,7 +29,7 @@ import math
 import time
 
 #: light positions (m; x, y at z = 5 m in front of the lens): the night scene's (10° / 5° off axis) and one
-#: near the axis, where the ghosts overlap most and the maps' errors showed most (docs/results.md)
+#: near the axis, where the ghosts overlap most and the maps' errors showed most
 LIGHTS = ((0.9, 0.45), (0.15, 0.1))
 #: the verification lights lie within this fraction of the tangent of the field a model's ghost maps learned: a long
 #: lens's narrow field gets :data:`LIGHTS` scaled toward the axis (:func:`verification_lights`); every bundled model's
@@ -48,7 +48,8 @@ MAX_SAMPLES_LOG2 = 26
 CONVERGED_DROP = 0.1
 #: the boundary bands a ghost is verified at, each only for the ghosts the bands before leave above the gate
 #: (:func:`record_flare_errors`, ``mi-neurallens train``'s ``verify_flare_bands``): the learned edges, then their
-#: samples within ±1 logit traced, then within ±2 (a fold's edge, whose wrong rays lie further out: docs/results.md)
+#: samples within ±1 logit traced, then within ±2 (a fold's edge, whose wrong rays lie further out: dgauss-50mm's
+#: 33024 measured 0.77, 0.070 and 0.0092 at bands 0, 1 and 2)
 BANDS = (0.0, 1.0, 2.0)
 
 
