@@ -27,7 +27,7 @@ class FlareOptions:
     #: film pixels, the tracer elsewhere
     auto_max_error_px: float = 0.1
     #: mode auto: and, where the model records a verified flare error for the map (``metrics["flare"]``,
-    #: :mod:`mi_neurallens.flare.verify`), only if that paired MAPE is at most this (0.01: issue 17's per-ghost goal)
+    #: :mod:`mi_neurallens.flare.verify`), only if that paired MAPE is at most this (0.01: the per-ghost flare goal)
     auto_max_flare_error: float = 0.01
     #: mode auto: and, where the model records what the map costs against tracing its ghost on this backend
     #: (``metrics["flare_cost"]``, :func:`~mi_neurallens.flare.verify.record_flare_costs`), only if its cost per sample

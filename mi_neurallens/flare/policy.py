@@ -147,7 +147,7 @@ class FlarePolicy:
                    "cannot reproduce an iris reaching beyond the trained one (polygon corners near wide open)")
             raise FlareError(f"lens_flare: mode='neural': the learned map of ghost {tm.path_id} {why}, so it "
                              f"cannot render the iris {self.iris.describe()}; use mode='auto' (exact where "
-                             f"a map cannot) or add stop heads (`mi-neurallens train LENS --keep both`)")
+                             f"a map cannot) or add stop heads (`mi-neurallens train LENS --keep networks`)")
         return None
 
 

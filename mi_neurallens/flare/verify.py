@@ -2,9 +2,9 @@
 
 The held-out metrics of a map (exit position in µm, misclassification) do not say how wrong its *flare*
 is: a ghost's image also depends on where its classifier's edge sits and on how its errors add up over
-the film.  This module measures that directly, the protocol of ``benchmarks/flare_edges.py``:
+the film.  This module measures that directly:
 
-* a point light in front of the lens (``scenes/night_point.xml``: 100 W/sr at ``light`` m, the camera at
+* a point light in front of the lens (the bundled scene ``night_point``: 100 W/sr at ``light`` m, the camera at
   the origin looking down +z), a small film;
 * the ghost rendered alone, once by the tracer and once by its learned map, **with the same samples**
   (``pilot_with = "exact"``, same seed: common random numbers), so Monte Carlo noise cancels and what is
