@@ -9,7 +9,7 @@
 
 * the demo's three renders (``make demo``): the still life through the 22 mm lens with
   ``realistic_lens`` at a high spp (the reference), ``realistic_lens`` and ``neural_lens`` at a low spp;
-* a flare render of ``scenes/night_point.xml``, exact and neural (``mode = exact`` / ``auto``), per ghost;
+* a flare render of the bundled scene ``night_point``, exact and neural (``mode = exact`` / ``auto``), per ghost;
 * ``evaluate`` of the bundled 22 mm model (its backward transmit map and its first ghost map);
 * every transport map method (exact, neural, ABCD, Taylor 3/5) on the same fixed lens-space rays;
 * ``Lens.trace`` in float32 and float64, transmit and a ghost.

@@ -210,8 +210,7 @@ def _bokeh(mi, kind, fstop, blades, rotation=0.0, model="wide-22mm", n=80, spp=2
 def test_bokeh_blades_neural_equals_exact_and_a_wrong_stop_fails(tmp_path):
     """The out-of-focus image of a point light through 5, 6 and 9 blades at 4× the widest f-number:
     neural and exact masks (same seeds) agree to IoU ≥ 0.98; a stop head whose crossing is off by
-    20 µm, or blades rotated by half a blade, fail that bound.  (``benchmarks/aperture.py --bokeh`` measures
-    the three paper lenses at 2×, 4× and 8×: docs/results.md, "The aperture goals on today's camera maps".)"""
+    20 µm, or blades rotated by half a blade, fail that bound."""
     mi = _mitsuba()
     lens = Lens.load("wide-22mm")
     N = 4.0 * lens.paraxial(LAMBDA_D).fnumber

@@ -284,7 +284,8 @@ MODEL = bundled_model_path("wide-22mm")
 
 def _model_with_ghost():
     if not os.path.exists(MODEL):
-        return None, "no bundled neural model for wide-22mm yet (lenses/models/wide-22mm.model.safetensors)"
+        return None, ("no bundled neural model for wide-22mm yet "
+                      "(mi_neurallens/data/lenses/models/wide-22mm.model.safetensors)")
     from mi_neurallens.neural.model import NeuralLensModel
     try:
         m = NeuralLensModel.load(MODEL)

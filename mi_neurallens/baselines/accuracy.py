@@ -20,7 +20,7 @@ reference's peak — the plain MAPE of a mostly black image is dominated by empt
 sees the same rays, so the error is the map's, not Monte Carlo noise.
 
 These tables are measurements, never render time: :func:`evaluate_path` draws its held-out rays with the
-training's samplers (``mi_neurallens.training.data``, ``training.evaluate``), imported inside it only.
+training's sampler (:mod:`mi_neurallens.transport.sampling`), imported inside it only.
 """
 from __future__ import annotations
 

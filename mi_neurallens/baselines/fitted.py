@@ -5,11 +5,11 @@ normalised to [−1, 1] as ``(2r/r_max − 1, ωx/s_max, ωy/s_max, (λ − λ_c
 (λ_c, λ_h: centre and half width of its λ range).  Outputs, in the reduced frame: exit position (x, y) on ``z_out``, exit
 direction cosines (dx, dy), Fresnel throughput T — the same as the neural regressor.
 
-Data: valid rays traced exactly (float64) over the domain the neural map uses, with the training code's
-samplers (uniform over the valid region by rejection, or the Metropolis sampler for rare paths:
+Data: valid rays traced exactly (float64) over the domain the neural map uses, with the training data's
+sampler (uniform over the valid region by rejection, or the Metropolis sampler for rare paths:
 :func:`mi_neurallens.transport.sampling.heldout_valid`), ``n_samples`` of them (default 20 000; lentil
-uses 15 000).  That sampler is the one import of ``mi_neurallens.training`` here, made inside the fit
-(:class:`FittedMap`'s constructor) only: a fitted map is fitted when it is built.
+uses 15 000).  The sampler is imported inside the fit (:class:`FittedMap`'s constructor) only: a fitted map is
+fitted when it is built.
 
 Term selection: per output, **orthogonal matching pursuit** over the template of all monomials of total
 degree ≤ ``degree`` (default 11, like lentil) that have the output's parity in ωy (mirror symmetry makes
@@ -86,7 +86,7 @@ class FittedMap(BaselineMap):
                 valid = "aperture"
         self.valid_mode = valid
         # --- regressor data and fit
-        if data is None:                # the fit's data: the training's held-out sampler (its one use here)
+        if data is None:                # the fit's data: the training's held-out sampler
             from ..transport.sampling import heldout_valid
             data = heldout_valid(lens, (self.path_id, direction, self.z_in, self.z_out), d, n_samples, seed,
                                  fresnel=fresnel)

@@ -187,7 +187,7 @@ class FlareKernels:
         (:meth:`~mi_neurallens.flare.evaluator.GhostEvaluator.freeze_key`) is the evaluator's own for the tracer
         and literal maps, and the architecture's for learned maps with kernel parameters, whose numbers and packed
         networks are then inputs: one recording serves every ghost map of one architecture, in this render and
-        the next (a learned ghost traced again cost ≈ 20 ms per render, docs/results.md).  Everything else a
+        the next (a learned ghost traced again cost ≈ 20 ms per render).  Everything else a
         kernel reads is an input too (the light, the scene, the transforms); the constants of this object (lens,
         film, sensor) are fixed for its life.  A signature that cannot be frozen (Dr.Jit refuses a recording that
         reads a variable it was not given) is traced, the reason kept in :attr:`unfrozen`."""

@@ -27,7 +27,7 @@ class FlareOptions:
     #: film pixels, the tracer elsewhere
     auto_max_error_px: float = 0.1
     #: mode auto: and, where the model records a verified flare error for the map (``metrics["flare"]``,
-    #: :mod:`mi_neurallens.flare.verify`), only if that paired MAPE is at most this (0.01: issue 17's per-ghost goal)
+    #: :mod:`mi_neurallens.flare.verify`), only if that paired MAPE is at most this (0.01: the per-ghost flare goal)
     auto_max_flare_error: float = 0.01
     #: mode auto: and, where the model records what the map costs against tracing its ghost on this backend
     #: (``metrics["flare_cost"]``, :func:`~mi_neurallens.flare.verify.record_flare_costs`), only if its cost per sample
@@ -76,8 +76,7 @@ class FlareOptions:
     model: object = None               #: NeuralLensModel or a file (default: the sensor's model)
     #: how learned ghost maps enter their kernels: "fused" (weights as literals: a kernel per map), "shared"
     #: (every number a kernel input, the weights in packed buffers on LLVM: one kernel per architecture),
-    #: "coopvec", or "auto" (shared from SHARED_FROM learned maps of one render on; docs/results.md, "One
-    #: compilation")
+    #: "coopvec", or "auto" (shared from SHARED_FROM learned maps of one render on: flare/policy.py says why)
     mlp: str = "auto"
     #: replay each ghost's kernels instead of tracing them again (``dr.freeze``): learned maps of one architecture
     #: share one recording, and a renderer's later renders replay all of them (FlareKernels.run, flare/kernels.py)

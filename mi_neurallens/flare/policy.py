@@ -21,7 +21,7 @@ from .options import BASELINE_MODES, FlareError
 #: kernel inputs (``"shared"``: one compilation per architecture, ≈ 1 s on a CPU with packed weights) instead
 #: of literals (one compilation per map, 1–8 s each): the first render on an empty kernel cache is then the
 #: shorter one from two maps on; warm, the literals are 2 ms (3×16 maps) to 60 ms (5×32) per map and render
-#: faster, which repays their compilation after 100–500 renders (docs/results.md, "One compilation")
+#: faster, which repays their compilation after 100–500 renders
 SHARED_FROM = 2
 
 
@@ -147,7 +147,7 @@ class FlarePolicy:
                    "cannot reproduce an iris reaching beyond the trained one (polygon corners near wide open)")
             raise FlareError(f"lens_flare: mode='neural': the learned map of ghost {tm.path_id} {why}, so it "
                              f"cannot render the iris {self.iris.describe()}; use mode='auto' (exact where "
-                             f"a map cannot) or add stop heads (`mi-neurallens train LENS --keep both`)")
+                             f"a map cannot) or add stop heads (`mi-neurallens train LENS --keep networks`)")
         return None
 
 

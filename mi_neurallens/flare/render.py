@@ -307,7 +307,8 @@ class FlareRenderer:
                 raise ModelError(f"lens_flare: the model {m.path or ''} has no forward map for path {pid}; "
                                  f"it has ghost maps {m.ghost_ids}; use mode='auto' (exact for missing ghosts), "
                                  f"restrict 'ghosts', or train it (`mi-neurallens train {self.lens.name} "
-                                 f"--paths {pid} --out DIR`, then training/merge_maps.py: docs/training.md)")
+                                 f"--paths {pid} --out DIR`, then `mi-neurallens merge` its maps into this model: "
+                                 f"docs/training.md)")
             tmap = self._learned(m.map(pid, "forward"), strict=True)
         else:                              # auto: the learned map where its gates let it in, at its band
             band, _ = self.auto_choice(pid)

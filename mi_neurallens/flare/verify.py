@@ -2,9 +2,9 @@
 
 The held-out metrics of a map (exit position in µm, misclassification) do not say how wrong its *flare*
 is: a ghost's image also depends on where its classifier's edge sits and on how its errors add up over
-the film.  This module measures that directly, the protocol of ``benchmarks/flare_edges.py``:
+the film.  This module measures that directly:
 
-* a point light in front of the lens (``scenes/night_point.xml``: 100 W/sr at ``light`` m, the camera at
+* a point light in front of the lens (the bundled scene ``night_point``: 100 W/sr at ``light`` m, the camera at
   the origin looking down +z), a small film;
 * the ghost rendered alone, once by the tracer and once by its learned map, **with the same samples**
   (``pilot_with = "exact"``, same seed: common random numbers), so Monte Carlo noise cancels and what is
@@ -29,7 +29,7 @@ import math
 import time
 
 #: light positions (m; x, y at z = 5 m in front of the lens): the night scene's (10° / 5° off axis) and one
-#: near the axis, where the ghosts overlap most and the maps' errors showed most (docs/results.md)
+#: near the axis, where the ghosts overlap most and the maps' errors showed most
 LIGHTS = ((0.9, 0.45), (0.15, 0.1))
 #: the verification lights lie within this fraction of the tangent of the field a model's ghost maps learned: a long
 #: lens's narrow field gets :data:`LIGHTS` scaled toward the axis (:func:`verification_lights`); every bundled model's
@@ -48,7 +48,8 @@ MAX_SAMPLES_LOG2 = 26
 CONVERGED_DROP = 0.1
 #: the boundary bands a ghost is verified at, each only for the ghosts the bands before leave above the gate
 #: (:func:`record_flare_errors`, ``mi-neurallens train``'s ``verify_flare_bands``): the learned edges, then their
-#: samples within ±1 logit traced, then within ±2 (a fold's edge, whose wrong rays lie further out: docs/results.md)
+#: samples within ±1 logit traced, then within ±2 (a fold's edge, whose wrong rays lie further out: dgauss-50mm's
+#: 33024 measured 0.77, 0.070 and 0.0092 at bands 0, 1 and 2)
 BANDS = (0.0, 1.0, 2.0)
 
 

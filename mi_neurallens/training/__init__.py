@@ -1,6 +1,7 @@
 """Training the learned maps (torch is imported lazily, inside the functions).
 
-* the data: ``data.py`` (the tracer's samples, MCMC), ``bounds.py``, ``plan.py`` (planes and domains, from
+* the data: ``data.py`` (the training streams, drawn through the exact map's sampler in
+  :mod:`mi_neurallens.transport.sampling` and :mod:`~mi_neurallens.transport.bounds`; planes and domains in
   :mod:`mi_neurallens.transport.planes`), ``config.py`` (recipes and their defaults);
 * one network: ``nets.py`` (torch helpers), ``outputs.py`` (output standardisation, loss weights),
   ``regressor.py``, ``classifier.py``, ``stop_head.py`` (each network's problem and its training),

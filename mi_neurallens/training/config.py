@@ -1,6 +1,7 @@
 """Training configuration: dataclasses with defaults, read from TOML (``tomllib``).
 
-A per-lens file ``training/<lens>.toml`` overrides any field; unknown keys are an error (typos must
+A lens's recipe, ``recipes/<lens>.toml`` of its lens library (the bundled ones in
+``mi_neurallens/data/lenses/recipes/``), overrides any field; unknown keys are an error (typos must
 not silently fall back to defaults).  ``schedule = "paper"`` in a ``[regressor]``/``[classifier]``
 table selects the paper's schedule (Adam, lr 1e-4 × 0.95 every 10k batches, batch 8192, no residual,
 cosine direction loss); the default ``"fast"`` schedule is what we measured to reach the paper's
@@ -115,8 +116,8 @@ PAPER = dict(schedule="paper", lr=1e-4, decay=0.95, decay_every=10000, batch=819
 
 @dataclass
 class TrainConfig:
-    """A lens's training recipe (``training/<lens>.toml``); the defaults' histories: docs/training.md, "How the
-    defaults were chosen"."""
+    """A lens's training recipe (``recipes/<lens>.toml`` of its lens library); the defaults' histories:
+    docs/training.md, "How the defaults were chosen"."""
 
     lens: str = ""
     seed: int = 1

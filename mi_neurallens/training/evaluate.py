@@ -22,7 +22,7 @@ def map_outputs_np(tm, x):
     through the Dr.Jit core with the map's numbers as kernel parameters (``mlp = "shared"``): every map of
     one architecture then runs one compiled kernel, where literals compiled one per map and per weight set
     (the calibration's shifted bias is another) — 1.7 s of LLVM compilation a ghost, 48 s of a lens's 28
-    forward maps on this CPU (docs/results.md, "The data set-up").  The arithmetic is the literals' own."""
+    forward maps on a 2-core CPU.  The arithmetic is the literals' own."""
     import dataclasses
     if getattr(tm, "mlp", "shared") != "shared":
         tm = dataclasses.replace(tm, mlp="shared")

@@ -23,7 +23,7 @@ def input_box(x, center, scale):
     map's ``center``/``scale``.  Measured for the stop heads (``FORWARD_STOP``): 278528's head reached
     3.98–5.19 µm median on its box where the map's normalisation gave 5.35–5.81 (three runs each, the same
     cost), dgauss-50mm's 28 heads met their goals in 0.83× the time, and the Canon EF's seven three-crossing
-    heads came out 5–46 % lower (docs/results.md, "The last one, 278528")."""
+    heads came out 5–46 % lower."""
     x = np.asarray(x, np.float64)
     c, s = np.array(center, np.float64), np.array(scale, np.float64)
     lo, hi = x.min(0), x.max(0)

@@ -15,7 +15,7 @@ output layer's blocks per output, :meth:`FlatMLP.normal_equations`), and takes t
 accepting it when the batch's loss falls (λ ÷ 3) and otherwise raising λ × 4 and solving again.
 Measured on the Canon's strongest ghost (3×16 regressor): from its shipped Adam weights (14.3 µm
 median exit-position error) to 4.4 µm in 90 s, and from random weights to 3.8 µm in 120 s, where Adam
-had reached 14–17 µm in 75 s–5 min (docs/results.md, "Second-order training").
+had reached 14–17 µm in 75 s–5 min.
 
 A run's networks finish after Adam through :func:`finish_results`: those that missed their goals and are small
 enough, in stacks of one shape (:func:`lm_stack_size`: one on a CPU, many on a GPU), each saved as it finishes.
@@ -338,7 +338,7 @@ def _gram_columns(torch, JT, out):
     """``out`` (…, P, P) ← JᵀJ from ``JT`` = Jᵀ (…, P, rows), contiguous, by oneDNN's products: the same
     blocks (:func:`_gram_blocks`).  PyTorch's own CPU product (MKL) runs AVX2 code on AMD processors; oneDNN's uses the
     full vector width: the Gram of a 3×16 regressor's 40 960 × 625 Jacobian took 116 ms through MKL and ≈ 60 here
-    (2 Zen 5 cores, docs/results.md "One kernel a step")."""
+    (2 Zen 5 cores)."""
     lin = torch.ops.mkldnn._linear_pointwise
     for idx in np.ndindex(*JT.shape[:-2]):
         J1 = JT[idx]

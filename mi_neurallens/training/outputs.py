@@ -68,8 +68,7 @@ def fit_output_transform(xn: np.ndarray, y: np.ndarray, residual: str, M: np.nda
     (a (k+1)² system per column: the columns are the normalised inputs, about [−1, 1], and a constant, so it
     is well conditioned), and a second blocked pass takes the residuals' spread.  ``np.linalg.lstsq`` on
     the whole (N, k+1) design matrix cost 0.11 s a column on a map's two million pool rows, mostly memory
-    traffic through full-size temporaries: 15 s of a lens's 28 forward maps' set-up (docs/results.md, "The
-    data set-up")."""
+    traffic through full-size temporaries: 15 s of a lens's 28 forward maps' set-up."""
     n, k = xn.shape
     c = y.shape[1]
     if residual not in ("linear", "none"):

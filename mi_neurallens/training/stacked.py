@@ -38,8 +38,8 @@ from . import fused_cpu
 
 CHECKPOINT_SECONDS = 60.0
 #: rows per step (maps × batch) of a CPU stack: measured fastest on a 2-core AVX-512 machine (1.37 M
-#: samples/s at 4 × 8192, against 1.03 M at 16 × 8192: benchmarks/training_throughput.py --grid); with the fused
-#: step (fused_cpu) the stack size matters less (1, 4 and 16 regressors within 7 %: docs/results.md)
+#: samples/s at 4 × 8192, against 1.03 M at 16 × 8192, PyTorch's operations); with the fused step (fused_cpu)
+#: the stack size matters less (1, 4 and 16 regressors within 7 % of each other)
 CPU_STACK_ROWS = 32768
 #: memory the sample pools of one stack may take (bytes); a larger stack gets smaller pools per map
 POOL_BYTES = 3 << 30
@@ -142,7 +142,7 @@ def training_tanh(torch, device=None):
     used), and the Levenberg–Marquardt finish, which sets the weights a map ships with, uses ``torch.tanh``
     anyway.  On a CPU the fused rational takes 167 µs for the 1 M activations of a 4 × 8192 × 32 stack, where
     ``torch.tanh`` takes 1.1 ms (2 cores, AVX-512), for a one-time compilation a process (≈ 17 s on an empty cache; a C++
-    compiler; docs/results.md, "The data set-up" and "Training many maps at once").  On a
+    compiler).  On a
     GPU ``torch.tanh`` is already one kernel forward and one backward, the most a fused version could be,
     so compiling (Inductor and Triton, on an empty cache) could only add to the set-up."""
     kind = torch.device(device).type if device is not None else "cpu"
@@ -359,7 +359,7 @@ def pool_rows(nc, n_maps: int, row_bytes: int) -> int:
 # ----------------------------------------------------------------------------- the loop
 def stack_size(dev, batch: int) -> int:
     """How many maps one stack holds: on a CPU, stacks of about :data:`CPU_STACK_ROWS` rows per step (K ×
-    batch) train fastest — larger ones spill the activations out of cache (benchmarks/training_throughput.py);
+    batch) train fastest — larger ones spill the activations out of cache;
     on a GPU, every map at once."""
     if str(dev).startswith("cuda"):
         return 1 << 30

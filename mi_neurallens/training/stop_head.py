@@ -37,8 +37,8 @@ def stop_loss_weights(mode: str, oscale) -> np.ndarray:
     (:func:`~mi_neurallens.training.outputs.loss_weights`), normalised to mean 1 and floored at 0.05.  It
     moves the network's effort from the narrow columns (sy, whose spread the odd-y factor makes small) to the
     wide ones, where the µm error is: on the Canon EF's two worst three-crossing heads it gave 8.8 and 4.2 µm
-    median where ``uniform`` gave 12.5 and 7.6 (and the physical MSE, ∝ ``oscale``², 12.5 and 5.1;
-    docs/results.md).  ``uniform``: all 1 (each column's error relative to its own spread)."""
+    median where ``uniform`` gave 12.5 and 7.6 (and the physical MSE, ∝ ``oscale``², 12.5 and 5.1).
+    ``uniform``: all 1 (each column's error relative to its own spread)."""
     oscale = np.asarray(oscale, np.float64)
     if mode == "uniform":
         return np.ones(len(oscale))

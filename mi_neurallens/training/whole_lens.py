@@ -357,8 +357,7 @@ def _finish_missed(lens, cfg: TrainConfig, out_path: str, trained, workdir: str,
     ``finish_only = "maps"`` run of just those ghosts, ``stop_at_goals`` off, verified as any run), and each ghost's
     better map kept — the finished one where its best record is lower.  A ghost that misses by its regressor (the
     error inside the ghost, or on its edge where no band reaches) usually has more to give than its goals asked
-    for: the Leica Summicron-R 50's 2560 and 20 went from 0.0102 and 0.0116 to 0.0080 and 0.0039
-    (docs/results.md).  Each map so finished, kept or not, is marked (:data:`FINISH_MISSED_KEY`), so a rerun
+    for: the Leica Summicron-R 50's 2560 and 20 went from 0.0102 and 0.0116 to 0.0080 and 0.0039.  Each map so finished, kept or not, is marked (:data:`FINISH_MISSED_KEY`), so a rerun
     finishes none twice.  Returns the model."""
     from ..flare.options import FlareOptions
     from ..flare.verify import flare_records, passing_band

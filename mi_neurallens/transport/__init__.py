@@ -4,6 +4,9 @@
   result :class:`MapResult`;
 * :mod:`.exact` — :class:`ExactMap`, the tracer behind the interface;
 * :mod:`.planning` — the reduced input :class:`Domain` and the wavelength sampler (runtime, no torch);
+* :mod:`.planes` — where a lens's maps live: planes, sensor distances, default domains;
+* :mod:`.sampling` and :mod:`.bounds` — the exact map sampled over its reduced domain (training data, held-out
+  sets, the fitted baseline's fit, the accuracy tables), with pilot-traced bounds of the valid region;
 * the learned map is :class:`mi_neurallens.neural.model.NeuralMap`; the polynomial baselines live in
   :mod:`mi_neurallens.baselines` (imported only when one is asked for).
 

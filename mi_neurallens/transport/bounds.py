@@ -1,6 +1,6 @@
 """Pilot-traced bounds of a map's valid region, for rejection sampling that wastes few rays.
 
-The reduced input domain ``(r, ωx, ωy, λ)`` of :mod:`mi_neurallens.training.data` is much larger
+The reduced input domain ``(r, ωx, ωy, λ)`` of :mod:`mi_neurallens.transport.sampling` is much larger
 than the set of rays that pass the lens: for a camera-ray (backward) map, only directions that aim
 at the exit pupil pass, and which ones depends on r.  Uniform rejection sampling over the whole
 domain accepts about 12 % of the rays on the 22 mm lens.

@@ -14,8 +14,8 @@ Planes (lens space, mm, +z toward the sensor; stored in every model file):
   Because rays travel straight through the air between ``z_rear`` and the sensor, one map serves
   every sensor distance in ``[sensor_distance_min, sensor_distance_max]`` (manual focusing).
 
-The defaults a lens's training recipe (``training/<lens>.toml``) may override and that decide these — the close
-focus and the field margin — are written here once (:data:`DEFAULT_CLOSE_FOCUS_MM`,
+The defaults a lens's training recipe (``recipes/<lens>.toml`` of its lens library) may override and that
+decide these — the close focus and the field margin — are written here once (:data:`DEFAULT_CLOSE_FOCUS_MM`,
 :data:`DEFAULT_FIELD_MARGIN`); ``training/config.py``'s ``TrainConfig`` takes its defaults from them, and
 :func:`recipe_close_focus` reads a recipe's close focus without the training configuration.
 """
