@@ -81,7 +81,7 @@ def run(args):
     print(made, flush=True)
     lens = Lens.load(args.lens or probe.lens_name)
     model = load_model(path, lens)
-    rows, out = [], {"model": os.path.abspath(path), "lens": lens.name, "fingerprint": lens.fingerprint(),
+    rows, out = [], {"model": os.path.basename(path), "lens": lens.name, "fingerprint": lens.fingerprint(),
                      "goals": GOALS, "recorded_at_training": bool(args.recorded), "maps": {}}
     for i, (key, tm) in enumerate(model.maps.items()):
         if args.recorded:
