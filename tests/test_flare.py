@@ -274,7 +274,7 @@ def test_flare_model_takes_a_bundled_name():
         pytest.skip("no bundled wide-22mm model")
     m = sensor_model(None, FlareOptions(model="wide-22mm"))
     assert m.lens_name == "wide-22mm" and m.maps
-    with pytest.raises(Exception, match="bundled: .*wide-22mm"):
+    with pytest.raises(Exception, match="models: .*wide-22mm"):
         sensor_model(None, FlareOptions(model="no-such-lens"))
 
 
