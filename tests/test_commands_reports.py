@@ -120,7 +120,7 @@ def test_train_command_keeps_the_bundled_regressor(tmp_path, capsys):
     assert "--keep" in capsys.readouterr().err
     small = ["--set", "heldout=5000", "--set", "forward_classifier.max_steps=60",
              "--set", "forward_classifier.pool=60000", "--set", "forward_classifier.batch=2048",
-             "--set", "forward_classifier.eval_every=30",
+             "--set", "forward_classifier.eval_every=30", "--set", "forward_classifier.lm_iterations=20",
              "--set", "verify_flare_samples=20", "--set", "verify_flare_max_samples=20",
              "--set", "verify_flare_cost_samples=16"]
     assert main(["train", "wide-22mm", "--paths", "192", "--keep", "regressor", "--out", str(tmp_path),

@@ -56,15 +56,21 @@ def regressor_problem(lens, spec, stream, seed: int, key: str, cfg: TrainConfig)
                 seed=seed, s_max=dom.s_max, key=key)
 
 
+def classifier_validation_size(cfg: TrainConfig) -> int:
+    """Rays of a classifier's validation set: :data:`CLASSIFIER_VALIDATION`, or 4 × ``cfg.heldout`` where that is
+    fewer (a quick run with a small held-out set validates its classifier on fewer rays too)."""
+    return min(CLASSIFIER_VALIDATION, 4 * int(cfg.heldout))
+
+
 def classifier_problem(lens, spec, ps, stream, seed: int, key: str, cfg: TrainConfig) -> dict:
     """One map's problem for :func:`~mi_neurallens.training.classifier.train_classifiers`: ``ps`` its float32
     :class:`~mi_neurallens.transport.sampling.PathSampler`, valid inputs drawn from ``stream``; validated on the
-    natural mix (:data:`CLASSIFIER_VALIDATION` rays uniform over the domain, float64 labels, ``seed + 11``) —
+    natural mix (:func:`classifier_validation_size` rays uniform over the domain, float64 labels, ``seed + 11``) —
     large, because only the few rays near the boundary tell two good classifiers apart (0.02 % of 400 k = 80
     errors)."""
     p, d, zi, zo, dom = spec
     psv = PathSampler(lens, p, d, zi, zo, dom, fresnel=cfg.fresnel, precision="float64")
-    xcv = dom.u_to_x(np.random.default_rng(seed + 11).random((CLASSIFIER_VALIDATION, 4)))
+    xcv = dom.u_to_x(np.random.default_rng(seed + 11).random((classifier_validation_size(cfg), 4)))
     lcv, _ = psv.trace_x(xcv)
     center, scale_in = dom.norm_center_scale()
     return dict(ps=ps, valid_u_source=(lambda n, s=stream: s.sample(n)[0]), val=(xcv, lcv), center=center,
