@@ -399,11 +399,11 @@ def test_tiny_training_run_learns(tmp_path):
                  max_minutes=1.0, warmup_steps=20, residual="none", patience=100, loss_weights="uniform",
                  lm_minutes=0.0)                 # Adam alone (tests/test_levenberg.py tests the finish)
     cfg = load_config(overrides={"regressor": dict(small, max_steps=600, lr=1e-2),
-                                 "classifier": dict(small, hidden=2, width=32, max_steps=1000, lr=1e-2,
+                                 "classifier": dict(small, hidden=2, width=32, max_steps=600, lr=1e-2,
                                                     target="label"),
                                  "stop": dict(small, hidden=2, width=16, max_steps=300, lr=1e-2, residual="linear"),
-                                 "heldout": 20000, "threads": 1})
-    tm = train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, str(tmp_path), progress=False, eval_n=20000)
+                                 "heldout": 10000, "threads": 1})
+    tm = train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, str(tmp_path), progress=False, eval_n=10000)
     m = tm.metrics
     # where the wall time went, per phase of the call (what `train` reports after each direction)
     ph = tm.training["phase_seconds"]
@@ -422,12 +422,12 @@ def test_tiny_training_run_learns(tmp_path):
     assert m["classifier"]["misclassification"] < 0.3 * min(m["classifier"]["valid_fraction"], 1 - m["classifier"]["valid_fraction"])
     # the default margin target (interval regression of the aperture margin) learns a classifier too
     cfgm = load_config(overrides={"regressor": dict(small, max_steps=600, lr=1e-2),
-                                  "classifier": dict(small, hidden=2, width=32, max_steps=1000, lr=1e-2,
+                                  "classifier": dict(small, hidden=2, width=32, max_steps=600, lr=1e-2,
                                                      target="margin"),
                                   "stop": dict(small, max_minutes=0.0),      # no stop head: none is needed here
-                                  "heldout": 20000, "threads": 1})
+                                  "heldout": 10000, "threads": 1})
     tmm = train_map(lens, 0, "backward", z_rear, z_front, dom, cfgm, str(tmp_path / "margin"), progress=False,
-                    eval_n=20000)
+                    eval_n=10000)
     mm = tmm.metrics["classifier"]
     # a stop head trains with the map (here a tiny one), unless its time budget is 0
     assert tm.stop_head is not None and tmm.stop_head is None and "stop" not in tmm.metrics
@@ -443,7 +443,7 @@ def test_tiny_training_run_learns(tmp_path):
     model.maps[tm.key] = tm
     model.save(str(tmp_path / "thick.model.safetensors"))
     back = load_model(str(tmp_path / "thick.model.safetensors"), lens)
-    assert back.map("transmit", "backward").metrics["regressor"]["n"] == 20000
+    assert back.map("transmit", "backward").metrics["regressor"]["n"] == 10000
     # odd_y (the default): y and dy vanish exactly on the mirror plane ωy = 0, as the tracer's do, so
     # the undo of the reflection leaves no seam; the flag survives the file, and Dr.Jit agrees with numpy
     tb = back.map("transmit", "backward")
@@ -459,7 +459,7 @@ def test_tiny_training_run_learns(tmp_path):
     # keep = "regressor": only the classifier trains (here a margin one, in another work directory); the
     # regressor, its output transform and its training record come unchanged from the base map
     tk = train_map(lens, 0, "backward", z_rear, z_front, dom, cfgm, str(tmp_path / "keep"), progress=False,
-                   eval_n=20000, keep="regressor", base=tb)
+                   eval_n=10000, keep="regressor", base=tb)
     for (W, b), (W0, b0) in zip(tk.regressor, tb.regressor):
         np.testing.assert_array_equal(W, W0)
         np.testing.assert_array_equal(b, b0)
