@@ -574,7 +574,7 @@ def test_refinement_stops_where_the_paired_error_decides():
 def test_learned_ghosts_share_one_kernel_per_architecture_from_several_maps_on():
     """mlp = auto: a render with at least SHARED_FROM learned ghost maps evaluates them with kernel parameters
     (one kernel per architecture), fewer with literals; exact renders and an explicit mlp are left alone."""
-    from mi_neurallens.flare.render import SHARED_FROM
+    from mi_neurallens.flare.policy import SHARED_FROM
     from mi_neurallens.neural.model import bundled_model_path, load_model
     m = load_model(bundled_model_path("wide-22mm"))
     ids = m.ghost_ids
@@ -648,7 +648,7 @@ def test_iris_band_traces_the_iris_edges_exactly():
     per cent of its samples.  ``auto`` traces the iris's edge by default (its records were measured wide open),
     ``neural`` with ``boundary_band``."""
     from mi_neurallens.commands.render import load_scene
-    from mi_neurallens.flare.render import iris_band_mm
+    from mi_neurallens.flare.evaluator import iris_band_mm
     from mi_neurallens.flare.verify import paired_renders
     from mi_neurallens.metrics import flare_error_map
     pid = 66048

@@ -58,11 +58,11 @@ from ..jit import from_numpy
 from ..trace.iris import Iris
 from . import policy
 from .energy import front_radius, ghost_energy_ranking, input_plane, select_ghosts, trivial_ghost
-from .evaluator import GhostEvaluator, iris_band_mm  # noqa: F401 (iris_band_mm re-exported)
+from .evaluator import GhostEvaluator
 from .kernels import FlareKernels, ev_hash, rgb
 from .lights import scene_lights
 from .options import BASELINE_MODES, FlareError, FlareOptions
-from .policy import SHARED_FROM, FlarePolicy  # noqa: F401 (SHARED_FROM re-exported)
+from .policy import FlarePolicy
 
 
 @dataclass
