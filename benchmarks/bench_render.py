@@ -24,7 +24,12 @@ import xml.etree.ElementTree as ET
 from mi_neurallens.fileio import atomic_write_json
 from mi_neurallens.neural.mlp import forced_style
 from mi_neurallens.render_utils import add_variant_argument, default_variant
-from mi_neurallens.resources import scene_path
+try:
+    from mi_neurallens.resources import scene_path
+except ImportError:     # a tree from before the scenes were package data (benchmarks/before_after.py runs old trees)
+    def scene_path(name):
+        import mi_neurallens
+        return os.path.join(os.path.dirname(os.path.dirname(mi_neurallens.__file__)), "scenes", f"{name}.xml")
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
