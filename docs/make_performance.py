@@ -343,7 +343,17 @@ def lens_render_table(r: Results, runs: dict, folder: str) -> str:
             f"sensor with `ray_kernel` {ks}; best of {some.get('repeats', '?')} renders after a warm-up.\n\n")
     header = ["lens", "thinlens s", f"realistic_lens s ({ks})", f"neural_lens s ({ks})"] + \
         [f"neural ÷ realistic, {k}" for k in kernels] + ["neural ÷ realistic, each at its faster"]
-    return head + table(header, rows) + "\n" + r.source(f"{folder}render_{next(iter(runs))}.json")
+    return head + table(header, rows) + "\n" + _each_lens(r, f"{folder}render_", runs)
+
+
+def _each_lens(r: Results, prefix: str, runs: dict) -> str:
+    """The source line of a table with one run per lens: the first run's, its lens named as each lens in turn."""
+    first = next(iter(runs))
+    line = r.source(f"{prefix}{first}.json").replace(f"--lens {first}", "--lens LENS", 1)
+    if line.startswith("*`"):
+        end = line.index("`", 2) + 1              # after the command's code span
+        line = line[:end] + " for each LENS of the table" + line[end:]
+    return line
 
 
 def gpu_mlp_table(r: Results) -> str:
@@ -364,7 +374,7 @@ def lens_mlp_table(r: Results, runs: dict, folder: str, scale: float, unit: str)
         fu = rows_in.get(FUSED_MLP, {}).get("mrays_per_s")
         co = rows_in.get(COOP_MLP, {})
         x = (co.get("diff_vs_cpu_style_per_output") or {}).get("x", {})
-        fp16 = fp16 or x.get("p99") is not None
+        fp16 = fp16 or (x.get("p99") is not None and folder == "gpu/")
         rows.append([f"`{lens}`", num(div(ex, scale)), num(div(fu, scale)), ratio(div(fu, ex), 2),
                      num(div(co.get("mrays_per_s"), scale)), ratio(div(co.get("mrays_per_s"), ex), 2),
                      num(1e3 * x["p99"], 2) if x.get("p99") is not None else "—"])
@@ -378,7 +388,7 @@ def lens_mlp_table(r: Results, runs: dict, folder: str, scale: float, unit: str)
         header.append("coopvec x error µm p99")
     else:
         rows = [row[:-1] for row in rows]
-    return head + ".\n\n" + table(header, rows) + "\n" + r.source(f"{folder}mlp_{next(iter(runs))}.json")
+    return head + ".\n\n" + table(header, rows) + "\n" + _each_lens(r, f"{folder}mlp_", runs)
 
 
 # ------------------------------------------------------------------------------------------------ comparisons
