@@ -2,6 +2,11 @@
 fractions before/after the pilot bounds, and equal-time MAPE against a converged exact reference.
 
     python benchmarks/bench_flare.py [--lens wide-22mm] [--ghosts N] [--samples 2^20] [--ref-samples 2^23]
+    python benchmarks/bench_flare.py --coatings none,quarter_wave,broadband [--lens ood-59mm]
+
+With ``--coatings`` it times instead each of the N strongest ghosts traced exactly (pilot bounds) with each
+coating of ``lens_flare`` (best of 5 renders after a compiling one, alternating), and reports each coating's
+time against the first one's.
 
 Prints a table and writes out/bench/bench_flare.json.  MAPE as in `mi-neurallens flare
 --compare` (luminance, mask Y_ref > 1e-2·max, ε = 1e-3·max).
@@ -21,6 +26,7 @@ def main(argv=None):
     p.add_argument("--samples", type=int, default=1 << 20)
     p.add_argument("--ref-samples", type=int, default=1 << 23)
     p.add_argument("--model", default=None)
+    p.add_argument("--coatings", default="", help="comma list of lens_flare coatings to time against the first")
     p.add_argument("--out", default=os.path.join("out", "bench", "bench_flare.json"))
     a = p.parse_args(argv)
     import mitsuba as mi
@@ -40,6 +46,8 @@ def main(argv=None):
                                     "intensity": {"type": "rgb", "value": [100, 100, 100]}}})
     fr0 = FlareRenderer(scene, 0, FlareOptions(mode="exact"))
     ids = fr0.ghost_ids()[:a.ghosts]
+    if a.coatings:
+        return coating_cost(a, scene, ids)
     rows = []
     for pid in ids:
         row = {"path_id": pid}
@@ -89,6 +97,33 @@ def main(argv=None):
                   f"neural {n_eq} samples MAPE {row['neural_equal_time']['mape_vs_ref']:.4f}")
     out = {"machine": platform.processor() or platform.machine(), "threads": dr.thread_count(),
            "lens": a.lens, "samples": a.samples, "ref_samples": a.ref_samples, "model": model, "rows": rows}
+    atomic_write_json(a.out, out, indent=1)
+    print("wrote", a.out)
+
+
+def coating_cost(a, scene, ids, rounds=5):
+    """Seconds per exact ghost render with each coating (best of ``rounds``, coatings alternating)."""
+    import drjit as dr
+    from mi_neurallens.flare.render import FlareOptions, FlareRenderer
+    names = a.coatings.split(",")
+    rows = []
+    for pid in ids:
+        frs = {c: FlareRenderer(scene, 0, FlareOptions(mode="exact", ghosts=[pid], samples=a.samples, coating=c))
+               for c in names}
+        for fr in frs.values():
+            fr.render(seed=0)                                   # compile
+        best = {c: 1e9 for c in names}
+        for k in range(rounds):
+            for c, fr in frs.items():
+                t0 = time.perf_counter(); fr.render(seed=k + 1); dr.sync_thread()
+                best[c] = min(best[c], time.perf_counter() - t0)
+        row = {"path_id": pid, "seconds": best, "ratio": {c: best[c] / best[names[0]] for c in names}}
+        rows.append(row)
+        print(f"{pid:>8} " + "  ".join(f"{c} {best[c] * 1e3:7.1f} ms ({row['ratio'][c]:.3f}x)" for c in names),
+              flush=True)
+    out = {"machine": platform.processor() or platform.machine(), "threads": dr.thread_count(), "lens": a.lens,
+           "samples": a.samples, "coatings": names, "rows": rows,
+           "command": "python benchmarks/bench_flare.py " + " ".join(__import__("sys").argv[1:])}
     atomic_write_json(a.out, out, indent=1)
     print("wrote", a.out)
 

@@ -781,10 +781,16 @@ def test_module_entry_point(tmp_path, capsys):
 
 
 def test_docs_example():
-    """The complete example in docs/lens-format.md validates against the schema and loads as described."""
+    """The complete example in docs/lens-format.md validates against the schema and loads as described; so does
+    its coating-stack example, on a surface."""
     import re
     text = (Path(nl.__file__).parents[1] / "docs" / "lens-format.md").read_text()
-    doc = json.loads(re.findall(r"```json\n(.*?)```", text, re.S)[0])
+    blocks = re.findall(r"```json\n(.*?)```", text, re.S)
+    stack = json.loads([b for b in blocks if '"layers"' in b][0])
+    d = small_doc()
+    d["surfaces"][0]["coating"] = stack
+    assert schema_ok(d) and len(F.load_lens(d).surfaces[0].coating.layers) == 3
+    doc = json.loads([b for b in blocks if '"surfaces"' in b][0])
     assert schema_ok(doc)
     lens = F.load_lens(doc)
     p = lens.paraxial(LAMBDA_D)

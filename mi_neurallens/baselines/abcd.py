@@ -59,10 +59,10 @@ def path_matrices(lens, spec, z_in: float, z_out: float, lam_nm: float):
             if m1 == m2:
                 continue
             M = np.array([[1.0, 0.0], [-(n2 - n1) / n2 * c, n1 / n2]]) @ M
-            T *= 1.0 - float(fresnel_normal_R(n1, n2, surf.coating, lam_nm))
+            T *= 1.0 - float(fresnel_normal_R(m1, m2, surf.coating, lam_nm))
         else:
             M = np.array([[1.0, 0.0], [-2.0 * c, -1.0]]) @ M
-            T *= 0.0 if m1 == m2 else float(fresnel_normal_R(n1, n2, surf.coating, lam_nm))
+            T *= 0.0 if m1 == m2 else float(fresnel_normal_R(m1, m2, surf.coating, lam_nm))
     M = transfer(M, float(z_out) - z)
     return M, M_stop, T
 

@@ -74,19 +74,13 @@ def default_domain(lens, path_id: int, direction: str, model=None, seed: int = 1
 
 
 # ----------------------------------------------------------------------------- Fresnel at normal incidence
-def fresnel_normal_R(n1, n2, coating=None, lam_nm=550.0):
-    """Unpolarised reflectance at normal incidence (numpy), with the optional single-layer coating
-    (exact thin-film formula at cos = 1, as in :mod:`mi_neurallens.trace.interactions`)."""
-    n1 = np.asarray(n1, np.float64)
-    n2 = np.asarray(n2, np.float64)
-    if coating is None:
-        return ((n1 - n2) / (n1 + n2)) ** 2
-    nc = coating.index
-    r12 = (n1 - nc) / (n1 + nc)
-    r23 = (nc - n2) / (nc + n2)
-    c2b = np.cos(4.0 * math.pi * nc * coating.thickness_nm / np.asarray(lam_nm, np.float64))
-    ab2 = 2.0 * r12 * r23 * c2b
-    return (r12 * r12 + r23 * r23 + ab2) / (1.0 + r12 * r12 * r23 * r23 + ab2)
+def fresnel_normal_R(m1, m2, coating=None, lam_nm=550.0):
+    """Unpolarised reflectance (float) at normal incidence between media ``m1`` and ``m2`` at ``lam_nm`` (nm),
+    with the surface's coating: the tracer's formulas (:mod:`mi_neurallens.trace.interactions`) at cos = 1."""
+    from ..trace.interactions import interface_reflectance
+    lam = float(lam_nm)
+    return float(interface_reflectance(coating, m1, m2, float(m1.index(lam)), float(m2.index(lam)), 1.0, 1.0, lam,
+                                       lambda m: float(m.index(lam)), sqrt=math.sqrt, cos=math.cos, sin=math.sin))
 
 
 # ----------------------------------------------------------------------------- the baseline maps

@@ -163,6 +163,11 @@ class TPS:
         cyc = (math.cos(a0), -math.sin(a0), -math.cos(a0), math.sin(a0))
         return self._series([cyc[k % 4] / math.factorial(k) for k in range(self.b.D + 1)])
 
+    def sin(self) -> "TPS":
+        a0 = self.c0
+        cyc = (math.sin(a0), math.cos(a0), -math.sin(a0), -math.cos(a0))
+        return self._series([cyc[k % 4] / math.factorial(k) for k in range(self.b.D + 1)])
+
     def __call__(self, *args):
         return compose([self], list(args))[0]
 

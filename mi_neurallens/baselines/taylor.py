@@ -42,7 +42,7 @@ import math
 import numpy as np
 
 from ..constants import VISIBLE_RANGE_NM
-from ..trace.interactions import coated_reflectance, fresnel_reflectance
+from ..trace.interactions import interface_reflectance
 from .common import LAM0_NM, LAM_SCALE_NM, LensSpacePolyMap
 from .poly import TPS, SparsePoly, basis, compose
 
@@ -55,6 +55,10 @@ def _sqrt(a):
 
 def _cos(a):
     return a.cos() if isinstance(a, TPS) else math.cos(a)
+
+
+def _sin(a):
+    return a.sin() if isinstance(a, TPS) else math.sin(a)
 
 
 def _index_poly(medium, degree: int, lam_range=VISIBLE_RANGE_NM, nodes: int = 41):
@@ -195,7 +199,7 @@ def _bend(step, surf, d, h, normal, cos_i, ctx, fresnel):
             u2, v2, w2 = eta * u + f * nx, eta * v + f * ny, eta * w + f * nz
             h2 = h
             if fresnel:
-                R = _reflectance(surf, n1, n2, cos_i, cos_t, ctx)
+                R = _reflectance(surf, m1, m2, n1, n2, cos_i, cos_t, ctx)
                 F = 1.0 - R
     else:
         f = 2.0 * cos_i
@@ -206,16 +210,14 @@ def _bend(step, surf, d, h, normal, cos_i, ctx, fresnel):
         elif fresnel:
             eta = n1 / n2
             cos_t = _sqrt(1.0 - eta * eta * (1.0 - cos_i * cos_i))
-            F = _reflectance(surf, n1, n2, cos_i, cos_t, ctx)
+            F = _reflectance(surf, m1, m2, n1, n2, cos_i, cos_t, ctx)
     return u2, v2, w2, h2, F
 
 
-def _reflectance(surf, n1, n2, cos_i, cos_t, ctx):
-    """The tracer's Fresnel formulas (trace/interactions.py), evaluated on series."""
-    if surf.coating is None:
-        return fresnel_reflectance(n1, n2, cos_i, cos_t)
-    cz = surf.coating
-    return coated_reflectance(n1, n2, cos_i, cos_t, ctx.lam(), cz.index, cz.thickness_nm, sqrt=_sqrt, cos=_cos)
+def _reflectance(surf, m1, m2, n1, n2, cos_i, cos_t, ctx):
+    """The tracer's Fresnel and coating formulas (trace/interactions.py), evaluated on series."""
+    return interface_reflectance(surf.coating, m1, m2, n1, n2, cos_i, cos_t, ctx.lam(), ctx.n, sqrt=_sqrt, cos=_cos,
+                                 sin=_sin)
 
 
 def _end_step(state, h, z_p, z_out):

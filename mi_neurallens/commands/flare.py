@@ -21,6 +21,7 @@ import time
 
 import numpy as np
 
+from ..flare.options import COATINGS
 from ..metrics import mape_masked as mape  # the flare MAPE (definition in mi_neurallens.metrics)
 from ..render_utils import add_variant_argument
 
@@ -66,7 +67,7 @@ def add_parser(subparsers):
     p.add_argument("--max-ghosts", type=int, default=32)
     p.add_argument("--spp", type=int, help="forward samples per light per film pixel")
     p.add_argument("--samples", type=int, help="forward samples per light (default 2^22)")
-    p.add_argument("--coating", choices=("lens", "none", "quarter_wave"), default="lens")
+    p.add_argument("--coating", choices=COATINGS, default="lens")
     p.add_argument("--blades", type=int)
     p.add_argument("--resolution", help="film size WxH")
     add_variant_argument(p)

@@ -186,7 +186,8 @@ def _text_info(lens, wavelength_nm) -> str:
         if s.housing_radius is not None:
             notes.append(f"housing r={s.housing_radius:g}")
         if s.coating is not None:
-            notes.append(f"coated n={s.coating.index:g}")
+            notes.append(f"coated n={s.coating.index:g}" if not hasattr(s.coating, "layers") else
+                         f"coated {s.coating.name or 'stack'} ({len(s.coating.layers)} layers)")
         rad = "flat" if math.isinf(s.radius) else f"{s.radius:.5f}"
         line = (f"  {i:>3} {s.label[:6]:<6} {rad:>12} {s.thickness:>10.5f} {m.name[:18]:<18} {m.nd:>8.5f} "
                 f"{('-' if math.isinf(vd) else f'{vd:.2f}'):>7}"

@@ -12,7 +12,7 @@ from ..neural.model import MLP_MODES
 MODES = ("auto", "exact", "neural")
 #: baselines usable as ghost evaluators (docs/baselines.md), planes as the neural maps'
 BASELINE_MODES = ("abcd", "taylor3", "taylor5", "fitted")
-COATINGS = ("lens", "none", "quarter_wave")
+COATINGS = ("lens", "none", "quarter_wave", "broadband")
 BOUNDS = ("pilot", "none")
 
 
@@ -62,7 +62,7 @@ class FlareOptions:
     #: so with "exact" renders of different modes at one seed use identical samples (common random
     #: numbers): their difference is the maps' error alone, without Monte Carlo noise between them.
     pilot_with: str = "self"
-    coating: str = "lens"              #: lens (as the sensor's lens) | none | quarter_wave
+    coating: str = "lens"              #: lens (as the sensor's lens) | none | quarter_wave | broadband
     coating_index: float = 1.38
     coating_wavelength: float = 550.0
     coating_surfaces: list | None = None   #: optical-surface indices that get the coating (None: all)

@@ -142,12 +142,13 @@ def sensor_model(sensor, opts: FlareOptions):
 
 def flare_lens(setup, opts: FlareOptions):
     """The sensor's configured lens with the flare options (coatings, blades) applied."""
-    from ..optics.prescription import Coating
+    from ..optics.coatings import Coating, preset
     lens = setup.lens
     if opts.coating == "none":
         lens = lens.with_coating(None)
-    elif opts.coating == "quarter_wave":
-        c = Coating(index=float(opts.coating_index), design_wavelength_nm=float(opts.coating_wavelength))
+    elif opts.coating in ("quarter_wave", "broadband"):
+        c = (Coating(index=float(opts.coating_index), design_wavelength_nm=float(opts.coating_wavelength))
+             if opts.coating == "quarter_wave" else preset("broadband"))
         opt = lens.optical_indices
         if opts.coating_surfaces is None:
             sel = set(range(len(opt)))

@@ -139,8 +139,10 @@ sensor must be ``realistic_lens`` or ``neural_lens``.
 
  * - coating
    - |string|
-   - ``lens`` (the coatings of the sensor's lens file), ``none`` (bare surfaces) or ``quarter_wave`` (a
-     single layer, see below).  Changes the flare only, not the backward image.  (Default: ``lens``)
+   - ``lens`` (the coatings of the sensor's lens file), ``none`` (bare surfaces), ``quarter_wave`` (a
+     single layer, see below) or ``broadband`` (the quarter-half-quarter stack glass | Al₂O₃ λ/4 | ZrO₂ λ/2 |
+     MgF₂ λ/4 | air at 550 nm; the lens format page lists its indices).  Changes the flare only, not the
+     backward image.  (Default: ``lens``)
 
  * - coating_index
    - |float|
@@ -152,7 +154,7 @@ sensor must be ``realistic_lens`` or ``neural_lens``.
 
  * - coating_surfaces
    - |string|
-   - Optical-surface indices that get the ``quarter_wave`` layer.  (Default: all)
+   - Optical-surface indices that get the ``quarter_wave`` layer or the ``broadband`` stack.  (Default: all)
 
  * - blades
    - |int|

@@ -29,25 +29,10 @@ import numpy as np
 
 from ..constants import LAMBDA_D
 from ..errors import LensError
+from .coatings import Coating, CoatingStack
 from .glass import AIR, Medium
 
 MAX_ASPHERIC = 7  # A4 … A16
-
-
-@dataclass(frozen=True)
-class Coating:
-    """A single-layer anti-reflection coating, a quarter wave thick at ``design_wavelength_nm``.
-
-    ``index`` is the layer's refractive index (MgF2: 1.38).  The reflectance is the exact thin-film
-    (Airy) result for each polarisation, averaged; see :mod:`mi_neurallens.trace.interactions`.
-    """
-
-    index: float = 1.38
-    design_wavelength_nm: float = 550.0
-
-    @property
-    def thickness_nm(self) -> float:
-        return self.design_wavelength_nm / (4.0 * self.index)
 
 
 @dataclass(frozen=True)
@@ -64,7 +49,7 @@ class Surface:
     is_stop: bool = False
     blades: int = 0
     blade_rotation_deg: float = 0.0
-    coating: Coating | None = None
+    coating: Coating | CoatingStack | None = None
     label: str = ""
 
     @property
@@ -189,8 +174,9 @@ class Lens:
     def with_stop_radius(self, r_mm: float) -> "Lens":
         return self.with_surface(self.stop_index, semi_diameter=float(r_mm))
 
-    def with_coating(self, coating: Coating | None) -> "Lens":
-        """Every optical surface between different media gets ``coating`` (``None`` removes all)."""
+    def with_coating(self, coating: Coating | CoatingStack | None) -> "Lens":
+        """Every optical surface but the stop gets ``coating`` (``None`` removes all); surfaces between
+        identical media ignore it."""
         s = [dataclasses.replace(x, coating=None if x.is_stop else coating) for x in self.surfaces]
         return self.replace(surfaces=tuple(s))
 
@@ -207,7 +193,7 @@ class Lens:
                 [_num(s.radius), _num(s.thickness), _medium_key(s.medium), _num(s.semi_diameter),
                  _num(s.conic), [_num(a) for a in s.aspheric], _num(s.housing_radius), s.is_stop,
                  s.blades, _num(s.blade_rotation_deg),
-                 None if s.coating is None else [_num(s.coating.index), _num(s.coating.design_wavelength_nm)]]
+                 _coating_key(s.coating)]
                 for s in self.surfaces
             ],
         }
@@ -259,6 +245,15 @@ def _num(x):
 
 def _medium_key(m: Medium):
     return [m.formula, [_num(c) for c in m.coefficients]]
+
+
+def _coating_key(c):
+    """A single layer as the first model files recorded it; a stack by its design wavelength and layers."""
+    if c is None:
+        return None
+    if isinstance(c, Coating):
+        return [_num(c.index), _num(c.design_wavelength_nm)]
+    return ["stack", _num(c.design_wavelength_nm), [[_medium_key(l.medium), _num(l.thickness_nm)] for l in c.layers]]
 
 
 # ---------------------------------------------------------------------- validation

@@ -10,6 +10,12 @@
   ``β = 2π n_c h cos θ_c / λ``, then averaged.  When the ray is evanescent inside the layer
   (only possible at glass–glass interfaces, which are never coated by ``Lens.with_coating``)
   ``cos θ_c`` is clamped to 0.
+* Optional multilayer stack (:class:`~mi_neurallens.optics.coatings.CoatingStack`): the characteristic
+  (transfer) matrix of each layer, ``[[cos δ, i sin δ / η], [i η sin δ, cos δ]]`` with ``δ = 2π n h cos θ / λ``
+  and the tilted admittance ``η_s = n cos θ`` or ``η_p = n / cos θ``, multiplied from the ambient inward;
+  then ``r = (η0 B − C) / (η0 B + C)`` with ``(B, C) = M (1, η_sub)``.  Lossless layers keep every matrix of
+  the form ``[[a, i b], [i c, d]]`` with real a, b, c, d, so it runs in real arithmetic.
+  :func:`interface_reflectance` picks the formula of a surface's coating.
 """
 from __future__ import annotations
 
@@ -76,3 +82,72 @@ def coated_reflectance(n1, n2, cos_i, cos_t, lam_nm, n_c: float, h_nm: float, *,
         return (a * a + b * b + ab2) / (1.0 + a * a * b * b + ab2)
 
     return 0.5 * (airy(rs12, rs23) + airy(rp12, rp23))
+
+
+def stack_reflectance(n_amb, cos_amb, n_sub, cos_sub, lam_nm, layers, *, sqrt=_dr_sqrt0, cos=dr.cos,
+                      sin=dr.sin, sincos=None):
+    """Unpolarised reflectance of a multilayer stack between an ambient medium (index ``n_amb``, cosine of the
+    angle there ``cos_amb``) and a substrate (``n_sub``, ``cos_sub``), by the characteristic-matrix method.
+
+    ``layers``: (index at each ray's wavelength, physical thickness in nm) per layer, **from the ambient
+    inward**.  Plain arithmetic apart from ``sqrt``, ``cos`` and ``sin`` (or ``sincos``, both at once): Dr.Jit
+    arrays (the default), numpy arrays (pass ``np.sqrt`` of a clamped argument, ``np.cos``, ``np.sin``) and the
+    Taylor baseline's series all work.
+
+    Per layer j, with c = cos θ_j and the s admittance η = n c: the s matrix is ``[[cos δ, i sin δ / η],
+    [i η sin δ, cos δ]]`` and the p matrix the same with η_p = n / c; written with 1/n and 1/c so that a layer
+    costs one square root, one reciprocal and one sine-cosine pair for both polarisations."""
+    if sincos is None:
+        sincos = dr.sincos if cos is dr.cos and sin is dr.sin else (lambda x: (sin(x), cos(x)))
+    s2 = (n_amb * n_amb) * (1.0 - cos_amb * cos_amb)        # (n sin θ)², the same in every layer
+    inv_lam = 1.0 / lam_nm
+    mats = []
+    for n_j, h_nm in layers:
+        inv_n = 1.0 / n_j
+        cos_j = sqrt(1.0 - s2 * (inv_n * inv_n))
+        if not isinstance(cos_j, (int, float)):
+            cos_j = _at_least(cos_j, 1e-6)
+        sd, cd = sincos(((2.0 * math.pi * h_nm) * inv_lam) * (n_j * cos_j))
+        mats.append((n_j, inv_n, cos_j, 1.0 / cos_j, cd, sd))
+    total = 0.0
+    for pol in ("s", "p"):
+        a = b = c = d = None
+        for n_j, inv_n, cos_j, inv_c, cd, sd in mats:
+            # η and 1/η of this layer for this polarisation
+            e, inv_e = (n_j * cos_j, inv_n * inv_c) if pol == "s" else (n_j * inv_c, inv_n * cos_j)
+            b2, c2 = sd * inv_e, e * sd
+            if a is None:
+                a, b, c, d = cd, b2, c2, cd
+            else:
+                a, b, c, d = a * cd - b * c2, a * b2 + b * cd, c * cd + d * c2, d * cd - c * b2
+        e0, es = (n_amb * cos_amb, n_sub * cos_sub) if pol == "s" else (n_amb / cos_amb, n_sub / cos_sub)
+        re_n, im_n = e0 * a - es * d, e0 * es * b - c
+        re_d, im_d = e0 * a + es * d, e0 * es * b + c
+        total = total + (re_n * re_n + im_n * im_n) / (re_d * re_d + im_d * im_d)
+    return 0.5 * total
+
+
+def _at_least(x, lo):
+    import numpy as np
+    if isinstance(x, np.ndarray):
+        return np.maximum(x, lo)
+    if hasattr(x, "c0"):            # a truncated power series (Taylor baseline): its constant term is > 0
+        return x
+    return dr.maximum(x, lo)
+
+
+def interface_reflectance(coating, m1, m2, n1, n2, cos_i, cos_t, lam_nm, layer_index, *, sqrt=_dr_sqrt0,
+                          cos=dr.cos, sin=dr.sin):
+    """Unpolarised reflectance of a surface between media ``m1`` (incident side, index ``n1``, incidence cosine
+    ``cos_i``) and ``m2`` (``n2``, refraction cosine ``cos_t``) carrying ``coating`` (``None``, a single
+    :class:`~mi_neurallens.optics.coatings.Coating` or a :class:`~mi_neurallens.optics.coatings.CoatingStack`).
+    ``layer_index(medium)`` gives a stack layer's index at each ray's wavelength ``lam_nm`` (nm)."""
+    if coating is None:
+        return fresnel_reflectance(n1, n2, cos_i, cos_t)
+    if not hasattr(coating, "layers"):
+        return coated_reflectance(n1, n2, cos_i, cos_t, lam_nm, coating.index, coating.thickness_nm, sqrt=sqrt,
+                                  cos=cos)
+    layers = [(layer_index(l.medium), l.thickness_nm) for l in reversed(coating.layers)]
+    if coating.ambient_is_first(m1, m2):
+        return stack_reflectance(n1, cos_i, n2, cos_t, lam_nm, layers, sqrt=sqrt, cos=cos, sin=sin)
+    return stack_reflectance(n2, cos_t, n1, cos_i, lam_nm, layers, sqrt=sqrt, cos=cos, sin=sin)

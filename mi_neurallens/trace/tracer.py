@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import drjit as dr
 
-from .interactions import coated_reflectance, fresnel_reflectance, reflect, refract
+from .interactions import interface_reflectance, reflect, refract
 from .iris import Iris
 from .paths import FORWARD, PathSpec, resolve_path
 from .surfaces import SurfaceGeometry
@@ -217,7 +217,7 @@ class LensTracer:
             if w.margin:
                 w.fail(~tir)
             if self.fresnel:
-                R = self._reflectance(surf, n1, n2, cos_i, cos_t, lam_nm)
+                R = interface_reflectance(surf.coating, m1, m2, n1, n2, cos_i, cos_t, lam_nm, lambda m: n_of(m)[0])
                 w.T = (1.0 - R) if w.T is None else w.T * (1.0 - R)
         else:
             (w.dx, w.dy, w.dz) = reflect((w.dx, w.dy, w.dz), normal, cos_i)
@@ -227,7 +227,8 @@ class LensTracer:
                 eta = n1 * inv_n2
                 k = 1.0 - eta * eta * (1.0 - cos_i * cos_i)
                 cos_t = dr.sqrt(dr.maximum(k, 0.0))
-                R = dr.select(k < 0.0, 1.0, self._reflectance(surf, n1, n2, cos_i, cos_t, lam_nm))
+                R = dr.select(k < 0.0, 1.0, interface_reflectance(surf.coating, m1, m2, n1, n2, cos_i, cos_t, lam_nm,
+                                                                  lambda m: n_of(m)[0]))
                 w.T = R if w.T is None else w.T * R
 
     def _to_output(self, w, direction, z_out) -> TraceResult:
@@ -248,10 +249,3 @@ class LensTracer:
             return TraceResult((x, y, z), (w.dx, w.dy, w.dz), T, w.valid, w.pts, w.alive, w.m, w.hard,
                                w.stop_points)
         return TraceResult((x, y, z), (w.dx, w.dy, w.dz), T, w.valid, w.pts, w.alive, stop_points=w.stop_points)
-
-    @staticmethod
-    def _reflectance(surf, n1, n2, cos_i, cos_t, lam_nm):
-        if surf.coating is None:
-            return fresnel_reflectance(n1, n2, cos_i, cos_t)
-        c = surf.coating
-        return coated_reflectance(n1, n2, cos_i, cos_t, lam_nm, c.index, c.thickness_nm)

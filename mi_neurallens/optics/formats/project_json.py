@@ -25,6 +25,7 @@ import tempfile
 from typing import Any
 
 from ..glass import AIR, Medium
+from ..coatings import COATING_MATERIALS, PRESETS, CoatingStack, Layer, preset
 from ..prescription import MAX_ASPHERIC, Coating, Lens, Surface
 from ._common import Ctx, check_keys, is_number, loads_json, number, resolve, type_name
 
@@ -38,6 +39,9 @@ SURFACE_KEYS = ("label", "radius", "thickness", "medium", "semi_diameter", "coni
                 "housing_radius", "stop", "blades", "blade_rotation_deg", "coating")
 SURFACE_REQUIRED = ("radius", "thickness", "medium", "semi_diameter")
 COATING_KEYS = ("index", "design_wavelength_nm")
+#: a multilayer stack's keys (``layers`` from the glass outward), a layer's, or a preset's
+STACK_KEYS = ("layers", "design_wavelength_nm", "name")
+LAYER_KEYS = ("material", "thickness_nm", "waves")
 #: provenance keys (all optional, all strings except ``conversion``: a list of strings)
 SOURCE_KEYS = ("file", "format", "repository", "path", "commit", "url", "reference", "sha256",
                "conversion")
@@ -174,23 +178,73 @@ def _read_surface(ctx: Ctx, i: int, s: Any) -> Surface:
     blades = int(b)
     rot = number(ctx, s.get("blade_rotation_deg", 0.0), field="blade_rotation_deg", **where)
 
-    c = s.get("coating")
-    coating = None
-    if c is not None:
-        if not isinstance(c, dict):
-            raise ctx.error(f"must be null or an object {{\"index\", \"design_wavelength_nm\"}}, got "
-                            f"{type_name(c)}", field="coating", **where)
-        check_keys(ctx, c, COATING_KEYS, prefix="coating.", **where)
-        coating = Coating(
-            index=number(ctx, c.get("index", Coating.index), field="coating.index",
-                         exclusive_minimum=0.0, **where),
-            design_wavelength_nm=number(ctx, c.get("design_wavelength_nm", Coating.design_wavelength_nm),
-                                        field="coating.design_wavelength_nm", exclusive_minimum=0.0,
-                                        **where))
+    coating = _read_coating(ctx, s.get("coating"), where)
     medium = resolve(ctx, s["medium"], field="medium", **where)
     return Surface(radius=radius, thickness=thickness, medium=medium, semi_diameter=sd, conic=conic,
                    aspheric=aspheric, housing_radius=housing, is_stop=stop, blades=blades,
                    blade_rotation_deg=rot, coating=coating, label=label)
+
+
+def _read_coating(ctx: Ctx, c: Any, where: dict):
+    """``null``; a single quarter-wave layer ``{"index", "design_wavelength_nm"}``; ``{"preset": name}``; or a
+    stack ``{"layers": [{"material", "thickness_nm" | "waves"}, ...], "design_wavelength_nm"}``, glass outward."""
+    if c is None:
+        return None
+    if not isinstance(c, dict):
+        raise ctx.error(f"must be null or an object ({{\"index\", \"design_wavelength_nm\"}}, {{\"preset\"}} or "
+                        f"{{\"layers\", \"design_wavelength_nm\"}}), got {type_name(c)}", field="coating", **where)
+    if "preset" in c:
+        check_keys(ctx, c, ("preset",), prefix="coating.", **where)
+        if c["preset"] not in PRESETS:
+            raise ctx.error(f"unknown preset {c['preset']!r}; presets: {', '.join(PRESETS)}",
+                            field="coating.preset", **where)
+        return preset(c["preset"])
+    lam = number(ctx, c.get("design_wavelength_nm", 550.0), field="coating.design_wavelength_nm",
+                 exclusive_minimum=0.0, **where)
+    if "layers" not in c:
+        check_keys(ctx, c, COATING_KEYS, prefix="coating.", **where)
+        return Coating(index=number(ctx, c.get("index", Coating.index), field="coating.index",
+                                    exclusive_minimum=0.0, **where), design_wavelength_nm=lam)
+    check_keys(ctx, c, STACK_KEYS, prefix="coating.", **where)
+    layers = c["layers"]
+    if not (isinstance(layers, list) and layers):
+        raise ctx.error(f"must be a non-empty array of layers (glass outward), got {type_name(layers)}",
+                        field="coating.layers", **where)
+    out = []
+    for k, l in enumerate(layers):
+        f = f"coating.layers[{k}]"
+        if not isinstance(l, dict):
+            raise ctx.error(f"must be an object {{\"material\", \"thickness_nm\" or \"waves\"}}, got {type_name(l)}",
+                            field=f, **where)
+        check_keys(ctx, l, LAYER_KEYS, required=("material",), prefix=f + ".", **where)
+        if ("thickness_nm" in l) == ("waves" in l):
+            raise ctx.error("give exactly one of thickness_nm (physical, nm) and waves (optical thickness in waves "
+                            "at the design wavelength, 0.25 = a quarter wave)", field=f, **where)
+        mat = l["material"]
+        medium = (COATING_MATERIALS[mat] if isinstance(mat, str) and mat in COATING_MATERIALS
+                  else resolve(ctx, mat, field=f + ".material", **where))
+        if "waves" in l:
+            waves = number(ctx, l["waves"], field=f + ".waves", exclusive_minimum=0.0, **where)
+            t = waves * lam / float(medium.index(lam))
+        else:
+            t = number(ctx, l["thickness_nm"], field=f + ".thickness_nm", exclusive_minimum=0.0, **where)
+        out.append(Layer(medium, t))
+    name = c.get("name", "")
+    if not isinstance(name, str):
+        raise ctx.error(f"must be a string, got {type_name(name)}", field="coating.name", **where)
+    return CoatingStack(tuple(out), lam, name)
+
+
+def _coating_dict(c) -> dict:
+    if isinstance(c, Coating):
+        return {"index": _f(c.index), "design_wavelength_nm": _f(c.design_wavelength_nm)}
+    if c.name in PRESETS and preset(c.name) == c:
+        return {"preset": c.name}
+    d = {"layers": [{"material": _medium_dict(l.medium), "thickness_nm": _f(l.thickness_nm)} for l in c.layers],
+         "design_wavelength_nm": _f(c.design_wavelength_nm)}
+    if c.name:
+        d["name"] = c.name
+    return d
 
 
 # ---------------------------------------------------------------------------------------- writing
@@ -227,8 +281,7 @@ def lens_to_dict(lens: Lens) -> dict:
         if s.blade_rotation_deg:
             d["blade_rotation_deg"] = _f(s.blade_rotation_deg)
         if s.coating is not None:
-            d["coating"] = {"index": _f(s.coating.index),
-                            "design_wavelength_nm": _f(s.coating.design_wavelength_nm)}
+            d["coating"] = _coating_dict(s.coating)
         d["medium"] = _medium_dict(s.medium)
         surfaces.append(d)
     out = {"format": FORMAT_ID, "version": VERSION, "name": lens.name, "description": str(desc),
