@@ -82,7 +82,7 @@ def record(out: str) -> None:
     for mode in ("exact", "auto"):
         sc = _scene("scenes/night_point.xml", "realistic_lens", width=96, height=64)
         model = bundled_model_path("wide-22mm")
-        fr = render_flare(sc, 0, seed=3, per_ghost=True, mode=mode, samples=1 << 17, model=model)
+        fr = render_flare(sc, 0, seed=3, per_ghost=True, mode=mode, samples=1 << 17, model=model, diffraction=False)
         res[f"flare.{mode}.total"] = np.asarray(fr.total, np.float64)
         for pid, img in sorted(fr.ghosts.items()):
             res[f"flare.{mode}.ghost{pid}"] = np.asarray(img, np.float64)

@@ -265,7 +265,8 @@ def test_neural_ghosts_take_the_iris(tmp_path):
     not.  Without stop heads, ``neural`` mode refuses the iris and ``auto`` traces the ghost instead."""
     _mitsuba()                      # skips without Mitsuba; sets the variant and registers
     from mi_neurallens.commands.render import load_scene
-    from mi_neurallens.flare.render import FlareError, render_flare
+    from mi_neurallens.flare.render import FlareError
+    from ghosts_only import render_flare
     from mi_neurallens.metrics import mape_masked
     N = 2.0 * Lens.load("wide-22mm").paraxial(LAMBDA_D).fnumber
     path = str(scene_path("night_point"))

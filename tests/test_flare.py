@@ -15,7 +15,8 @@ import drjit as dr  # noqa: E402
 
 import mi_neurallens as nl  # noqa: E402
 from mi_neurallens.errors import ModelError, NeuralLensError  # noqa: E402
-from mi_neurallens.flare.render import FlareOptions, FlareRenderer, render_flare  # noqa: E402
+from mi_neurallens.flare.render import FlareRenderer  # noqa: E402
+from ghosts_only import FlareOptions, render_flare  # noqa: E402
 from mi_neurallens.neural.model import bundled_model_path  # noqa: E402
 
 nl.register()
@@ -185,7 +186,7 @@ def test_integrator_adds_flare_to_nested_render():
 def test_xml_and_ghost_selection():
     xml = f"""<scene version="3.0.0">
       <integrator type="lens_flare"><integer name="flare_samples" value="65536"/>
-        <string name="ghosts" value="2560 9:6"/><integrator type="path"/></integrator>
+        <boolean name="diffraction" value="false"/><string name="ghosts" value="2560 9:6"/><integrator type="path"/></integrator>
       <sensor type="realistic_lens"><string name="lens" value="wide-22mm"/>
         <film type="hdrfilm"><integer name="width" value="32"/><integer name="height" value="24"/></film></sensor>
       <emitter type="point"><point name="position" x="0.3" y="0.2" z="4"/><rgb name="intensity" value="50"/></emitter>

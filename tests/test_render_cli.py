@@ -139,8 +139,10 @@ def test_flare_neural_on_a_realistic_lens_scene_takes_the_lens_bundled_model(tmp
     rc = main(["flare", scene, "--lens", "wide-22mm", "--mode", "neural", "--ghost", "2560", "--samples", "65536",
                "--resolution", "48x32", "-o", str(tmp_path / "f.png"), "--json", str(js)])
     assert rc == 0
-    ghosts = json.loads(js.read_text())["neural"]["ghosts"]
+    rows = json.loads(js.read_text())["neural"]["ghosts"]
+    ghosts = [g for g in rows if g["path_id"]]         # path 0: the light's own image, which diffraction spreads
     assert ghosts and all(g["evaluator"] == "neural" and g["path_id"] == 2560 for g in ghosts)
+    assert [g["path_id"] for g in rows if not g["path_id"]] == [0]
     assert "wide-22mm.model.safetensors" in capsys.readouterr().err
     rc = main(["flare", scene, "--lens", "canon-rf-24mm-f1.4l-vcm", "--mode", "neural", "--ghost", "2560",
                "--samples", "65536", "--resolution", "48x32", "-o", str(tmp_path / "g.png")])

@@ -68,6 +68,9 @@ def add_parser(subparsers):
     p.add_argument("--spp", type=int, help="forward samples per light per film pixel")
     p.add_argument("--samples", type=int, help="forward samples per light (default 2^22)")
     p.add_argument("--coating", choices=COATINGS, default="lens")
+    p.add_argument("--no-diffraction", dest="diffraction", action="store_false",
+                   help="leave out the aperture's diffraction starburst (the lights' own images convolved with the "
+                        "exit pupil's Fraunhofer pattern): the ghosts alone")
     p.add_argument("--blades", type=int)
     p.add_argument("--resolution", help="film size WxH")
     add_variant_argument(p)
@@ -145,7 +148,7 @@ def _options(args, n: int, model) -> dict:
                 max_ghosts=args.max_ghosts, coating=args.coating, blades=args.blades, model=model,
                 auto_max_error_px=args.auto_max_error, auto_max_flare_error=args.auto_max_flare_error, mlp=args.mlp,
                 freeze=args.freeze, boundary_band=args.boundary_band, iris_band=args.iris_band,
-                auto_max_cost=args.auto_max_cost)
+                auto_max_cost=args.auto_max_cost, diffraction=args.diffraction)
 
 
 def _render(args, scene, sensor, mode: str, kw: dict):

@@ -72,6 +72,9 @@ class FlareOptions:
     small_emitters: int = 0            #: also flare the N brightest small area emitters
     small_emitter_size: float = 0.05   #: "small": bounding-box diagonal below this (scene units)
     include_transmit: bool = False     #: also splat the transmit path (radiometric checks)
+    #: the aperture's diffraction starburst (flare/diffraction.py): each light's own image, traced forward, convolved
+    #: with the exit pupil's Fraunhofer pattern (a light the backward render sees: with that pattern minus a delta)
+    diffraction: bool = True
     transmit_only: bool = False        #: splat only the transmit path
     model: object = None               #: NeuralLensModel or a file (default: the sensor's model)
     #: how learned ghost maps enter their kernels: "fused" (weights as literals: a kernel per map), "shared"

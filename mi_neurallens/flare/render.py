@@ -118,10 +118,12 @@ class Pilot:
 @dataclass
 class FlareResult:
     """``total``: (H, W, 3) numpy flare image (crop window); ``ghosts``: {path_id: (H, W, 3)} when
-    per-ghost images were requested; ``stats``: one :class:`GhostStats` per (light, ghost)."""
+    per-ghost images were requested; ``stats``: one :class:`GhostStats` per (light, ghost); ``diffraction``: the
+    starburst's part of ``total`` (None without diffraction)."""
     total: np.ndarray
     ghosts: dict
     stats: list
+    diffraction: np.ndarray | None = None
 
 
 # ------------------------------------------------------------------------------------ set-up
@@ -493,18 +495,59 @@ class FlareRenderer:
         self._refresh()
         ids = self.ghost_ids()
         self._mlp = self.learned_mlp(ids)
+        # with diffraction every light's own image (the transmit path) is traced too, into a block of its own kind
+        diffract = bool(self.opts.diffraction)
+        paths = [0] + ids if diffract and 0 not in ids else ids
         total = self.new_block()
-        blocks = {}
+        blocks, direct = {}, {}
         stats = []
         self._light_sines = {}
         for li, light in enumerate(self.lights):
-            plan = self._plan(light, ids, seed * 1000 + li, stats)
+            plan = self._plan(light, paths, seed * 1000 + li, stats)
             for (pid, ev, pl, st), n in zip(plan, self._budget(plan, N)):
                 blk = total
-                if per_ghost:
+                if diffract and pid == 0:
+                    blk = direct.setdefault("seen" if light.kind == "area" else "unseen", self.new_block())
+                elif per_ghost:
                     blk = blocks.setdefault(pid, self.new_block())
                 self._splat_ghost(light, ev, pl, st, n, blk, seed * 7919 + li)
-        return FlareResult(*self._images(total, blocks, per_ghost), stats)
+        img, ghosts = self._images(total, blocks, per_ghost)
+        star = self._starburst(direct) if diffract else None
+        if star is not None:
+            img = img + star
+        return FlareResult(img, ghosts, stats, star)
+
+    def diffraction_kernel(self):
+        """The starburst's :class:`~mi_neurallens.flare.diffraction.FilmKernel` of the flare's lens as configured
+        (iris, blades, focus) on this film, per channel with the sensor's colour matching; kept while those stay."""
+        import mitsuba as mi
+        from .diffraction import KERNEL_WAVELENGTHS_NM, FilmKernel, film_kernel, working_fnumber_and_pupil
+        N_w, pupil = working_fnumber_and_pupil(self.lens)
+        pix = (self.setup.sensor_width_mm / self.size[0], self.setup.sensor_height_mm / self.size[1])
+        key = (N_w, pupil, pix, self.crop_size)
+        if getattr(self, "_dk", (None,))[0] != key:
+            from ..sensors.wavelengths import rgb_weight
+            lam = np.asarray(KERNEL_WAVELENGTHS_NM, np.float64)
+            w = rgb_weight(mi, mi.Float(lam.astype(np.float32)))
+            weights = np.stack([np.asarray(w[c], np.float64) for c in range(3)], 1)
+            self._dk = (key, FilmKernel(film_kernel(pupil, N_w, pix, self.crop_size, lam, weights)))
+        return self._dk[1]
+
+    def _starburst(self, direct):
+        """What diffraction adds to the flare image, from the lights' own images in ``direct`` ({"unseen": block of
+        the point, spot and directional lights, "seen": of the area emitters the backward render sees}): the first
+        convolved with the starburst kernel, the second with the kernel minus a delta (their image is already in
+        the backward render; with include_transmit it is in the flare too).  None when no light reached the film."""
+        if not direct:
+            return None
+        K = self.diffraction_kernel()
+        out = 0.0
+        for kind, blk in direct.items():
+            img = np.asarray(blk.tensor().numpy(), np.float64)
+            out = out + K.convolve(img)
+            if kind == "seen" and not self.opts.include_transmit:
+                out = out - img
+        return np.asarray(out, np.float32)
 
     def _plan(self, light, ids, seed, stats):
         """Each path of ``ids`` for ``light``: its evaluator (the tracer where the light lies beyond the field its

@@ -160,7 +160,7 @@ def measure_flare_cost(scene, pid, bands=(0.0,), samples_log2=COST_SAMPLES_LOG2)
     from .render import FlareRenderer
 
     def us_per_sample(**kw):
-        r = FlareRenderer(scene, 0, FlareOptions(ghosts=[pid], pilot_with="exact", **kw))
+        r = FlareRenderer(scene, 0, FlareOptions(ghosts=[pid], pilot_with="exact", diffraction=False, **kw))
         for k in range(2):                # traces and compiles, then records: the kernels a later render replays
             r.render(seed=k, samples=1 << 16)
         best = float("inf")
@@ -294,12 +294,13 @@ def verification_scene(lens, model, light=LIGHTS[0], film=FILM):
 
 
 def paired_renders(scene, ghosts, samples, seed=1, sensor=0, boundary_band=0.0, iris_band=None):
-    """(exact, learned) flare images (H×W×3 numpy) of ``ghosts`` on the same samples; ``boundary_band``,
-    ``iris_band``: the learned render's (:class:`~mi_neurallens.flare.options.FlareOptions`)."""
+    """(exact, learned) flare images (H×W×3 numpy) of ``ghosts`` alone (no diffraction) on the same samples;
+    ``boundary_band``, ``iris_band``: the learned render's (:class:`~mi_neurallens.flare.options.FlareOptions`)."""
     from .render import render_flare
-    ex = render_flare(scene, sensor, seed=seed, ghosts=list(ghosts), samples=samples, mode="exact").total
+    ex = render_flare(scene, sensor, seed=seed, ghosts=list(ghosts), samples=samples, mode="exact",
+                      diffraction=False).total
     ne = render_flare(scene, sensor, seed=seed, ghosts=list(ghosts), samples=samples, mode="neural",
-                      pilot_with="exact", boundary_band=boundary_band, iris_band=iris_band).total
+                      pilot_with="exact", boundary_band=boundary_band, iris_band=iris_band, diffraction=False).total
     return ex, ne
 
 

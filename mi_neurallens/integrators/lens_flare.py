@@ -198,6 +198,15 @@ sensor must be ``realistic_lens`` or ``neural_lens``.
      evaluator) or ``exact`` (the tracer in every mode, so exact and neural renders at one seed use
      identical samples and differ by the maps' error only; for comparisons).  (Default: ``self``)
 
+ * - diffraction
+   - |bool|
+   - The aperture's diffraction starburst: each point, spot and directional light's own image, traced forward,
+     is convolved with the far-field (Fraunhofer) pattern of the exit pupil (the iris at its f-number and blades,
+     scaled by the pupil magnification, at the working f-number), per RGB channel with the sensor's colour
+     matching; an area emitter the backward render already shows (``small_emitters``) gets the pattern minus a
+     delta, so no light is counted twice.  It redistributes light and adds none: n spikes for an even number of
+     blades, 2n for an odd one, none for a round iris (Airy rings).  (Default: |true|)
+
  * - include_transmit
    - |bool|
    - Also splat the transmit path (the lights' own images) forward; it gets one equal share of the
@@ -244,7 +253,7 @@ _PROPS = {
     "coating_surfaces": ("string", "coating_surfaces"), "bounds": ("string", "bounds"),
     "pilot_with": ("string", "pilot_with"), "mlp": ("string", "mlp"),
     "visibility": ("bool", "visibility"), "freeze": ("bool", "freeze"),
-    "include_transmit": ("bool", "include_transmit"),
+    "include_transmit": ("bool", "include_transmit"), "diffraction": ("bool", "diffraction"),
     "transmit_only": ("bool", "transmit_only"),
 }
 #: properties read by Mitsuba's SamplingIntegrator base
