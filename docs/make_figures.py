@@ -20,6 +20,9 @@
 7. ``--bladed``: single wide-22mm ghosts through 6 blades at 4× the widest f-number, exact beside the learned
    ghost with its iris learned and with the iris's edge traced (``iris_band``), same samples, with their error
    maps → docs/images/flare_bladed_iris_band.png and out/figures/bladed.json.
+9. ``--starburst``: the bundled night scene's flare (its lights' starbursts and ghosts) through wide-22mm and
+   ood-59mm at 1.3x the widest f-number (round iris) and at f/11 with 5, 6 and 9 blades, exact ghosts above learned
+   → docs/images/flare_starburst_<lens>.jpg and out/figures/starburst.json.
 8. ``--coatings``: the flare of one point light through ood-59mm (real glasses) with bare surfaces, one MgF2
    layer and the broadband stack on every surface, at one exposure and each at its own
    → docs/images/flare_coatings.jpg and out/figures/coatings.json.
@@ -184,7 +187,8 @@ def night(spp, lens="ood-59mm", res="480x320", flare_samples=1 << 24):
         scene = load_scene(str(scene_path("night")), variant="llvm_ad_rgb", lens=lens,
                            resolution=(w, h), spp=spp, sensor_type=st,
                            sets=[f"model={lens}"] if st == "neural_lens" else [],
-                           params=[f"mode={mode}", f"ghosts={ghosts}", f"flare_samples={flare_samples}"])
+                           params=[f"mode={mode}", f"ghosts={ghosts}", f"flare_samples={flare_samples}",
+                                   "diffraction=false"])
         render_passes(scene, spp, max(1, spp // 64), show_progress=False)          # compile
         secs[st] = 1e9
         for _ in range(2):                                                        # best of two
@@ -193,7 +197,7 @@ def night(spp, lens="ood-59mm", res="480x320", flare_samples=1 << 24):
             secs[st] = min(secs[st], time.perf_counter() - t0)
         flares[st] = np.asarray(scene.integrator().last_result.total)
         # the ghosts alone (without the lights' own, far brighter images) for the MAPE
-        ghost_only[st] = render_flare(scene, mode=mode, ghosts=[int(g) for g in ghosts.split()],
+        ghost_only[st] = render_flare(scene, mode=mode, ghosts=[int(g) for g in ghosts.split()], diffraction=False,
                                       samples=flare_samples).total
     out = {"lens": lens, "spp": spp, "resolution": res, "flare_samples_per_light": flare_samples,
            "ghosts": ghosts.split(), "seconds_best_of_two": secs,
@@ -305,6 +309,39 @@ def bladed(lens="wide-22mm", fstop=10.74, ghosts=(66048, 144, 4224), samples=1 <
     return out
 
 
+def starburst(lens, samples=1 << 22, res=(480, 320)):
+    """The night scene's flare alone (ghosts and the lights' starbursts), exact and learned, at four apertures."""
+    import time
+    from mi_neurallens import Lens
+    from mi_neurallens.commands.render import load_scene
+    from mi_neurallens.constants import LAMBDA_D
+    from mi_neurallens.flare.render import render_flare
+    import mitsuba as mi
+    n0 = Lens.load(lens).paraxial(LAMBDA_D).fnumber
+    settings = [(1.3 * n0, 0), (11.0, 5), (11.0, 6), (11.0, 9)]
+    imgs, titles, out = [], [], {}
+    for st, mode in (("realistic_lens", "exact"), ("neural_lens", "neural")):
+        for fstop, blades in settings:
+            sets = [f"fstop={fstop!r}", f"blades={blades}"] + ([f"model={lens}"] if st == "neural_lens" else [])
+            scene = load_scene(str(scene_path("night")), variant=mi.variant(), lens=lens, resolution=res,
+                               sensor_type=st, sets=sets)
+            mode_here = mode if blades == 0 or mode == "exact" else "auto"     # auto traces a ghost the map cannot
+            t0 = time.perf_counter()
+            r = render_flare(scene, mode=mode_here, samples=samples, seed=5)
+            secs = time.perf_counter() - t0
+            imgs.append(np.asarray(r.total)[..., :3])
+            what = "round iris" if blades == 0 else f"{blades} blades"
+            titles.append(f"{'exact' if mode == 'exact' else 'learned'}, f/{fstop:.3g}, {what}")
+            out[f"{mode} f/{fstop:.3g} {blades}"] = {"seconds": secs,
+                                                     "starburst_share": float(r.diffraction.sum() / r.total.sum())}
+    k = 1.0 / max(float(np.percentile(imgs[0], 99.7)), 1e-12)
+    grid([im * k for im in imgs], titles, os.path.join(IMG, f"flare_starburst_{lens}.jpg"),
+         f"night scene, {lens}: its lights' diffraction starbursts and ghosts ({samples / 2**20:.0f} M samples per "
+         f"light), exact ghosts (top) and learned ones (bottom, mode auto where blades need the tracer); one exposure",
+         4)
+    return out
+
+
 def coatings(lens="ood-59mm", samples=1 << 22, res=(360, 240)):
     """The exact flare (ghosts only, the automatic selection) of the bundled point-light scene with each coating
     of ``lens_flare``: the top row at the bare lens's exposure (how much each coating removes), the bottom row
@@ -313,22 +350,22 @@ def coatings(lens="ood-59mm", samples=1 << 22, res=(360, 240)):
     from mi_neurallens.flare.render import render_flare
     import mitsuba as mi
     scene = load_scene(str(scene_path("night_point")), variant=mi.variant(), lens=lens, resolution=res)
-    names = {"none": "bare", "quarter_wave": "one MgF2 layer (lambda/4 at 550 nm)",
-             "broadband": "broadband: Al2O3 / ZrO2 / MgF2 (QHQ at 550 nm)"}
+    names = {"none": "bare", "quarter_wave": "one MgF2 layer", "broadband": "broadband (QHQ)"}
     imgs, out = {}, {}
     for c in names:
-        r = render_flare(scene, mode="exact", coating=c, samples=samples, seed=3)
+        r = render_flare(scene, mode="exact", coating=c, samples=samples, seed=3, diffraction=False)
         imgs[c] = np.asarray(r.total)[..., :3]
         y = imgs[c].mean(axis=2)
         out[c] = {"flux": float(y.sum()), "rgb": [float(v) for v in imgs[c].reshape(-1, 3).sum(0)]}
     k0 = 1.0 / max(float(np.percentile(imgs["none"], 99.9)), 1e-12)
     top = [imgs[c] * k0 for c in names]
     bottom = [imgs[c] / max(float(np.percentile(imgs[c], 99.9)), 1e-12) for c in names]
-    titles = [f"{t}: {out[c]['flux'] / out['none']['flux']:.3f}x the bare flux" for c, t in names.items()]
+    titles = [f"{t}: {out[c]['flux'] / out['none']['flux']:.3f}x bare flux" for c, t in names.items()]
     titles += [f"{t}, own exposure" for t in names.values()]
     grid(top + bottom, titles, os.path.join(IMG, "flare_coatings.jpg"),
-         f"{lens}, one point light, exact ghosts (automatic selection), {samples / 2**20:.0f} M samples; "
-         f"top: one exposure, bottom: each at its own", 3)
+         f"{lens}, one point light, exact ghosts (automatic selection), {samples / 2**20:.0f} M samples; one MgF2 "
+         f"layer: lambda/4 at 550 nm; broadband: Al2O3 lambda/4, ZrO2 lambda/2, MgF2 lambda/4 at 550 nm; top: one "
+         f"exposure, bottom: each at its own", 3)
     return out
 
 
@@ -343,6 +380,7 @@ def main(argv=None):
     ap.add_argument("--night", default="", help="only the night-scene flare figure for these lenses (comma list)")
     ap.add_argument("--bladed", action="store_true", help="only the bladed-ghost figure (the iris's edge traced)")
     ap.add_argument("--coatings", action="store_true", help="only the coatings figure (bare, one layer, broadband)")
+    ap.add_argument("--starburst", default="", help="only the starburst figure for these lenses (comma list)")
     a = ap.parse_args(argv)
     os.makedirs(OUT, exist_ok=True)
     import mitsuba as mi
@@ -350,6 +388,13 @@ def main(argv=None):
     import mi_neurallens
     mi_neurallens.register()
     res = {}
+    if a.starburst:
+        for lens in a.starburst.split(","):
+            res[lens] = starburst(lens)
+            print(json.dumps(res[lens], indent=1))
+        with open(os.path.join(OUT, "starburst.json"), "w") as f:
+            json.dump(res, f, indent=2)
+        return
     if a.coatings:
         res = coatings()
         print(json.dumps(res, indent=1))

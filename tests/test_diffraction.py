@@ -148,3 +148,114 @@ def test_the_starburst_redistributes_the_lights_own_image():
                           "integrator": dict(integ, **({} if on else {"diffraction": False}))})
         mi.render(s, spp=1)
         assert (s.integrator().last_result.diffraction is not None) == on
+
+
+def test_a_light_beside_the_frame_still_throws_its_spikes_into_it():
+    """A light whose own image misses the film: its starburst (the image as a point at its centroid with its
+    energy, the fringe-averaged pattern) reaches in.  Checked on a light inside the frame, where both ways apply:
+    away from the light's image the point estimate agrees with the convolution of the traced image (10 %)."""
+    mi = pytest.importorskip("mitsuba")
+    from mi_neurallens.flare.render import FlareOptions, FlareRenderer
+    sc = _scene(mi, light_z=4.0)
+    fr = FlareRenderer(sc, 0, FlareOptions(transmit_only=True, samples=1 << 18))
+    conv = fr.render(seed=1).diffraction[..., 1]
+    point = fr.offframe_starburst(fr.lights[0], seed=1)[..., 1]
+    cy, cx = np.unravel_index(np.argmax(conv), conv.shape)
+    yy, xx = np.mgrid[:160, :160]
+    far = np.hypot(yy - cy, xx - cx) > 20
+    assert point[far].sum() == pytest.approx(conv[far].sum(), rel=0.1)
+    # moved beside the frame: the spikes reach in
+    side = _scene(mi, light_z=4.0)
+    params = mi.traverse(side)
+    key = next(k for k in params.keys() if k.endswith("position"))
+    params[key] = [4.2, 0.0, 4.0]                                 # 46° off axis; the film reaches 39°
+    params.update()
+    fr = FlareRenderer(side, 0, FlareOptions(transmit_only=True, samples=1 << 18))
+    r = fr.render(seed=1)
+    assert not any(s.hits for s in r.stats)                       # its own image misses the film ...
+    assert r.total[..., 1].sum() > 1e-6 * conv.sum()              # ... its spikes do not
+    off = FlareRenderer(side, 0, FlareOptions(transmit_only=True, samples=1 << 18, diffraction=False)).render(seed=1)
+    assert off.total.sum() == 0.0
+
+
+def test_an_emitter_the_backward_render_sees_gets_the_kernel_minus_a_delta():
+    """A small area emitter (``small_emitters``) is already in the backward image: its starburst moves light out of
+    its image into the spikes (negative there, positive around) and adds none; with include_transmit the flare
+    holds its image too, so the two together are that image convolved."""
+    mi = pytest.importorskip("mitsuba")
+    from mi_neurallens.flare.render import render_flare
+    _scene(mi)
+    sph = {"type": "sphere", "center": [0.0, 0.0, 3.0], "radius": 0.01,
+           "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 500.0}}}
+    sc = mi.load_dict({"type": "scene", "shape": sph,
+                       "sensor": {"type": "realistic_lens", "lens": "wide-22mm", "fstop": 11.0, "blades": 6,
+                                  "film": {"type": "hdrfilm", "width": 96, "height": 96, "pixel_format": "rgb"}}})
+    kw = dict(transmit_only=True, small_emitters=1, small_emitter_size=0.1, samples=1 << 18, seed=2)
+    plain = render_flare(sc, diffraction=False, **kw).total
+    star = render_flare(sc, **kw).diffraction
+    assert plain.sum() > 0 and star.min() < 0.0 < star.max()
+    assert abs(star.sum()) < 5e-3 * plain.sum()
+    both = render_flare(sc, include_transmit=True, **kw)
+    np.testing.assert_allclose(both.total.sum(), plain.sum(), rtol=5e-3)
+
+
+def test_bright_pixels_of_the_backward_image_can_be_spread_too():
+    """``diffraction_threshold``: the nested render's pixels above it (a small bright emitter seen directly) lose
+    light to the spikes, which the pixels around gain; the image's total stays (5e-3)."""
+    mi = pytest.importorskip("mitsuba")
+    _scene(mi)
+    sph = {"type": "sphere", "center": [0.0, 0.0, 3.0], "radius": 0.05,
+           "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 200.0}}}
+    sensor = {"type": "realistic_lens", "lens": "wide-22mm", "fstop": 11.0, "blades": 6,
+              "film": {"type": "hdrfilm", "width": 96, "height": 96, "pixel_format": "rgb"}}
+    imgs = {}
+    for t in (0.0, 1.0):
+        sc = mi.load_dict({"type": "scene", "shape": sph, "sensor": sensor,
+                           "integrator": {"type": "lens_flare", "nested": {"type": "direct"}, "max_ghosts": 1,
+                                          "flare_samples": 1 << 12, "diffraction_threshold": t}})
+        imgs[t] = np.array(mi.render(sc, spp=16, seed=3))
+    diff = imgs[1.0] - imgs[0.0]
+    assert diff.min() < 0.0 < diff.max()
+    assert abs(diff.sum()) < 5e-3 * imgs[0.0].sum()
+
+
+def test_an_aperture_mask_joins_its_pattern_to_the_iris(tmp_path):
+    """A clean mask gives the closed-form kernel (0.5 %); a vertical scratch throws a horizontal streak (more light
+    along the x axis than the y axis near the light) and takes what it blocks; a render reads the mask's file."""
+    m_ones = np.ones((64, 64))
+    K0 = film_kernel(Pupil(0), 8.0, (0.0375, 0.0375), (120, 80), [550.0], [[1.0]])[..., 0]
+    Km = film_kernel(Pupil(0), 8.0, (0.0375, 0.0375), (120, 80), [550.0], [[1.0]], mask=m_ones)[..., 0]
+    assert np.abs(Km - K0).max() < 5e-3 * K0.max()
+    scratch = np.ones((256, 256))
+    scratch[:, 126:130] = 0.0
+    Ks = film_kernel(Pupil(0), 8.0, (0.0375, 0.0375), (120, 80), [550.0], [[1.0]], mask=scratch)[..., 0]
+    j, i = np.mgrid[-80:80, -120:120]
+    band = (np.hypot(i, j) > 2) & (np.hypot(i, j) < 8)
+    horiz, vert = Ks[band & (np.abs(j) <= 1)].sum(), Ks[band & (np.abs(i) <= 1)].sum()
+    assert horiz > 2.0 * vert and K0[band & (np.abs(j) <= 1)].sum() == pytest.approx(K0[band & (np.abs(i) <= 1)].sum())
+    assert Ks.sum() == pytest.approx(K0.sum() * (1.0 - 4.0 / 256 * 4 / math.pi), rel=0.01)   # the bar's share of the disc
+    mi = pytest.importorskip("mitsuba")
+    from mi_neurallens.flare.render import FlareError, render_flare
+    sc = _scene(mi, blades=0)
+    path = str(tmp_path / "scratch.exr")
+    mi.Bitmap(scratch.astype(np.float32)).write(path)
+    plain = render_flare(sc, transmit_only=True, samples=1 << 16, seed=1).total
+    masked = render_flare(sc, transmit_only=True, samples=1 << 16, seed=1, aperture_mask=path).total
+    assert masked.sum() < plain.sum() and not np.allclose(masked, plain)
+    with pytest.raises(FlareError, match="no such image"):
+        render_flare(sc, transmit_only=True, samples=1 << 12, aperture_mask=str(tmp_path / "none.png"))
+
+
+@pytest.mark.parametrize("blades,spikes,rotation", [(5, 10, 0.0), (6, 6, 20.0), (9, 18, 0.0)])
+def test_spikes_counted_on_a_render(blades, spikes, rotation):
+    """On the rendered starburst of a point light at f/11: n spikes for an even n, 2n for an odd n, turned with
+    ``blade_rotation``."""
+    mi = pytest.importorskip("mitsuba")
+    from mi_neurallens.flare.render import render_flare
+    sc = _scene(mi, blades=blades)
+    y = render_flare(sc, transmit_only=True, samples=1 << 16, seed=1, blade_rotation=rotation).total[..., 1]
+    cy, cx = np.unravel_index(np.argmax(y), y.shape)
+    ang = _spike_angles(y[cy - 60:cy + 61, cx - 60:cx + 61], 45)
+    assert len(ang) == spikes, ang
+    off = np.abs(((ang - rotation) + 180.0 / spikes) % (360.0 / spikes) - 180.0 / spikes)
+    assert off.max() < 3.0, ang                    # a pixel at radius 45 spans 1.3°

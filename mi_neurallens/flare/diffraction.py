@@ -45,6 +45,10 @@ import numpy as np
 NEAR_F = 8.0
 #: sample spacing of the exact pattern, f units (its fringes are ≈ 0.5 apart), at most half a pixel
 SUB_F = 0.125
+#: an aperture mask: the pupil sampled on MASK_SAMPLES² points, its pattern by FFT within |fx|, |fy| ≤ MASK_F (dust
+#: specks a fiftieth of the pupil wide scatter to ≈ 25)
+MASK_SAMPLES = 256
+MASK_F = 32.0
 #: the wavelengths (nm) a flare's kernel samples the exact pattern at, weighted by the sensor's colour matching
 KERNEL_WAVELENGTHS_NM = tuple(390.0 + 20.0 * k for k in range(17))      # 390 … 710
 
@@ -219,7 +223,7 @@ def far_pixel_integral(fx, fy, sx, sy, pupil: Pupil):
 
 
 # ------------------------------------------------------------------------------------------ the film kernel
-def film_kernel(pupil: Pupil, fnumber: float, pixel_mm: tuple, size: tuple, wavelengths_nm, weights):
+def film_kernel(pupil: Pupil, fnumber: float, pixel_mm: tuple, size: tuple, wavelengths_nm, weights, mask=None):
     """The starburst kernel on a film of ``size`` = (W, H) pixels of ``pixel_mm`` = (width, height) mm: an array
     (2H, 2W, C) whose entry [H + j, W + i] is the share of a light's energy that lands i pixels right of and j
     pixels below the pixel its image falls on, per channel (each channel sums to 1 less what falls beyond the
@@ -229,7 +233,12 @@ def film_kernel(pupil: Pupil, fnumber: float, pixel_mm: tuple, size: tuple, wave
 
     Per pixel: the exact pattern integrated over its part inside the square |fx|, |fy| ≤ ``NEAR_F`` (a grid of
     spacing at most ``SUB_F`` and half a pixel, each sample binned into its pixel), plus the fringe-averaged
-    pattern's closed-form pixel integral times the share of the pixel outside that square."""
+    pattern's closed-form pixel integral times the share of the pixel outside that square.
+
+    ``mask``: an optional transmission image (2-D array, 0-1) over the pupil's circumscribed square (first row at
+    +y): the pupil times it, its pattern by FFT (:func:`masked_spectrum`) within |fx|, |fy| ≤ ``MASK_F`` instead of
+    the closed form within ``NEAR_F``; beyond, the iris's fringe-averaged pattern times the mask's share of the
+    pupil's light.  What the mask blocks is taken from the starburst (it sums to that share)."""
     W, H = (int(v) for v in size)
     px, py = (float(v) for v in pixel_mm)
     lams = np.asarray(wavelengths_nm, np.float64).ravel()
@@ -240,27 +249,35 @@ def film_kernel(pupil: Pupil, fnumber: float, pixel_mm: tuple, size: tuple, wave
     lam_c = (wts * lams[:, None]).sum(0) / norm                  # each channel's mean wavelength
     j, i = np.meshgrid(np.arange(-H, H, dtype=np.float64), np.arange(-W, W, dtype=np.float64), indexing="ij")
     out = np.zeros((2 * H, 2 * W, C))
+    near, table, far_scale = NEAR_F, None, 1.0
+    if mask is not None:
+        s_min = 2.0 * lams.min() * 1e-6 * fnumber
+        table = masked_spectrum(pupil, mask, max_spacing=min(SUB_F, 0.5 * px / s_min, 0.5 * py / s_min))
+        near, far_scale = MASK_F, table[2] / pupil.area
     # outside the square: the fringe-averaged pattern at the channels' mean wavelength, scaled to each channel's
     # (it is linear in λ where the streaks are narrower than a pixel, and the Airy envelope is everywhere)
     lam0 = float(np.mean(lam_c))
     s0 = 2.0 * lam0 * 1e-6 * fnumber                            # mm per f unit
     sx, sy = px / s0, py / s0
-    inside = _inside_share(i, sx) * _inside_share(j, sy)
+    inside = _inside_share(i, sx, near) * _inside_share(j, sy, near)
     far = np.where(inside > 0.0, 0.0, far_pixel_integral(i * sx, j * sy, sx, sy, pupil))
     # the pixels the square cuts: their part outside it sampled (at most SUB_F * 2 apart) with the point density
     cut = (inside > 0.0) & (inside < 1.0)
     if cut.any():
-        far[cut] = _outside_square(i[cut], j[cut], sx, sy, pupil)
-    out += far[..., None] * (lam_c / lam0)[None, None, :]
+        far[cut] = _outside_square(i[cut], j[cut], sx, sy, pupil, near)
+    out += far[..., None] * (far_scale * lam_c / lam0)[None, None, :]
     # inside: the exact pattern, at every wavelength
     for k, lam in enumerate(lams):
         s = 2.0 * lam * 1e-6 * fnumber
         sx, sy = px / s, py / s
-        d = min(SUB_F, 0.5 * sx, 0.5 * sy)
-        n = int(math.ceil(2.0 * NEAR_F / d))
-        g = (np.arange(n) + 0.5) * (2.0 * NEAR_F / n) - NEAR_F
-        fx, fy = np.meshgrid(g, g)
-        val = power_spectrum(fx, fy, pupil) * (2.0 * NEAR_F / n) ** 2
+        if table is None:
+            d = min(SUB_F, 0.5 * sx, 0.5 * sy)
+            n = int(math.ceil(2.0 * NEAR_F / d))
+            g = (np.arange(n) + 0.5) * (2.0 * NEAR_F / n) - NEAR_F
+            fx, fy = np.meshgrid(g, g)
+            val = power_spectrum(fx, fy, pupil) * (2.0 * NEAR_F / n) ** 2
+        else:
+            fx, fy, _, val = table[0], table[1], table[2], table[3]
         ii = np.floor(fx / sx + 0.5).astype(np.int64) + W
         jj = np.floor(fy / sy + 0.5).astype(np.int64) + H
         ok = (ii >= 0) & (ii < 2 * W) & (jj >= 0) & (jj < 2 * H)
@@ -272,7 +289,7 @@ def film_kernel(pupil: Pupil, fnumber: float, pixel_mm: tuple, size: tuple, wave
     return out / pupil.area
 
 
-def _outside_square(i, j, sx, sy, pupil):
+def _outside_square(i, j, sx, sy, pupil, near=NEAR_F):
     """∫ of the fringe-averaged density over the part of each pixel (``i``, ``j``) outside the exact square, by a
     midpoint grid of spacing ≤ 2 SUB_F (the streaks' sinc² profile across, ≈ 1 f unit wide, resolved)."""
     mx = max(1, int(math.ceil(sx / (2.0 * SUB_F))))
@@ -282,15 +299,63 @@ def _outside_square(i, j, sx, sy, pupil):
     out = np.zeros(len(i))
     for k in range(len(i)):
         fx, fy = np.meshgrid(i[k] * sx + ox, j[k] * sy + oy)
-        keep = (np.abs(fx) > NEAR_F) | (np.abs(fy) > NEAR_F)
+        keep = (np.abs(fx) > near) | (np.abs(fy) > near)
         out[k] = far_density(fx[keep], fy[keep], pupil).sum() * (sx * sy / (mx * my))
     return out
 
 
-def _inside_share(i, s):
-    """The share of pixel ``i`` (width ``s`` f units, centred at ``i s``) inside [−NEAR_F, NEAR_F]."""
+def _inside_share(i, s, near=NEAR_F):
+    """The share of pixel ``i`` (width ``s`` f units, centred at ``i s``) inside [−near, near]."""
     lo, hi = (i - 0.5) * s, (i + 0.5) * s
-    return np.clip(np.minimum(hi, NEAR_F) - np.maximum(lo, -NEAR_F), 0.0, None) / s
+    return np.clip(np.minimum(hi, near) - np.maximum(lo, -near), 0.0, None) / s
+
+
+def pupil_function(pupil: Pupil, n: int = MASK_SAMPLES, supersample: int = 4):
+    """The pupil's transmission (1 inside, 0 outside, edges area-averaged over ``supersample``² points) on an
+    ``n`` × ``n`` grid over its circumscribed square (half-width ``circumradius``; first row at +y), and that
+    half-width."""
+    rc = 1.0 if pupil.blades == 0 else 1.0 / math.cos(math.pi / pupil.blades)
+    m = n * supersample
+    c = ((np.arange(m) + 0.5) / m * 2.0 - 1.0) * rc
+    ux, uy = np.meshgrid(c, c[::-1])
+    if pupil.blades == 0:
+        inside = ux * ux + uy * uy <= 1.0
+    else:
+        inside = np.ones_like(ux, bool)
+        for phi, _ in pupil.edges():
+            inside &= ux * math.cos(phi) + uy * math.sin(phi) <= 1.0
+    return inside.reshape(n, supersample, n, supersample).mean(axis=(1, 3)), rc
+
+
+def resample_mask(image, n: int):
+    """A transmission image (2-D, any size, first row at +y) resampled bilinearly to ``n`` × ``n`` (values 0-1)."""
+    img = np.clip(np.asarray(image, np.float64), 0.0, 1.0)
+    h, w = img.shape
+    y = np.clip((np.arange(n) + 0.5) / n * h - 0.5, 0.0, h - 1.0)
+    x = np.clip((np.arange(n) + 0.5) / n * w - 0.5, 0.0, w - 1.0)
+    y0, x0 = np.floor(y).astype(int), np.floor(x).astype(int)
+    y1, x1 = np.minimum(y0 + 1, h - 1), np.minimum(x0 + 1, w - 1)
+    ty, tx = (y - y0)[:, None], (x - x0)[None, :]
+    top = img[y0][:, x0] * (1 - tx) + img[y0][:, x1] * tx
+    bot = img[y1][:, x0] * (1 - tx) + img[y1][:, x1] * tx
+    return top * (1 - ty) + bot * ty
+
+
+def masked_spectrum(pupil: Pupil, mask, max_spacing: float = SUB_F, n: int = MASK_SAMPLES):
+    """``|P̂|²`` of the pupil times the transmission image ``mask`` (over its circumscribed square), by FFT: the
+    frequencies within |fx|, |fy| ≤ MASK_F at a spacing of at most ``max_spacing`` (f units) and each sample's
+    share of the integral: ``(fx, fy, ∫|P M|², value × cell area)``."""
+    P, rc = pupil_function(pupil, n)
+    field = P * resample_mask(mask, n)
+    du = 2.0 * rc / n
+    L = 1 << int(math.ceil(math.log2(max(1.0 / (du * max_spacing), 2.0 * n))))
+    spec = np.abs(np.fft.fftshift(np.fft.fft2(field, s=(L, L)))) ** 2 * du ** 4     # |P̂|² at f = k / (L du)
+    df = 1.0 / (L * du)
+    f = (np.arange(L) - L // 2) * df
+    keep = np.abs(f) <= MASK_F
+    fx, fy = np.meshgrid(f[keep], -f[keep])          # row 0 of the field is +y: its transform's rows run the same way
+    val = spec[np.ix_(keep, keep)] * df * df
+    return fx, fy, float((field ** 2).sum() * du * du), val
 
 
 #: convolve by summing shifted kernels while the image has at most this many lit pixels (point lights in focus
@@ -299,10 +364,13 @@ SPARSE_MAX = 96
 
 
 class FilmKernel:
-    """A :func:`film_kernel` ``array`` (2H, 2W, C) and what convolving with it needs, its FFT kept once computed."""
+    """A :func:`film_kernel` ``array`` (2H, 2W, C) and what it was made of (``pupil``, ``fnumber``, ``pixel_mm``,
+    the channels' mean wavelengths ``lam_c`` in nm), its FFT kept once computed."""
 
-    def __init__(self, array):
+    def __init__(self, array, pupil: Pupil | None = None, fnumber: float = 0.0, pixel_mm=(0.0, 0.0), lam_c=()):
         self.array = np.asarray(array, np.float64)
+        self.pupil, self.fnumber, self.pixel_mm = pupil, float(fnumber), tuple(pixel_mm)
+        self.lam_c = np.asarray(lam_c, np.float64)
         self._fft = None
 
     def convolve(self, image):
@@ -322,6 +390,28 @@ class FilmKernel:
         pad[:H, :W] = image
         out = np.fft.irfft2(np.fft.rfft2(pad, axes=(0, 1)) * self._fft, s=(2 * H, 2 * W), axes=(0, 1))
         return out[:H, :W]
+
+
+def channel_wavelengths(wavelengths_nm, weights):
+    """Each channel's mean wavelength (nm) under ``weights`` (k, C), as :func:`film_kernel` uses them."""
+    lams = np.asarray(wavelengths_nm, np.float64).ravel()
+    wts = np.asarray(weights, np.float64).reshape(len(lams), -1)
+    norm = wts.sum(0)
+    return (wts * lams[:, None]).sum(0) / np.where(np.abs(norm) > 0, norm, 1.0)
+
+
+def offset_kernel(fk: FilmKernel, centre):
+    """The fringe-averaged pattern of ``fk``'s pupil integrated over each pixel of the film (H, W, C), centred at
+    ``centre`` = (x, y) in pixels from the first pixel's centre (anywhere, the film's outside too): for a light
+    whose own image misses the film, so that only its far field, the spikes, reaches it."""
+    H, W = fk.array.shape[0] // 2, fk.array.shape[1] // 2
+    j, i = np.meshgrid(np.arange(H, dtype=np.float64) - centre[1], np.arange(W, dtype=np.float64) - centre[0],
+                       indexing="ij")
+    lam0 = float(np.mean(fk.lam_c))
+    s0 = 2.0 * lam0 * 1e-6 * fk.fnumber
+    sx, sy = fk.pixel_mm[0] / s0, fk.pixel_mm[1] / s0
+    far = far_pixel_integral(i * sx, j * sy, sx, sy, fk.pupil) / fk.pupil.area
+    return far[..., None] * (fk.lam_c / lam0)[None, None, :]
 
 
 def convolve(image, kernel):

@@ -69,6 +69,9 @@ class FlareKernels:
         self.unfrozen = {}          # (kind, signature) -> why it could not be frozen
         self._uses = {}             # (kind, signature) -> calls so far
         self._frozen_ev = None      # the evaluator of the call being recorded
+        #: contrib's hits must land in the crop window (False: anywhere on the sensor plane, for
+        #: FlareRenderer.offframe_image)
+        self.crop_test = True
 
     # -------------------------------------------------------------- one forward sample
     def interaction(self, qx, qy, wav, to_world):
@@ -114,7 +117,7 @@ class FlareKernels:
         W, H = self.size
         px = (x * (1.0 / self.setup.sensor_width_mm) + 0.5) * W
         py = (y * (1.0 / self.setup.sensor_height_mm) + 0.5) * H
-        hit = valid & self.in_crop(px, py)
+        hit = (valid & self.in_crop(px, py)) if self.crop_test else valid
         val = E * (T * dz * k_pix)
         if not isinstance(wspec, float):
             val = val * wspec

@@ -75,6 +75,12 @@ class FlareOptions:
     #: the aperture's diffraction starburst (flare/diffraction.py): each light's own image, traced forward, convolved
     #: with the exit pupil's Fraunhofer pattern (a light the backward render sees: with that pattern minus a delta)
     diffraction: bool = True
+    #: with a nested render: its pixels whose luminance exceeds this (pixel units) are spread by the starburst too
+    #: (bright speculars, emissive surfaces: the kernel minus a delta over the whole image); 0: off
+    diffraction_threshold: float = 0.0
+    #: an image of the pupil's transmission (dust, scratches; grey 0-1, over the iris's circumscribed square, its
+    #: top row at +y) whose diffraction joins the iris's in the starburst; None: a clean pupil
+    aperture_mask: str | None = None
     transmit_only: bool = False        #: splat only the transmit path
     model: object = None               #: NeuralLensModel or a file (default: the sensor's model)
     #: how learned ghost maps enter their kernels: "fused" (weights as literals: a kernel per map), "shared"
@@ -117,6 +123,9 @@ class FlareOptions:
             raise FlareError(f"lens_flare: 'auto_max_flare_error' must be >= 0, got {self.auto_max_flare_error}")
         if self.mlp not in ("auto",) + MLP_MODES:
             raise FlareError(f"lens_flare: 'mlp' must be one of auto, {', '.join(MLP_MODES)}, got {self.mlp!r}")
+        if not self.diffraction_threshold >= 0:
+            raise FlareError(f"lens_flare: 'diffraction_threshold' must be >= 0 (0: off), got "
+                             f"{self.diffraction_threshold}")
         if not self.pilot_grid >= 4 or not self.pilot_spp >= 1:
             raise FlareError("lens_flare: 'pilot_grid' must be >= 4 and 'pilot_spp' >= 1")
         return self

@@ -207,6 +207,19 @@ sensor must be ``realistic_lens`` or ``neural_lens``.
      delta, so no light is counted twice.  It redistributes light and adds none: n spikes for an even number of
      blades, 2n for an odd one, none for a round iris (Airy rings).  (Default: |true|)
 
+ * - diffraction_threshold
+   - |float|
+   - With a nested integrator and ``diffraction``: the pixels of its image whose luminance exceeds this are
+     spread by the starburst too (the kernel minus a delta over the whole image), for bright speculars and
+     emissive surfaces the flare does not trace.  0: off.  (Default: 0)
+
+ * - aperture_mask
+   - |string|
+   - An image of the pupil's transmission (dust, scratches: grey values 0-1, any format Mitsuba reads) spanning
+     the iris's circumscribed square, its top row up (+y): its diffraction joins the iris's in the starburst (the
+     masked pupil's pattern by FFT near the light, the iris's beyond), and what it blocks is taken from the
+     starburst.  (Default: none)
+
  * - include_transmit
    - |bool|
    - Also splat the transmit path (the lights' own images) forward; it gets one equal share of the
@@ -254,6 +267,7 @@ _PROPS = {
     "pilot_with": ("string", "pilot_with"), "mlp": ("string", "mlp"),
     "visibility": ("bool", "visibility"), "freeze": ("bool", "freeze"),
     "include_transmit": ("bool", "include_transmit"), "diffraction": ("bool", "diffraction"),
+    "diffraction_threshold": ("float", "diffraction_threshold"), "aperture_mask": ("string", "aperture_mask"),
     "transmit_only": ("bool", "transmit_only"),
 }
 #: properties read by Mitsuba's SamplingIntegrator base
@@ -276,7 +290,7 @@ def options_from_props(props, nested_names=()):
                 v = v or []
         elif k == "coating_surfaces":
             v = [int(t) for t in v.replace(",", " ").split()]
-        elif k == "model":
+        elif k in ("model", "aperture_mask"):
             v = v or None
         kw[field] = v
     return FlareOptions(**kw).validate()
@@ -330,6 +344,9 @@ class LensFlare(mi.SamplingIntegrator):
         img = self.nested.render(scene, sensor, seed, spp, develop, evaluate)
         if not develop:
             return img
+        if self.opts.diffraction and self.opts.diffraction_threshold > 0 and img.shape[2] >= 3:
+            img = mi.TensorXf(self._spread_bright(np.array(img.numpy() if hasattr(img, "numpy") else img), scene,
+                                                  sensor))
         C = img.shape[2]
         if C == 3:
             return img + fl
@@ -340,6 +357,18 @@ class LensFlare(mi.SamplingIntegrator):
         else:
             out[..., 0] += res.total @ np.array(LUMINANCE_WEIGHTS, np.float32)
         return mi.TensorXf(out)
+
+    def _spread_bright(self, arr, scene, sensor):
+        """``arr`` (H, W, C) with its RGB pixels above ``diffraction_threshold`` in luminance spread by the starburst
+        (their values convolved with the kernel minus a delta)."""
+        rgb = np.asarray(arr[..., :3], np.float64)
+        lum = rgb @ np.asarray(LUMINANCE_WEIGHTS, np.float64)
+        bright = np.where((lum > self.opts.diffraction_threshold)[..., None], rgb, 0.0)
+        if bright.any():
+            K = self._renderer(scene, sensor).diffraction_kernel()
+            arr = np.array(arr, np.float32, copy=True)
+            arr[..., :3] += (K.convolve(bright) - bright).astype(np.float32)
+        return arr
 
     def aov_names(self):
         return []
