@@ -514,83 +514,19 @@ class FlareRenderer:
                     blk = blocks.setdefault(pid, self.new_block())
                 self._splat_ghost(light, ev, pl, st, n, blk, seed * 7919 + li)
         img, ghosts = self._images(total, blocks, per_ghost)
-        star = self._starburst(direct) if diffract else None
-        for light in offframe:
-            spikes = self.offframe_starburst(light, seed * 7919 + 17)
-            if spikes is not None:
-                star = spikes if star is None else star + spikes
-        if star is not None:
-            img = img + star
+        star = None
+        if diffract:
+            from .starburst import starburst_image
+            star = starburst_image(self, direct, offframe, seed * 7919 + 17)
+            if star is not None:
+                img = img + star
         return FlareResult(img, ghosts, stats, star)
 
     def diffraction_kernel(self):
-        """The starburst's :class:`~mi_neurallens.flare.diffraction.FilmKernel` of the flare's lens as configured
-        (iris, blades, focus) on this film, per channel with the sensor's colour matching; kept while those stay."""
-        import mitsuba as mi
-        from .diffraction import (KERNEL_WAVELENGTHS_NM, FilmKernel, channel_wavelengths, film_kernel,
-                                  working_fnumber_and_pupil)
-        N_w, pupil = working_fnumber_and_pupil(self.lens)
-        pix = (self.setup.sensor_width_mm / self.size[0], self.setup.sensor_height_mm / self.size[1])
-        key = (N_w, pupil, pix, self.crop_size, self.opts.aperture_mask)
-        if getattr(self, "_dk", (None,))[0] != key:
-            from ..sensors.wavelengths import rgb_weight
-            lam = np.asarray(KERNEL_WAVELENGTHS_NM, np.float64)
-            w = rgb_weight(mi, mi.Float(lam.astype(np.float32)))
-            weights = np.stack([np.asarray(w[c], np.float64) for c in range(3)], 1)
-            mask = load_aperture_mask(self.opts.aperture_mask) if self.opts.aperture_mask else None
-            self._dk = (key, FilmKernel(film_kernel(pupil, N_w, pix, self.crop_size, lam, weights, mask=mask), pupil,
-                                        N_w, pix, channel_wavelengths(lam, weights)))
-        return self._dk[1]
-
-    def offframe_starburst(self, light, seed=0, n=1 << 18):
-        """The starburst of a point, spot or directional ``light`` whose own image falls beside the film: that image
-        (traced: ``n`` samples of the transmit path over the front element, kept wherever they land on the sensor
-        plane) taken as a point at its centroid with its energy, spread by the fringe-averaged pattern over the
-        film (:func:`~mi_neurallens.flare.diffraction.offset_kernel`).  None when no light passes the lens."""
-        import mitsuba as mi
-        import drjit as dr
-        from .diffraction import offset_kernel
-        R = self._region_radius(light)
-        rng = np.random.default_rng([seed, zlib.crc32(light.name.encode()) & 0xFFFF])
-        u = rng.random((4, n))
-        r, t = R * np.sqrt(u[0]), 2.0 * math.pi * u[1]
-        ev = self.exact_evaluator(0)
-        xf = (self._to_world, self._to_cam, self._k_pix)
-        self.kernels.crop_test = False
-        try:
-            hit, px, py, val, lam, _ = self.kernels.contrib(
-                ev, light.emitter, self.scene if self.opts.visibility else None, xf,
-                from_numpy(mi.Float, r * np.cos(t)), from_numpy(mi.Float, r * np.sin(t)),
-                from_numpy(mi.Float, u[2]), mi.Point2f(from_numpy(mi.Float, u[3]), from_numpy(mi.Float, u[3][::-1])))
-            rgb_, lum = rgb(hit, val, lam)
-            dr.eval(rgb_, lum, px, py)
-        finally:
-            self.kernels.crop_test = True
-        w = lum.numpy().astype(np.float64)
-        if not w.sum() > 0:
-            return None
-        energy = np.array([float(dr.sum(c)[0] if hasattr(dr.sum(c), "__len__") else dr.sum(c)) for c in rgb_])
-        energy *= math.pi * R * R / n
-        cx = float((px.numpy() * w).sum() / w.sum()) - self.crop_offset[0] - 0.5
-        cy = float((py.numpy() * w).sum() / w.sum()) - self.crop_offset[1] - 0.5
-        K = offset_kernel(self.diffraction_kernel(), (cx, cy))
-        return np.asarray(K * energy[None, None, :], np.float32)
-
-    def _starburst(self, direct):
-        """What diffraction adds to the flare image, from the lights' own images in ``direct`` ({"unseen": block of
-        the point, spot and directional lights, "seen": of the area emitters the backward render sees}): the first
-        convolved with the starburst kernel, the second with the kernel minus a delta (their image is already in
-        the backward render; with include_transmit it is in the flare too).  None when no light reached the film."""
-        if not direct:
-            return None
-        K = self.diffraction_kernel()
-        out = 0.0
-        for kind, blk in direct.items():
-            img = np.asarray(blk.tensor().numpy(), np.float64)
-            out = out + K.convolve(img)
-            if kind == "seen" and not self.opts.include_transmit:
-                out = out - img
-        return np.asarray(out, np.float32)
+        """The starburst's :class:`~mi_neurallens.flare.diffraction.FilmKernel` of this render's lens and film
+        (:func:`~mi_neurallens.flare.starburst.film_kernel_of`: kept while the iris, focus and film stay)."""
+        from .starburst import film_kernel_of
+        return film_kernel_of(self)
 
     def _plan(self, light, ids, seed, stats):
         """Each path of ``ids`` for ``light``: its evaluator (the tracer where the light lies beyond the field its
@@ -660,20 +596,6 @@ class FlareRenderer:
         else:
             tot = total.tensor().numpy()
         return np.asarray(tot), ghosts
-
-
-def load_aperture_mask(path):
-    """The transmission image ``path`` (any format Mitsuba reads: PNG, JPEG, EXR, ...) as linear grey values, a 2-D
-    numpy array, its first row the top (+y)."""
-    import os
-    import mitsuba as mi
-    if not os.path.isfile(path):
-        raise FlareError(f"lens_flare: 'aperture_mask': no such image: {path}")
-    try:
-        bmp = mi.Bitmap(path).convert(mi.Bitmap.PixelFormat.Y, mi.Struct.Type.Float32, srgb_gamma=False)
-    except Exception as e:                                   # Mitsuba's reader raises RuntimeError on a bad file
-        raise FlareError(f"lens_flare: 'aperture_mask': cannot read {path}: {e}") from None
-    return np.array(bmp, np.float64).reshape(bmp.height(), bmp.width())
 
 
 def render_flare(scene, sensor=0, *, seed=0, per_ghost=False, **options):
