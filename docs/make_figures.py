@@ -325,7 +325,7 @@ def starburst(lens, samples=1 << 22, res=(480, 320)):
             sets = [f"fstop={fstop!r}", f"blades={blades}"] + ([f"model={lens}"] if st == "neural_lens" else [])
             scene = load_scene(str(scene_path("night")), variant=mi.variant(), lens=lens, resolution=res,
                                sensor_type=st, sets=sets)
-            mode_here = mode if blades == 0 or mode == "exact" else "auto"     # auto traces a ghost the map cannot
+            mode_here = "exact" if mode == "exact" else "auto"   # auto traces a ghost the model cannot render
             t0 = time.perf_counter()
             r = render_flare(scene, mode=mode_here, samples=samples, seed=5)
             secs = time.perf_counter() - t0
@@ -337,7 +337,8 @@ def starburst(lens, samples=1 << 22, res=(480, 320)):
     k = 1.0 / max(float(np.percentile(imgs[0], 99.7)), 1e-12)
     grid([im * k for im in imgs], titles, os.path.join(IMG, f"flare_starburst_{lens}.jpg"),
          f"night scene, {lens}: its lights' diffraction starbursts and ghosts ({samples / 2**20:.0f} M samples per "
-         f"light), exact ghosts (top) and learned ones (bottom, mode auto where blades need the tracer); one exposure",
+         f"light), exact ghosts (top) and learned ones (bottom: mode auto, a ghost without a map for this iris is "
+         f"traced); one exposure",
          4)
     return out
 
