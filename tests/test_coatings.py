@@ -14,7 +14,6 @@ from mi_neurallens.optics.coatings import (AL2O3, MGF2, ZRO2, Coating, CoatingSt
 from mi_neurallens.optics.glass import AIR, catalog_glass, constant
 from mi_neurallens.trace.interactions import coated_reflectance, interface_reflectance, stack_reflectance
 
-tmm = pytest.importorskip("tmm")
 
 LAMS = np.linspace(380.0, 780.0, 9)
 BK7 = catalog_glass("N-BK7")
@@ -34,6 +33,7 @@ def _stacks():
 def _tmm_R(stack, lam, theta, from_glass):
     """Unpolarised reflectance by tmm (coh_tmm, s and p averaged): light from air (or from the glass) at angle
     ``theta`` (rad) in its incident medium."""
+    import tmm                  # the dev extra's independent thin-film implementation
     nl = [float(l.medium.index(lam)) for l in stack.layers]      # glass outward
     ds = [l.thickness_nm for l in stack.layers]
     ns = float(BK7.index(lam))

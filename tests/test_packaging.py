@@ -17,13 +17,49 @@ from mi_neurallens.errors import NeuralLensError
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def _package_data_globs() -> list[str]:
+def _pyproject() -> dict:
     try:
         import tomllib
     except ImportError:                 # Python 3.10
         import tomli as tomllib
     with open(os.path.join(ROOT, "pyproject.toml"), "rb") as f:
-        return tomllib.load(f)["tool"]["setuptools"]["package-data"]["mi_neurallens"]
+        return tomllib.load(f)
+
+
+def _package_data_globs() -> list[str]:
+    return _pyproject()["tool"]["setuptools"]["package-data"]["mi_neurallens"]
+
+
+def test_every_import_of_the_tests_is_declared():
+    """Each module the tests import is the standard library's, the package's, a test helper, or comes from a
+    distribution pyproject.toml names itself (its dependencies or an extra), not one that merely happens to be
+    installed with another.  (docs/ scripts the tests run count as the tests' own.)"""
+    import ast
+    import importlib.metadata as md
+    import re
+    norm = lambda n: re.sub(r"[-_.]+", "-", n).lower()            # noqa: E731
+    proj = _pyproject()["project"]
+    reqs = list(proj["dependencies"]) + [r for extra in proj["optional-dependencies"].values() for r in extra]
+    declared = {norm(re.split(r"[<>=!~;\[ ]", r, maxsplit=1)[0]) for r in reqs}
+    dists = md.packages_distributions()
+    tests = os.path.join(ROOT, "tests")
+    local = {f[:-3] for d in (tests, os.path.join(ROOT, "docs")) for f in os.listdir(d) if f.endswith(".py")}
+    local.add("mi_neurallens")
+    undeclared = set()
+    for f in sorted(os.listdir(tests)):
+        if not f.endswith(".py"):
+            continue
+        tree = ast.parse(open(os.path.join(tests, f), encoding="utf-8").read())
+        for node in ast.walk(tree):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
+                     [node.module] if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module else [])
+            for name in names:
+                top = name.split(".")[0]
+                if top in sys.stdlib_module_names or top in local or norm(top) in declared:
+                    continue
+                if not any(norm(d) in declared for d in dists.get(top, [])):
+                    undeclared.add(f"{f}: {top} ({', '.join(dists.get(top, ['not installed']))})")
+    assert not undeclared, sorted(undeclared)
 
 
 def test_every_data_file_is_declared_package_data():
