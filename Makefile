@@ -31,6 +31,10 @@ bench: setup
 	    $(PY) benchmarks/bench_render.py --lens $$lens --out $(OUT)/bench/render_$$lens.json || exit 1; \
 	done
 	$(PY) benchmarks/bench_flare.py --out $(OUT)/bench/bench_flare.json
+	for lens in wide-22mm ood-59mm; do \
+	    $(PY) benchmarks/bench_flare.py --starburst --lens $$lens --out $(OUT)/bench/starburst_$$lens.json || exit 1; \
+	done
+	$(PY) benchmarks/bench_flare.py --lens ood-59mm --coatings none,quarter_wave,broadband --out $(OUT)/bench/coatings_ood-59mm.json
 	$(PY) benchmarks/equal_time.py --out $(OUT)/bench/equal_time.json
 	$(PY) benchmarks/bench_baselines.py --out $(OUT)/bench/bench_baselines.json
 	$(PY) -m mi_neurallens accuracy wide-22mm --out $(OUT)/bench

@@ -7,7 +7,8 @@
 
 ``docs/performance/`` holds one JSON file per benchmark run, exactly as the benchmark wrote it
 (``bench_tracer.json``, ``mlp_<lens>.json`` and ``render_<lens>.json`` per lens, ``bench_flare.json``,
-``equal_time.json``, ``bench_baselines.json``, ``accuracy_<lens>.json``; GPU runs in ``gpu/``: ``render_<lens>.json``, ``mlp_<lens>.json``
+``equal_time.json``, ``bench_baselines.json``, ``accuracy_<lens>.json``, the flare's ``starburst_<lens>.json`` and
+``coatings_<lens>.json``; GPU runs in ``gpu/``: ``render_<lens>.json``, ``mlp_<lens>.json``
 and the suite's ``gpu.txt``), and ``sources.json``: for each file the command, the machine, the date and the
 commit it was measured at.  ``--from`` / ``--gpu-from`` copy the files a run wrote and record their source (the
 machine read from /proc/cpuinfo, or ``--machine TEXT``).  The learned maps' accuracy comes from the evaluation
@@ -210,6 +211,41 @@ def flare_table(r: Results) -> str:
     return head + table(["ghost", "traced M samples/s", "learned M samples/s", "learned ÷ traced",
                          "samples reaching the film: whole disk → pilot cells", "MAPE traced",
                          "MAPE learned, same time"], rows) + "\n" + r.source("bench_flare.json")
+
+
+def starburst_table(r: Results) -> str:
+    files = sorted(n for n in r.cpu if n.startswith("starburst_"))
+    if not files:
+        return "*No run stored.*\n"
+    rows, srcs = [], []
+    for n in files:
+        d = r.cpu[n]
+        rows.append([f"`{d.get('lens', '')}`", d.get("lights", ""), "×".join(str(v) for v in d.get("resolution", [])),
+                     num(d.get("seconds_without")), num(d.get("seconds_with")), ratio(d.get("ratio"), 3),
+                     num(d.get("kernel_build_seconds"), 2)])
+        srcs.append(r.source(n))
+    head = ("The bundled night scene's whole flare (its lights, the automatic ghost selection, mode auto, "
+            f"{_pow2(r.cpu[files[0]].get('samples_per_light'))} samples per light), best of 7 renders, without and with "
+            "the diffraction starburst; the film kernel is built once per aperture, focus and film.\n\n")
+    return head + table(["lens", "lights", "film", "flare s, no starburst", "flare s, starburst", "ratio",
+                         "kernel build s (once)"], rows) + "\n" + "".join(srcs)
+
+
+def coatings_table(r: Results) -> str:
+    files = sorted(n for n in r.cpu if n.startswith("coatings_"))
+    if not files:
+        return "*No run stored.*\n"
+    rows, srcs, names = [], [], []
+    for n in files:
+        d = r.cpu[n]
+        names = d.get("coatings", [])
+        for x in d.get("rows", []):
+            rows.append([f"`{d.get('lens', '')}`", x.get("path_id", "")]
+                        + [f"{num(1e3 * x['seconds'][c])} ({ratio(x['ratio'][c], 3)})" for c in names])
+        srcs.append(r.source(n))
+    head = ("A traced ghost alone (one point light, 240×160, pilot bounds), best of 5 renders of each coating "
+            "alternating, ms per render and its ratio to the first coating's.\n\n")
+    return head + table(["lens", "ghost"] + [f"{c} ms" for c in names], rows) + "\n" + "".join(srcs)
 
 
 def _gates():
@@ -529,7 +565,8 @@ def pages(r: Results | None = None) -> dict:
     """{page: {block name: body}}: every block this script writes."""
     r = r or Results()
     return {PERF_PAGE: {"verdicts": verdicts(r), "tracer": tracer_table(r), "camera-rays": mlp_table(r),
-                        "render": render_table(r), "equal-time": equal_time_table(r), "flare": flare_table(r),
+                        "render": render_table(r), "equal-time": equal_time_table(r), "flare": flare_table(r), "starburst": starburst_table(r),
+                        "coatings": coatings_table(r),
                         "maps": maps_table(r), "baselines-speed": baselines_speed_table(r),
                         "baselines-accuracy": baselines_accuracy_table(r), "gpu-render": gpu_render_table(r),
                         "gpu-camera-rays": gpu_mlp_table(r)},
@@ -634,7 +671,8 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.src:
         names = list(CPU_FILES) + sorted(os.path.basename(p) for p in glob.glob(os.path.join(a.src, "*.json"))
-                                         if os.path.basename(p).startswith(("accuracy_", "mlp_", "render_")))
+                                         if os.path.basename(p).startswith(("accuracy_", "mlp_", "render_",
+                                                                            "starburst_", "coatings_")))
         m = (a.machine, a.machine.split(",")[0]) if a.machine else detect_machine()
         print("took", ", ".join(take_run(a.src, names, PERF, m, _cpu_command)) or "nothing")
     if a.gpu_from:
