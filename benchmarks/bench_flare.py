@@ -5,7 +5,7 @@ fractions before/after the pilot bounds, and equal-time MAPE against a converged
     python benchmarks/bench_flare.py --coatings none,quarter_wave,broadband [--lens ood-59mm]
 
 With ``--starburst`` it times instead the bundled night scene's whole flare (960x640, its lights, the automatic ghost
-selection, mode auto) with and without the diffraction starburst (best of 7 renders after one that compiles, and the
+selection, mode auto) with and without the diffraction starburst (best of 11 renders after one that compiles, and the
 first render with diffraction, which builds the film kernel, on its own).
 
 With ``--coatings`` it times instead each of the N strongest ghosts traced exactly (pilot bounds) with each
@@ -109,7 +109,7 @@ def main(argv=None):
     print("wrote", a.out)
 
 
-def starburst_cost(a, rounds=7):
+def starburst_cost(a, rounds=11):
     """Seconds of the night scene's flare at 960x640 without and with diffraction (see the module docstring)."""
     import drjit as dr
     from mi_neurallens.commands.render import load_scene

@@ -225,7 +225,7 @@ def starburst_table(r: Results) -> str:
                      num(d.get("kernel_build_seconds"), 2)])
         srcs.append(r.source(n))
     head = ("The bundled night scene's whole flare (its lights, the automatic ghost selection, mode auto, "
-            f"{_pow2(r.cpu[files[0]].get('samples_per_light'))} samples per light), best of 7 renders, without and with "
+            f"{_pow2(r.cpu[files[0]].get('samples_per_light'))} samples per light), best of 11 renders, without and with "
             "the diffraction starburst; the film kernel is built once per aperture, focus and film.\n\n")
     return head + table(["lens", "lights", "film", "flare s, no starburst", "flare s, starburst", "ratio",
                          "kernel build s (once)"], rows) + "\n" + "".join(srcs)

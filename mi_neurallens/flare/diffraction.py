@@ -35,8 +35,10 @@ the canvas falls beyond the film.
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 import math
+import os
 
 import numpy as np
 
@@ -395,11 +397,17 @@ class FilmKernel:
             k = np.fft.ifftshift(self.array, axes=(0, 1)).transpose(2, 0, 1)      # offset 0 at [0, 0]
             self._fft = np.fft.rfft2(np.ascontiguousarray(k, np.float32))
         rows = np.unique(lit[:, 0])
-        spec = np.zeros((image.shape[2], 2 * H, W + 1), np.complex64)
-        spec[:, rows] = np.fft.rfft(np.ascontiguousarray(image[rows].transpose(2, 0, 1), np.float32), n=2 * W)
-        spec = np.fft.fft(spec, axis=1) * self._fft
-        out = np.fft.irfft(np.fft.ifft(spec, axis=1)[:, :H], n=2 * W)[..., :W]
-        return np.asarray(out.transpose(1, 2, 0), np.float64)
+
+        def channel(c):
+            spec = np.zeros((2 * H, W + 1), np.complex64)
+            spec[rows] = np.fft.rfft(np.ascontiguousarray(image[rows, :, c], np.float32), n=2 * W)
+            spec = np.fft.fft(spec, axis=0) * self._fft[c]
+            return np.fft.irfft(np.fft.ifft(spec, axis=0)[:H], n=2 * W)[:, :W]
+
+        # the channels on threads: numpy's FFT releases the GIL, and a machine has cores to spare here
+        with ThreadPoolExecutor(max(1, min(image.shape[2], os.cpu_count() or 1))) as pool:
+            out = list(pool.map(channel, range(image.shape[2])))
+        return np.stack(out, axis=2).astype(np.float64)
 
 
 def channel_wavelengths(wavelengths_nm, weights):
