@@ -42,6 +42,9 @@ import os
 
 import numpy as np
 
+from ..constants import LAMBDA_D
+from ..errors import NeuralLensError
+
 #: the exact (coherent) pattern within the square |fx|, |fy| ≤ NEAR_F, f units (cycles per inscribed radius; 8 ≈ 16
 #: Airy rings); beyond it the fringe-averaged pattern
 NEAR_F = 8.0
@@ -77,15 +80,16 @@ class Pupil:
         return [(a0 + 2.0 * math.pi * k / n, 2.0 * math.tan(math.pi / n)) for k in range(n)]
 
 
-def working_fnumber_and_pupil(lens, wavelength_nm: float = 587.5618):
-    """``(N_w, Pupil)`` of ``lens`` as configured (its stop radius and blades, its sensor distance): see the module
-    docstring."""
+def working_fnumber_and_pupil(lens, wavelength_nm: float = LAMBDA_D):
+    """``(N_w, Pupil)`` of ``lens`` as configured (its stop radius and blades, its sensor distance), paraxially at
+    ``wavelength_nm``: see the module docstring."""
     from ..trace.iris import Iris
     p = lens.paraxial(wavelength_nm)
     z_sensor = float(lens.image_z)
     r_xp, z_xp = float(p.exit_pupil_radius), float(p.exit_pupil_z)
     if not (math.isfinite(r_xp) and math.isfinite(z_xp)) or r_xp <= 0:
-        raise ValueError(f"lens '{lens.name}' has no finite exit pupil: no diffraction starburst")
+        raise NeuralLensError(f"lens '{lens.name}' has no finite exit pupil (image-side telecentric?): its diffraction "
+                              f"starburst is not defined here; render the flare with diffraction off")
     iris = Iris.of_lens(lens)
     return abs(z_sensor - z_xp) / (2.0 * r_xp), Pupil(iris.blades, iris.rotation_deg)
 
