@@ -213,8 +213,13 @@ def flare_table(r: Results) -> str:
                          "MAPE learned, same time"], rows) + "\n" + r.source("bench_flare.json")
 
 
+def _runs(r: Results, prefix: str) -> list:
+    """The stored CPU files whose names start with ``prefix`` (one per lens), sorted."""
+    return sorted(n for n in r.cpu if n.startswith(prefix))
+
+
 def starburst_table(r: Results) -> str:
-    files = sorted(n for n in r.cpu if n.startswith("starburst_"))
+    files = _runs(r, "starburst_")
     if not files:
         return "*No run stored.*\n"
     rows, srcs = [], []
@@ -232,7 +237,7 @@ def starburst_table(r: Results) -> str:
 
 
 def coatings_table(r: Results) -> str:
-    files = sorted(n for n in r.cpu if n.startswith("coatings_"))
+    files = _runs(r, "coatings_")
     if not files:
         return "*No run stored.*\n"
     rows, srcs, names = [], [], []
@@ -321,7 +326,7 @@ ACC_METHODS = ("abcd", "taylor3", "taylor5", "taylor5-ap", "fitted", "neural")
 
 
 def baselines_accuracy_table(r: Results) -> str:
-    names = sorted(n for n in r.cpu if n.startswith("accuracy_"))
+    names = _runs(r, "accuracy_")
     if not names:
         return "*No run stored.*\n"
     rows, flare = [], []

@@ -138,16 +138,10 @@ def test_the_tracer_and_the_taylor_baseline_carry_a_stack():
     assert _coating_key(Coating(1.38, 550.0)) == [1.38, 550.0]
     # the Taylor baseline expands the same stack formulas (series sin and cos): near the axis its throughput
     # polynomial reproduces the traced one (degree 5, as tests/test_baselines.py checks the bare lens)
-    from mi_neurallens.baselines import TaylorMap
-    m = TaylorMap(bb, "transmit", "forward", degree=5, wavelengths=(550.0,))
-    rng = np.random.default_rng(1)
-    o = np.c_[rng.uniform(-0.5, 0.5, (100, 2)), np.full(100, m.z_in)]
-    d = np.c_[rng.uniform(-0.01, 0.01, (100, 2)), np.ones(100)]
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    ref = bb.trace(o, d, 550.0, z_out=m.z_out, precision="float64")
-    r = m.eval_np(o, d, 550.0)
-    assert ref.valid.sum() > 50
-    np.testing.assert_allclose(r.throughput[ref.valid], ref.throughput[ref.valid], atol=1e-6)
+    from test_baselines import taylor_throughput_vs_tracer
+    got, ref = taylor_throughput_vs_tracer(bb, n=100)
+    assert len(ref) > 50
+    np.testing.assert_allclose(got, ref, atol=1e-6)
 
 def test_project_json_reads_and_writes_stacks(tmp_path):
     """A preset, a stack by optical thickness (waves) and a stack by physical thickness read, write back to an
