@@ -58,7 +58,7 @@ def tracer_for(lens, fresnel: bool = True):
 
 def trace(lens, origins, directions, wavelength_nm, direction: str = "forward", path="transmit", *,
           fresnel: bool = True, precision: str = "float32", z_out: float | None = None,
-          record: bool = False) -> RayBundle:
+          record: bool = False, opaque: bool = False) -> RayBundle:
     """Trace rays exactly through ``lens`` along one path type.
 
     Parameters
@@ -76,6 +76,9 @@ def trace(lens, origins, directions, wavelength_nm, direction: str = "forward", 
         path); otherwise the inputs are read as float64 and the results are float64.
     z_out: output plane z in lens space (default: image plane forward, z = 0 backward).
     record: also return every hit point (``RayBundle.points``).
+    opaque: the surfaces' curvatures, conics, aspheric coefficients and vertex positions enter the kernel as
+        inputs, not literals (:meth:`~mi_neurallens.trace.parameters.LiveGeometry.opaque`), so that lenses that
+        differ only in those numbers share one kernel (a lens being optimised: its pupil bounds each step).
     """
     import drjit as dr
     F = float_type(precision)
@@ -92,7 +95,12 @@ def trace(lens, origins, directions, wavelength_nm, direction: str = "forward", 
     if not np.all(np.isfinite(lam)) or np.any(lam <= 0):
         raise NeuralLensError("wavelength_nm must be positive and finite (nanometres)")
     cols = lambda a: tuple(from_numpy(F, a[:, i]) for i in range(3))
-    tr = tracer_for(lens, bool(fresnel))
+    if opaque:
+        from .parameters import LiveGeometry
+        from .tracer import LensTracer
+        tr = LensTracer(lens, bool(fresnel), geometry=LiveGeometry.opaque(lens, F))
+    else:
+        tr = tracer_for(lens, bool(fresnel))
     dx, dy, dz = cols(d)
     inv = 1.0 / dr.sqrt(dx * dx + dy * dy + dz * dz)          # normalised in the kernel
     res = tr.trace(cols(o), (dx * inv, dy * inv, dz * inv), from_numpy(F, lam), path,

@@ -2,7 +2,10 @@
 
 Every function works on vector *components* (tuples of Dr.Jit arrays) so the same code runs
 in ``mi.Float`` (any Mitsuba variant, float32), ``Float64`` reference mode, LLVM or CUDA.
-Surface constants are Python floats and become literals in the generated kernel.
+Surface constants are Python floats and become literals in the generated kernel, unless a
+:class:`~mi_neurallens.trace.parameters.LiveGeometry` hands them in as Dr.Jit arrays of width 1 (kernel
+inputs that may carry gradients; :mod:`mi_neurallens.trace.parameters`): then the code takes the general
+branches (a live curvature of 0 is traced by the quadric formulas, which reduce to the plane's).
 
 Frame: lens space, mm, +z toward the sensor (see :mod:`mi_neurallens.optics.prescription`).
 """
@@ -16,23 +19,30 @@ import drjit as dr
 ASPHERE_NEWTON_ITERATIONS = 4
 
 
-class SurfaceGeometry:
-    """Precomputed Python-float constants of one surface (vertex z, curvature, conic, aspheric)."""
+def _zero(v) -> bool:
+    """True for a Python number equal to 0 (a Dr.Jit array, a kernel input, is never taken as 0)."""
+    return isinstance(v, (int, float)) and v == 0.0
 
-    def __init__(self, surface, vertex_z: float):
-        self.z = float(vertex_z)
-        self.c = float(surface.curvature)
-        self.k = float(surface.conic)
-        self.asph = tuple(float(a) for a in surface.aspheric)
-        while self.asph and self.asph[-1] == 0.0:
+
+class SurfaceGeometry:
+    """The constants of one surface (vertex z, curvature, conic, aspheric): Python floats, or where ``live``
+    gives them (a dict with any of ``"z"``, ``"c"``, ``"k"``, ``"asph"``), Dr.Jit arrays of width 1."""
+
+    def __init__(self, surface, vertex_z: float, live: dict | None = None):
+        live = live or {}
+        self.z = live.get("z", float(vertex_z))
+        self.c = live.get("c", float(surface.curvature))
+        self.k = live.get("k", float(surface.conic))
+        self.asph = tuple(live["asph"]) if "asph" in live else tuple(float(a) for a in surface.aspheric)
+        while self.asph and _zero(self.asph[-1]):
             self.asph = self.asph[:-1]
-        self.flat = self.c == 0.0 and not self.asph
+        self.flat = _zero(self.c) and not self.asph
 
     # -------------------------------------------------------------------------------- sag
     def _sag_and_slope(self, s):
         """sag(s) and d sag/ds at s = r² (mm, 1/mm)."""
         c, k = self.c, self.k
-        if c != 0.0:
+        if not _zero(c):
             root = dr.sqrt(dr.maximum(1.0 - (1.0 + k) * c * c * s, 0.0))
             sag = c * s / (1.0 + root)
             dsag = c * 0.5 / root
@@ -65,7 +75,7 @@ class SurfaceGeometry:
         ox, oy, oz = o
         dx, dy, dz = d
         pz = oz - self.z
-        if self.c == 0.0:
+        if _zero(self.c):
             t = -pz / dz
             ok = dz != 0.0
         else:
@@ -101,7 +111,7 @@ class SurfaceGeometry:
         if not self.asph:
             ck = self.c * (1.0 + self.k)
             nx, ny, nz = self.c * x, self.c * y, dr.fma(ck, z - self.z, -1.0)
-            if self.k == 0.0:
+            if _zero(self.k):
                 # sphere: c·(p − centre) already has unit length on the surface
                 return nx, ny, nz
         else:

@@ -2,7 +2,10 @@
 
 :class:`LensTracer` turns a :class:`~mi_neurallens.optics.prescription.Lens` and a path type into
 straight-line Dr.Jit code: the path's steps are unrolled at trace time and every surface constant
-is a Python float, so one kernel per (lens, path) is generated and cached by Dr.Jit.
+is a Python float, so one kernel per (lens, path) is generated and cached by Dr.Jit.  With a
+:class:`~mi_neurallens.trace.parameters.LiveGeometry` the surfaces' curvatures, conics, aspheric
+coefficients and vertex positions are kernel inputs instead (one kernel for every value they take, and
+differentiable in them: the ``realistic_lens`` parameters of ``mi.traverse``).
 
 Inputs and outputs are in lens space (mm, +z toward the sensor) as component tuples.  A ray is
 *valid* when it passes every clear aperture, housing and the stop, never undergoes total internal
@@ -103,13 +106,18 @@ class LensTracer:
     lens: the prescription.
     fresnel: multiply throughput by the Fresnel factors (and coatings).  ``False``: purely
         geometric throughput (1 for every valid ray).
+    geometry: a :class:`~mi_neurallens.trace.parameters.LiveGeometry` of ``lens``: its live numbers are
+        kernel inputs (and carry gradients); None: every number is a literal.
     """
 
-    def __init__(self, lens, fresnel: bool = True):
+    def __init__(self, lens, fresnel: bool = True, geometry=None):
         self.lens = lens
         self.fresnel = fresnel
         z = lens.vertex_z
-        self.geom = [SurfaceGeometry(s, z[i]) for i, s in enumerate(lens.surfaces)]
+        live = geometry.surfaces() if geometry is not None else [None] * len(lens.surfaces)
+        self.geom = [SurfaceGeometry(s, z[i], live[i]) for i, s in enumerate(lens.surfaces)]
+        #: the sensor plane (lens space, mm): a literal, or the live geometry's attached value
+        self.image_z = lens.image_z if geometry is None else geometry.image_z
         #: the aperture stop's shape (the lens's stop surface)
         self.iris = Iris.of_lens(lens)
         self._paths: dict = {}
@@ -124,7 +132,7 @@ class LensTracer:
 
     def default_output_z(self, direction: str) -> float:
         """Forward: the image plane.  Backward: the plane of the first vertex (z = 0)."""
-        return self.lens.image_z if direction == FORWARD else 0.0
+        return self.image_z if direction == FORWARD else 0.0
 
     # ------------------------------------------------------------------------------ trace
     def trace(self, o, d, lam_nm, path="transmit", direction: str = FORWARD, *,
@@ -234,7 +242,8 @@ class LensTracer:
     def _to_output(self, w, direction, z_out) -> TraceResult:
         """Continue the rays ``w`` to the output plane ``z_out`` (default :meth:`default_output_z`); rays heading
         away from it fail."""
-        zo = self.default_output_z(direction) if z_out is None else float(z_out)
+        zo = self.default_output_z(direction) if z_out is None else z_out
+        zo = float(zo) if isinstance(zo, (int, float)) else zo
         w.valid = w.valid & ((w.dz > 0.0) if direction == FORWARD else (w.dz < 0.0))
         if w.margin:
             w.fail((w.dz > 0.0) if direction == FORWARD else (w.dz < 0.0))

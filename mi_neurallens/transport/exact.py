@@ -13,6 +13,8 @@ class ExactMap(TransportMap):
     """Exact tracing of ``path`` (``"transmit"``, an id or a ghost ``(a, b)``) in ``direction`` from the
     plane ``z_in`` to ``z_out`` (lens space, mm).  ``fresnel``: Fresnel (and coating) throughput, else 1.
     ``tracer``: share an existing :class:`~mi_neurallens.trace.tracer.LensTracer` of the same lens.
+    ``numbers``: ``{"z_in": …, "z_out": …}`` as Dr.Jit arrays (kernel inputs, possibly attached), used in place
+    of the literal planes by :meth:`eval_dr` (a sensor whose lens is being optimised).
 
     The tracer is frame independent, so :meth:`eval_dr` traces in lens space; :meth:`core_reduced_dr`
     traces the reduced ray (position (r, 0), direction (ωx, ωy)) for samplers that work in the reduced
@@ -26,7 +28,7 @@ class ExactMap(TransportMap):
     method = "exact"
 
     def __init__(self, lens, path, direction: str, z_in: float,
-                 z_out: float | None = None, *, fresnel: bool = True, tracer=None, domain=None):
+                 z_out: float | None = None, *, fresnel: bool = True, tracer=None, domain=None, numbers=None):
         from ..trace.tracer import LensTracer
         self.lens = lens
         self.tracer = tracer if tracer is not None else LensTracer(lens, fresnel=fresnel)
@@ -36,8 +38,13 @@ class ExactMap(TransportMap):
         self.z_in = float(z_in)
         self.z_out = float(self.tracer.default_output_z(direction) if z_out is None else z_out)
         self.domain = domain
+        #: planes as Dr.Jit arrays instead of literals (``"z_in"``, ``"z_out"``): a sensor's live geometry
+        self.numbers = dict(numbers or {})
         #: stop-plane crossings of this path (the steps through the stop surface)
         self.stop_crossings = sum(1 for st in self.spec.steps if st.kind == "stop")
+
+    def number(self, key, value, like):
+        return self.numbers[key] if key in self.numbers else float(value)
 
     @property
     def fresnel(self) -> bool:
@@ -45,8 +52,8 @@ class ExactMap(TransportMap):
 
     def core_dr(self, p, d, lam, active):
         px, py = p
-        res = self.tracer.trace((px, py, px * 0.0 + self.z_in), d, lam, self.spec, self.direction,
-                                z_out=self.z_out, active=active)
+        res = self.tracer.trace((px, py, px * 0.0 + self.number("z_in", self.z_in, px)), d, lam, self.spec,
+                                self.direction, z_out=self.number("z_out", self.z_out, px), active=active)
         X, Y, _ = res.position
         return res.valid, (X, Y), res.direction, res.throughput, res.stop_points
 
