@@ -17,13 +17,20 @@ from .optics.prescription import Coating, Lens, Surface
 __version__ = "0.1.0"
 
 __all__ = ["Lens", "Surface", "Medium", "Coating", "LensError", "GlassError", "ModelError",
-           "NeuralLensError", "register", "__version__"]
+           "NeuralLensError", "register", "project_valid", "__version__"]
 
 
 def register() -> list[str]:
     """Register this package's Mitsuba plugins for the *current* variant; returns their names."""
     from .plugins import register_all
     return register_all()
+
+
+def project_valid(params, sensor: str = "sensor") -> dict:
+    """Move the prescription parameters of the ``realistic_lens`` loaded under key ``sensor`` in ``params`` (a
+    ``mi.SceneParameters``) back into the valid region; see :func:`mi_neurallens.sensors.live.project_valid`."""
+    from .sensors.live import project_valid as _project
+    return _project(params, sensor)
 
 
 def _auto_register():

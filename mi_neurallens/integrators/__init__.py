@@ -1,4 +1,5 @@
-"""Mitsuba integrators: ``lens_flare`` (nested integrator + forward-traced lens ghosts).
+"""Mitsuba integrators: ``lens_flare`` (nested integrator + forward-traced lens ghosts) and, in AD variants,
+``lens_ad`` (path tracing differentiable in the camera's rays).
 
 :func:`register` re-imports and registers them for the current variant (called by
 :func:`mi_neurallens.register`)."""
@@ -16,4 +17,10 @@ def register() -> list[str]:
     from . import lens_flare
     importlib.reload(lens_flare)
     mi.register_integrator(lens_flare.PLUGIN, lambda props: lens_flare.LensFlare(props))
-    return [lens_flare.PLUGIN]
+    names = [lens_flare.PLUGIN]
+    if "_ad_" in mi.variant():
+        from . import lens_ad
+        importlib.reload(lens_ad)
+        mi.register_integrator(lens_ad.PLUGIN, lambda props: lens_ad.LensAD(props))
+        names.append(lens_ad.PLUGIN)
+    return names

@@ -12,10 +12,15 @@ ray with the radiometric weight ``cos⁴θ · A / Δz² · T / (π NA'²)`` (see
 A subclass provides the transport (sensor → object space) by overriding:
 
 * ``_load_lens(rd)`` → the prescription as loaded (before stop/focus),
-* ``_make_map()`` → the backward transmit :class:`~mi_neurallens.transport.base.TransportMap` of the
-  configured lens (``self.setup``, ``self.pupil``), called once; camera rays start on the film plane
-  and leave on the map's output plane, which becomes ``self.z_out``,
+* ``_make_map(geometry)`` → the backward transmit :class:`~mi_neurallens.transport.base.TransportMap` of the
+  configured lens (``self.setup``, ``self.pupil``); camera rays start on the film plane and leave on the map's
+  output plane, which becomes ``self.z_out``.  ``geometry`` is None when the scene loads, and a
+  :class:`~mi_neurallens.trace.parameters.LiveGeometry` after ``params.update()`` changed a parameter of a sensor
+  with ``LENS_PARAMETERS`` (the planes ``self.live_planes`` then give are Dr.Jit arrays),
 * ``_describe()`` → extra text for ``to_string``.
+
+``mi.traverse`` exposes ``to_world`` and, for a sensor with ``LENS_PARAMETERS`` (``realistic_lens``), the focus,
+the sensor distance and the prescription (:mod:`.live`); ``params.update()`` re-derives the configured lens.
 """
 from __future__ import annotations
 
@@ -27,12 +32,21 @@ import mitsuba as mi
 from ..constants import FULL_FRAME_MM
 from ..jit import untraversed
 from .common import PropertyReader, SensorPropertyError, configure_lens, film_to_sensor, lens_to_camera
+from .live import SensorParameters
 from .pupil import EXIT_PUPIL, MODES, PupilBounds
 from .wavelengths import prepare_shutter, sample_wavelength
 
 #: where the camera rays are computed: inside the integrator's kernel, or in a kernel of their own
 AUTO, INLINE, SEPARATE = "auto", "inline", "separate"
 RAY_KERNELS = (AUTO, INLINE, SEPARATE)
+#: a lens being differentiated (a live parameter with gradients enabled) keeps its pupil bounds (in exit-pupil space,
+#: :meth:`LensSensorBase._film_rays`) while its
+#: paraxial exit pupil's radius and distance from the film and the stop's radius stay within this fraction of
+#: those the bounds were traced for, so that small steps (and finite differences) see the same samples; the
+#: bounds are traced with :data:`LIVE_PUPIL_MARGIN` more room than a loaded lens's, for what the steps move
+LIVE_PUPIL_TOLERANCE = 0.02
+LIVE_PUPIL_MARGIN = 1.05
+
 #: ``auto``'s cap on the stored rays of one render pass (bytes): above it the rays stay inline, whose
 #: wavefront stores nothing (a 1280×960, 64 spp RGB pass stores 78.6 M × 44 B = 3.5 GB)
 SEPARATE_MAX_BYTES = 4 << 30
@@ -56,6 +70,9 @@ class LensSensorBase(mi.Sensor):
     setup = untraversed()
     pupil = untraversed()
     tmap = untraversed()
+    lens_parameters = untraversed()
+    #: whether ``mi.traverse`` exposes the focus, the sensor distance and the prescription (differentiable)
+    LENS_PARAMETERS = False
 
     def __init__(self, props):
         plugin = self.PLUGIN
@@ -93,19 +110,65 @@ class LensSensorBase(mi.Sensor):
         super().__init__(props)
         self.lambda_mode = lambda_mode
         size = self.film().size()
-        self.setup = configure_lens(
-            base, fstop=fstop, blades=blades, blade_rotation_deg=rotation, sensor_distance_mm=sdist,
-            focus_distance_mm=None if focus is None else focus * unit,
-            sensor_width_mm=width, film_size=(int(size[0]), int(size[1])), scene_unit_mm=unit,
-            fresnel=fresnel, plugin=plugin)
+
+        def configure(lens, focus_mm, sensor_distance_mm):
+            return configure_lens(
+                lens, fstop=fstop, blades=blades, blade_rotation_deg=rotation, sensor_distance_mm=sensor_distance_mm,
+                focus_distance_mm=focus_mm, sensor_width_mm=width, film_size=(int(size[0]), int(size[1])),
+                scene_unit_mm=unit, fresnel=fresnel, plugin=plugin)
+        self.setup = configure(base, None if focus is None else focus * unit, sdist)
         self.pupil = PupilBounds(self.setup, mode)
-        first = self.setup.lens.surfaces[0]
-        sag = float(first.sag(first.semi_diameter)) if not first.is_stop else 0.0
-        #: lens-space plane where rays leave the lens (in front of the whole first surface)
-        self.z_out = min(0.0, sag if math.isfinite(sag) else 0.0)
-        self.tmap = self._make_map()
+        self.lens_parameters = SensorParameters(mi, base, self.setup, configure, lens_params=self.LENS_PARAMETERS,
+                                                focus_driven=sdist is None, plugin=plugin)
+        self._pupil_ref = None
+        self._set_planes(None)
+        self.tmap = self._make_map(None)
         self.z_out = self.tmap.z_out
         self.m_needs_sample_3 = True
+
+    def _front_plane(self) -> float:
+        """The lens-space plane where rays leave the lens: in front of the whole first surface (mm)."""
+        first = self.setup.lens.surfaces[0]
+        sag = float(first.sag(first.semi_diameter)) if not first.is_stop else 0.0
+        return min(0.0, sag if math.isfinite(sag) else 0.0)
+
+    def _set_planes(self, live):
+        """The numbers the camera rays are made of: the sensor plane ``z_img`` (lens space, mm; the rays' origin),
+        the pupil table's plane distance ``dz`` (mm), the normalisation 1/(π NA'²), the front plane ``z_out``, and
+        (``_aim``) where pupil samples are aimed.  ``live`` None: Python floats (literals), the rays aimed at the
+        table's points; else ``(geometry, derived)`` (:meth:`.live.SensorParameters.derive`): the sensor plane and
+        normalisation attached (Dr.Jit), and the samples carried to the paraxial exit pupil (:meth:`_film_rays`)."""
+        self.z_out = self._front_plane()
+        if live is None:
+            self.live_planes = None
+            self._z_img, self._dz, self._norm = self.pupil.z_img, self.pupil.dz, self.setup.normalisation
+            self._aim = None
+            return
+        geometry, derived = live
+        F = mi.Float
+        z_xp, r_xp = derived["exit_pupil_z"], derived["exit_pupil_radius"]
+        z_xp0, r_xp0 = float(dr.detach(z_xp).numpy()[0]), float(dr.detach(r_xp).numpy()[0])
+        ref = self._pupil_ref
+        gap = self.setup.image_z - z_xp0
+        differentiating = self.lens_parameters.differentiating()
+        if not differentiating or ref is None or not all(abs(a - b) <= LIVE_PUPIL_TOLERANCE * abs(c) for a, b, c in (
+                (r_xp0, ref[1], ref[1]), (gap, ref[2], ref[2]), (self.setup.lens.stop.semi_diameter, ref[3], ref[3]))):
+            # new bounds, traced with opaque numbers (no new kernel): on every primal update (the image is then the
+            # one of loading the changed lens), and while differentiating when the exit pupil moved
+            self.pupil = PupilBounds(self.setup, self.pupil.mode, opaque=True,
+                                     margin=LIVE_PUPIL_MARGIN if differentiating else 1.01)
+            self._pupil_ref = (z_xp0, r_xp0, gap, self.setup.lens.stop.semi_diameter)
+        z_ref, r_ref, gap_ref, _ = self._pupil_ref
+        self._z_img, self._dz, self._norm = geometry.image_z, dr.opaque(F, self.pupil.dz), derived["normalisation"]
+        if math.isfinite(gap_ref) and abs(gap_ref) > 1e-3 and math.isfinite(r_ref) and r_ref > 0:
+            #: (k0, scale, gap): the table's point P carried along the ray from its film point to the exit pupil's
+            #: plane as the table was built (k0, opaque), scaled with the exit pupil since then (attached), and the
+            #: film to exit-pupil distance (attached)
+            self._aim = (dr.opaque(F, gap_ref / self.pupil.dz), r_xp * (1.0 / r_ref), self._z_img - z_xp)
+        else:
+            self._aim = None            # an exit pupil at infinity (or on the film): aim at the table's points
+        #: the planes of the map as kernel inputs: the film (attached) and the front plane
+        self.live_planes = {"z_in": self._z_img, "z_out": dr.opaque(F, self.z_out)}
 
     # ------------------------------------------------------------------ hooks
     def _read_properties(self, rd):
@@ -117,7 +180,7 @@ class LensSensorBase(mi.Sensor):
     def _lambda_dependent(self, setup) -> bool:
         return setup.lambda_dependent
 
-    def _make_map(self):
+    def _make_map(self, geometry):
         raise NotImplementedError
 
     def _transport(self, o, d, lam, active):
@@ -136,11 +199,20 @@ class LensSensorBase(mi.Sensor):
         points ``sample3`` picks (:attr:`pupil`): ``(o, d, area, cos_t)`` — origins and unit directions (lens
         space), the pupil sample's area weight, and the cosine of the ray to the axis."""
         X, Y, area = self.pupil.sample(mi, dr, fx, fy, sample3)
-        dzp = self.pupil.dz
+        dzp = self._dz
+        if self._aim is not None:
+            # a lens being differentiated: the sample P (on the table's plane, detached) becomes the point Q where
+            # the ray from the film point crosses the paraxial exit pupil's plane, scaled with that pupil; the ray
+            # is aimed at Q from the (attached) film point.  As the lens changes, Q stays on the image of the same
+            # stop point (paraxially), so the rays that pass the stop keep passing it: the stop's rim adds no
+            # boundary term (up to the pupil's aberrations).  The measure: dω = cos³θ dA_Q / gap², A_Q = k0² s² A.
+            k0, scale, dzp = self._aim
+            X, Y = dr.fma(X - fx, k0, fx) * scale, dr.fma(Y - fy, k0, fy) * scale
+            area = area * (k0 * k0) * (scale * scale)
         ex, ey = X - fx, Y - fy
         inv_len = dr.rsqrt(dr.fma(ex, ex, dr.fma(ey, ey, dzp * dzp)))
         d = (ex * inv_len, ey * inv_len, -dzp * inv_len)
-        zf = dr.zeros(mi.Float, dr.width(fx)) + self.pupil.z_img
+        zf = dr.zeros(mi.Float, dr.width(fx)) + self._z_img
         return (fx, fy, zf), d, area, dzp * inv_len
 
     def _trace(self, time, sample1, sample2, sample3, active=True):
@@ -149,13 +221,13 @@ class LensSensorBase(mi.Sensor):
                                                   sample2, sample3, active)
         fx, fy = film_to_sensor(mi, self, st, sample2)
         o, d, area, cos_t = self._film_rays(fx, fy, sample3)
-        dzp = self.pupil.dz
+        dzp = self._dz if self._aim is None else self._aim[2]
         pos, dirn, T, valid = self._transport(o, d, lam, active)
         c2 = cos_t * cos_t
         # cos^4θ · A / Δz² · T / (π NA'²)
-        w = c2 * c2 * area * (st.normalisation / (dzp * dzp)) * T
+        w = c2 * c2 * area * (self._norm / (dzp * dzp)) * T
         w = dr.select(valid, w, 0.0)
-        (ox, oy, oz), (dx, dy, dz) = lens_to_camera(st, pos, dirn)
+        (ox, oy, oz), (dx, dy, dz) = lens_to_camera(st, pos, dirn, self._z_img)
         o = mi.Point3f(dr.select(valid, ox, 0.0), dr.select(valid, oy, 0.0), dr.select(valid, oz, 0.0))
         dcam = mi.Vector3f(dr.select(valid, dx, 0.0), dr.select(valid, dy, 0.0), dr.select(valid, dz, 1.0))
         ray = mi.Ray3f(self.m_to_world @ o, dr.normalize(self.m_to_world @ dcam), time,
@@ -225,9 +297,22 @@ class LensSensorBase(mi.Sensor):
 
     def traverse(self, cb):
         cb.put("to_world", self.m_to_world, mi.ParamFlags.NonDifferentiable)
+        if self.LENS_PARAMETERS:
+            self.lens_parameters.put(cb)
 
     def parameters_changed(self, keys=[]):
-        pass
+        """After ``params.update()``: a changed focus, sensor distance or prescription parameter re-derives the
+        configured lens, its pupil bounds and normalisation, and makes the changed parameters kernel inputs
+        (:mod:`.live`); an invalid parameter set is a :class:`~mi_neurallens.errors.NeuralLensError`."""
+        from ..trace.parameters import LiveGeometry
+        sp = self.lens_parameters
+        if not self.LENS_PARAMETERS or not sp.changed(keys):
+            return
+        setup, live, derived = sp.derive()
+        self.setup = setup
+        geometry = LiveGeometry(setup.lens, live, mi.Float)
+        self._set_planes((geometry, derived))
+        self.tmap = self._make_map(geometry)
 
     def to_string(self):
         st = self.setup

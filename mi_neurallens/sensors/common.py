@@ -358,10 +358,11 @@ def film_to_sensor(mi, sensor, setup: LensSetup, sample2):
     return dr.fma(sample2.x, sx, ox), dr.fma(sample2.y, sy, oy)
 
 
-def lens_to_camera(setup: LensSetup, p, d):
-    """Lens-space point/direction tuples (mm) → camera-space tuples (scene units)."""
+def lens_to_camera(setup: LensSetup, p, d, image_z=None):
+    """Lens-space point/direction tuples (mm) → camera-space tuples (scene units).  ``image_z``: the sensor
+    plane's z (lens space, mm) if not the set-up's (a Dr.Jit array where it is differentiated)."""
     k = 1.0 / setup.scene_unit_mm
-    zi = setup.image_z
+    zi = setup.image_z if image_z is None else image_z
     x, y, z = p
     dx, dy, dz = d
     return (x * k, y * k, (zi - z) * k), (dx, dy, -dz)

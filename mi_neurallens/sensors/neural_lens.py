@@ -207,7 +207,7 @@ class NeuralLens(LensSensorBase):
                 f"{self.model_path} was trained with ({trained.describe()}){hint}")
         return want
 
-    def _make_map(self):
+    def _make_map(self, geometry):
         st = self.setup
         try:
             self.model.check_sensor_distance(st.sensor_distance_mm)

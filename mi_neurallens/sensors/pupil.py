@@ -19,7 +19,7 @@ point's azimuth:
   (radius k·Δ) encloses the passing cells of all film radii within ±Δ, and the bounds are linearly
   interpolated in r between nodes, so they vary continuously with the film radius (no radial-bin
   rings as in pbrt) and overlap their neighbours' range, which keeps them conservative between the
-  sampled radii; 1 % is added on top.  A polygonal (bladed) stop is bounded by its circumscribed
+  sampled radii; 1 % is added on top (``margin``).  A polygonal (bladed) stop is bounded by its circumscribed
   circle.  Tests compare the result with ``rear_element`` sampling (they must agree within noise).
 """
 from __future__ import annotations
@@ -54,14 +54,20 @@ class PupilBounds:
     """Sampling regions on the plane of the last vertex as a function of film radius.
 
     ``setup``: a :class:`~mi_neurallens.sensors.common.LensSetup`; ``mode``: ``exit_pupil`` or
-    ``rear_element``; ``nodes``: K, the number of radial intervals of the table.
+    ``rear_element``; ``nodes``: K, the number of radial intervals of the table; ``opaque``: trace the bounds
+    with the surfaces' numbers as kernel inputs (:func:`mi_neurallens.trace.api.trace`); ``margin``: the factor
+    the exit-pupil ellipses grow beyond the passing cells (1 % for a loaded lens).
     """
 
     def __init__(self, setup: LensSetup, mode: str = EXIT_PUPIL, nodes: int = 32,
-                 coarse: int = 128, fine: int = 64):
+                 coarse: int = 128, fine: int = 64, opaque: bool = False, margin: float = 1.01):
         if mode not in MODES:
             raise ValueError(f"pupil sampling mode must be one of {MODES}, got {mode!r}")
         self.setup, self.mode, self.K = setup, mode, int(nodes)
+        #: trace with the surfaces' numbers as kernel inputs (a lens being optimised: one kernel for every step)
+        self.opaque = bool(opaque)
+        #: the exit-pupil ellipses' axes are grown by this factor beyond the traced cells
+        self.margin = float(margin)
         lens = setup.lens
         self.lens = lens
         self.z_img = float(lens.image_z)
@@ -103,7 +109,7 @@ class PupilBounds:
         d = np.stack([x - r, y, np.full(n, -self.dz)], 1)
         ok = np.zeros(n, bool)
         for lam in lams:
-            res = lens.trace(o, d, lam, direction="backward", fresnel=False)
+            res = lens.trace(o, d, lam, direction="backward", fresnel=False, opaque=self.opaque)
             ok |= res.valid
         return ok
 
@@ -119,8 +125,8 @@ class PupilBounds:
         pts, n_fine = self._fine_cells(rj, box, nf, lams)
         cx, ax, ay = self._node_ellipses(pts, rj.size, sub)
         self._enclose(pts, rj, sub, cx, ax, ay)
-        ax *= 1.01
-        ay *= 1.01
+        ax *= self.margin
+        ay *= self.margin
         self.build_stats = {"film_radii": int(rj.size), "rays_traced": int(n_coarse * len(lams) + n_fine * len(lams)),
                             "wavelengths_nm": list(lams)}
         return cx, ax, ay

@@ -86,8 +86,7 @@ Realistic lens camera (:monosp:`realistic_lens`)
  * - to_world
    - |transform|
    - Camera-to-world transform.  The camera origin is the centre of the sensor plane; it looks along
-     +z like ``perspective``.  The only parameter ``mi.traverse`` exposes (not differentiable): lens,
-     stop and focus are fixed when the scene loads.  (Default: identity)
+     +z like ``perspective``.  Not differentiable.  (Default: identity)
 
  * - film, sampler, shutter_open, shutter_close
    - |film|, |sampler|, |float|
@@ -114,6 +113,13 @@ transport does not depend on λ (constant indices, no coatings) RGB uses weight 
 Mitsuba's 4 hero wavelengths.
 
 ``ptracer`` and other adjoint/projective integrators are not supported (no ``sample_direction``).
+
+**Parameters.**  ``mi.traverse`` exposes, besides ``to_world``, ``focus_distance``, ``sensor_distance`` and the
+prescription: ``surface_{i}_curvature`` (1/mm), ``surface_{i}_thickness`` (the gap after surface ``i``, mm; the last
+gap is ``sensor_distance``), ``surface_{i}_conic`` and ``surface_{i}_asphere`` (A4, A6, …), ``i`` numbered as in
+``mi-neurallens lens info``.  ``params.update()`` re-derives the lens (focus, pupil bounds, normalisation); a
+changed parameter becomes a kernel input, differentiable with the ``lens_ad`` integrator
+(docs/differentiable.md); an invalid lens is an error that names ``mi_neurallens.project_valid``.
 
 .. tabs::
 
@@ -150,10 +156,17 @@ class RealisticLens(LensSensorBase):
         self.lens_spec = rd.string("lens", "wide-22mm")
         return load_lens(self.lens_spec, PLUGIN)
 
-    def _make_map(self):
+    LENS_PARAMETERS = True
+
+    def _make_map(self, geometry):
         # from the film plane (where the pupil sample starts the ray) to the front of the lens
+        if geometry is None:
+            return ExactMap(self.setup.lens, "transmit", "backward", self.pupil.z_img, self.z_out,
+                            fresnel=self.setup.fresnel)
+        from ..trace.tracer import LensTracer
         return ExactMap(self.setup.lens, "transmit", "backward", self.pupil.z_img, self.z_out,
-                        fresnel=self.setup.fresnel)
+                        tracer=LensTracer(self.setup.lens, self.setup.fresnel, geometry=geometry),
+                        numbers=self.live_planes)
 
     def _describe(self):
         return f"lens='{self.lens_spec}' ({self.setup.lens.name})"
