@@ -216,3 +216,24 @@ def test_stock_integrators_lose_the_lens_gradient():
     p.update()
     with pytest.raises(Exception):
         dr.backward(dr.mean(mi.render(sc, p, spp=4), axis=None))
+
+
+def test_an_optimisation_loop_compiles_no_kernel_after_its_second_step():
+    sc = scene()
+    p = mi.traverse(sc)
+    target = mi.render(sc, spp=4, seed=99)
+    opt = mi.ad.Adam(lr=1e-4)
+    opt["sensor.surface_0_curvature"] = p["sensor.surface_0_curvature"]
+    compiled = []
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        for it in range(3):
+            dr.kernel_history_clear()
+            p.update(opt)
+            loss = dr.mean(dr.square(mi.render(sc, p, seed=it, spp=4) - target), axis=None)
+            dr.backward(loss)
+            opt.step()
+            compiled.append(sum(1 for k in dr.kernel_history([dr.KernelType.JIT]) if not k["cache_hit"]))
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert compiled[2] == 0, compiled

@@ -164,7 +164,7 @@ class LensSensorBase(mi.Sensor):
             #: (k0, scale, gap): the table's point P carried along the ray from its film point to the exit pupil's
             #: plane as the table was built (k0, opaque), scaled with the exit pupil since then (attached), and the
             #: film to exit-pupil distance (attached)
-            self._aim = (dr.opaque(F, gap_ref / self.pupil.dz), r_xp * (1.0 / r_ref), self._z_img - z_xp)
+            self._aim = (dr.opaque(F, gap_ref / self.pupil.dz), r_xp * dr.opaque(F, 1.0 / r_ref), self._z_img - z_xp)
         else:
             self._aim = None            # an exit pupil at infinity (or on the film): aim at the table's points
         #: the planes of the map as kernel inputs: the film (attached) and the front plane
@@ -310,7 +310,7 @@ class LensSensorBase(mi.Sensor):
             return
         setup, live, derived = sp.derive()
         self.setup = setup
-        geometry = LiveGeometry(setup.lens, live, mi.Float)
+        geometry = LiveGeometry(setup.lens, live, mi.Float, stop_radius=derived["stop_radius"])
         self._set_planes((geometry, derived))
         self.tmap = self._make_map(geometry)
 

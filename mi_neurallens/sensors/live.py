@@ -37,14 +37,16 @@ from ..trace import parameters as lp
 
 FOCUS, SENSOR = "focus_distance", "sensor_distance"
 #: the numbers a configured lens derives from its parameters that enter the render with derivatives
-DERIVED = (SENSOR, "normalisation", "exit_pupil_z", "exit_pupil_radius")
+DERIVED = (SENSOR, "normalisation", "exit_pupil_z", "exit_pupil_radius", "stop_radius")
 
 
 def _derived_numbers(setup) -> tuple:
-    """:data:`DERIVED` of a configured lens (mm; 1/(π NA'²); lens-space z, mm; mm)."""
+    """:data:`DERIVED` of a configured lens (mm; 1/(π NA'²); lens-space z, mm; mm; the stop's radius for the
+    sensor's ``fstop``, mm)."""
     from .common import PARAXIAL_WAVELENGTH_NM
     px = setup.lens.paraxial(PARAXIAL_WAVELENGTH_NM)
-    return (setup.sensor_distance_mm, setup.normalisation, float(px.exit_pupil_z), float(px.exit_pupil_radius))
+    return (setup.sensor_distance_mm, setup.normalisation, float(px.exit_pupil_z), float(px.exit_pupil_radius),
+            float(setup.lens.stop.semi_diameter))
 
 
 def _fd_step(lens, key: str, value: float) -> float:
@@ -72,7 +74,8 @@ def attach(value: float, grads: dict, live: dict, float_type):
     for key, g in grads.items():
         p = live[key]
         if np.ndim(g) == 0:
-            out = out + float(g) * (p - dr.detach(p))
+            # the derivative an opaque number too: a literal would change the kernel at every step
+            out = out + dr.opaque(float_type, float(g)) * (p - dr.detach(p))
         else:
             out = out + dr.sum(float_type(np.asarray(g, np.float64)) * (p - dr.detach(p)))
     return out
@@ -147,7 +150,8 @@ class SensorParameters:
         """The configured lens of the current values and its attached numbers: ``(setup, live, derived)`` —
         ``live`` the kernel-input arrays by name (``sensor_distance`` the attached one), ``derived`` a dict of
         Dr.Jit arrays: ``sensor_distance`` (mm), ``normalisation`` (1/(π NA'²)), ``exit_pupil_z`` (lens space,
-        mm) and ``exit_pupil_radius`` (mm), the paraxial exit pupil at 587.6 nm."""
+        mm) and ``exit_pupil_radius`` (mm), the paraxial exit pupil at 587.6 nm, and ``stop_radius`` (mm: with
+        ``fstop``, the stop follows the lens's f-number)."""
         import drjit as dr
         F = self.mi.Float
         numbers = {k: self._numbers(k) for k in self.keys}

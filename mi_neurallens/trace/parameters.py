@@ -106,6 +106,8 @@ class LiveGeometry:
     lens: object
     live: dict
     float_type: type
+    #: the stop's (inscribed) radius as a Dr.Jit array (mm), or None: the lens's, a literal
+    stop_radius: object = None
 
     @classmethod
     def opaque(cls, lens, float_type) -> "LiveGeometry":

@@ -16,6 +16,7 @@ image spaces are both air for camera lenses).
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import drjit as dr
@@ -118,8 +119,10 @@ class LensTracer:
         self.geom = [SurfaceGeometry(s, z[i], live[i]) for i, s in enumerate(lens.surfaces)]
         #: the sensor plane (lens space, mm): a literal, or the live geometry's attached value
         self.image_z = lens.image_z if geometry is None else geometry.image_z
-        #: the aperture stop's shape (the lens's stop surface)
+        #: the aperture stop's shape (the lens's stop surface; its radius the live geometry's where it has one)
         self.iris = Iris.of_lens(lens)
+        if geometry is not None and geometry.stop_radius is not None:
+            self.iris = dataclasses.replace(self.iris, radius_mm=geometry.stop_radius)
         self._paths: dict = {}
 
     def path(self, path="transmit", direction: str = FORWARD) -> PathSpec:
