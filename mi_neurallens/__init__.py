@@ -26,11 +26,12 @@ def register() -> list[str]:
     return register_all()
 
 
-def project_valid(params, sensor: str = "sensor") -> dict:
+def project_valid(params, sensor: str = "sensor", opt=None) -> dict:
     """Move the prescription parameters of the ``realistic_lens`` loaded under key ``sensor`` in ``params`` (a
-    ``mi.SceneParameters``) back into the valid region; see :func:`mi_neurallens.sensors.live.project_valid`."""
+    ``mi.SceneParameters``, and an optimiser ``opt`` holding them) back into the valid region; see
+    :func:`mi_neurallens.sensors.live.project_valid`."""
     from .sensors.live import project_valid as _project
-    return _project(params, sensor)
+    return _project(params, sensor, opt)
 
 
 def _auto_register():

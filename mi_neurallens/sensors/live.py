@@ -263,11 +263,12 @@ def _unchecked(lens, values: dict):
     return surfs
 
 
-def project_valid(params, sensor: str = "sensor") -> dict:
+def project_valid(params, sensor: str = "sensor", opt=None) -> dict:
     """Move the prescription parameters of the ``realistic_lens`` under key ``sensor`` in ``params`` (a
     ``mi.SceneParameters``) back into the valid region (:func:`project_values`):
     curvatures whose sphere is smaller than the clear aperture, gaps that are not positive, surfaces that cross.
-    Writes the corrected values into ``params`` (without ``update()``) and returns the names it changed."""
+    Writes the corrected values into ``params`` (without ``update()``) and, for the keys an optimiser ``opt``
+    (``mi.ad.Optimizer``) holds, into ``opt`` too (its state for them restarts); returns the names it changed."""
     import drjit as dr
     prefix = sensor + "."
     node = None
@@ -289,6 +290,8 @@ def project_valid(params, sensor: str = "sensor") -> dict:
             if dr.grad_enabled(arr):
                 dr.enable_grad(new)
             params[prefix + k] = new
+            if opt is not None and prefix + k in opt.keys():
+                opt[prefix + k] = type(arr)(list(v) if isinstance(v, tuple) else v)
             changed[k] = v
     return changed
 
