@@ -29,15 +29,17 @@ Lens-differentiable path tracer (:monosp:`lens_ad`)
 
 Renders exactly what ``path`` renders (the primal image is a nested ``path`` integrator's), and in
 ``mi.render``'s forward and reverse modes differentiates it with respect to the camera: the parameters of a
-``realistic_lens`` (focus, sensor distance, curvatures, gaps, conics, aspheric coefficients).
+``realistic_lens`` (focus, sensor distance, curvatures, gaps, conics, aspheric coefficients), through the
+parameters' effect on where the camera rays go and on the camera's weight (Fresnel, normalisation, the
+aperture rims' band, docs/differentiable.md).
 
 Mitsuba's own differentiable integrators (``prb``, ``direct_projective``, …) start from a *detached* camera ray:
 they differentiate the scene, never where the camera's rays go, and with a lens parameter they give a zero
 gradient or refuse.  ``lens_ad`` keeps the camera ray attached: it intersects it with the scene
 differentiably and estimates the radiance it carries as the emission at the first hit plus the BSDF-sampled
-continuation, whose incoming radiance is a detached ``path`` estimate.  That estimate's derivative — the
-interior term: how the image changes as rays move over textures, shading and emitters — is added to the
-``path`` image as ``L_path + (L_first − detach(L_first))``.  Discontinuities the rays cross (object silhouettes,
+continuation, whose incoming radiance is a detached ``path`` estimate.  The derivative passes differentiate
+that estimate — the interior term: how the image changes as rays move over textures, shading and emitters —
+and use its value where the camera weight's derivative needs the radiance.  Discontinuities the rays cross (object silhouettes,
 texture edges, the rims of the lens's apertures) contribute boundary terms it does not see; a smooth
 (bilinearly filtered) texture and a scene without silhouettes where the image changes are where it is exact.
 The scene's own parameters are differentiated through the first hit only; use ``prb`` for those.
@@ -69,15 +71,15 @@ class LensAD(ADIntegrator):
     def sample(self, mode, scene, sampler, ray, active, **kwargs):
         """The radiance of the camera rays ``ray``: a detached ``path`` estimate, plus (forward and reverse
         modes) the derivative of the attached first-hit estimate."""
-        primal = mode == dr.ADMode.Primal
-        with dr.suspend_grad():
-            L, valid, _ = self.nested.sample(scene, sampler, dr.detach(ray), None, active)
-        if primal:
+        if mode == dr.ADMode.Primal:
+            with dr.suspend_grad():
+                L, valid, _ = self.nested.sample(scene, sampler, dr.detach(ray), None, active)
             return L, valid, [], None
+        # the derivative passes: the first-hit estimate alone (its value, an estimate of the same radiance, is
+        # what multiplies the camera weight's derivative; a second path estimate would only double the cost)
         with dr.resume_grad():
             L1 = self._first_hit(scene, sampler, ray, active)
-            L = L + (L1 - dr.detach(L1))
-        return L, valid, [], None
+        return L1, active, [], None
 
     def _first_hit(self, scene, sampler, ray, active):
         """The attached estimate: emission where the camera ray lands (or the environment where it escapes)

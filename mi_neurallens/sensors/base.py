@@ -121,6 +121,7 @@ class LensSensorBase(mi.Sensor):
         self.lens_parameters = SensorParameters(mi, base, self.setup, configure, lens_params=self.LENS_PARAMETERS,
                                                 focus_driven=sdist is None, plugin=plugin)
         self._pupil_ref = None
+        self._live = None
         self._set_planes(None)
         self.tmap = self._make_map(None)
         self.z_out = self.tmap.z_out
@@ -142,7 +143,7 @@ class LensSensorBase(mi.Sensor):
         if live is None:
             self.live_planes = None
             self._z_img, self._dz, self._norm = self.pupil.z_img, self.pupil.dz, self.setup.normalisation
-            self._aim = None
+            self._aim, self._live = None, None
             return
         geometry, derived = live
         F = mi.Float
@@ -160,11 +161,16 @@ class LensSensorBase(mi.Sensor):
             self._pupil_ref = (z_xp0, r_xp0, gap, self.setup.lens.stop.semi_diameter)
         z_ref, r_ref, gap_ref, _ = self._pupil_ref
         self._z_img, self._dz, self._norm = geometry.image_z, dr.opaque(F, self.pupil.dz), derived["normalisation"]
+        #: the live geometry: the attached numbers are read per ray through it (:meth:`_ray_numbers`)
+        self._live = geometry
+        geometry.extra.update({"normalisation": self._norm, "exit_pupil_z": z_xp,
+                               "exit_pupil_scale": r_xp * dr.opaque(F, 1.0 / r_ref)})
         if math.isfinite(gap_ref) and abs(gap_ref) > 1e-3 and math.isfinite(r_ref) and r_ref > 0:
             #: (k0, scale, gap): the table's point P carried along the ray from its film point to the exit pupil's
             #: plane as the table was built (k0, opaque), scaled with the exit pupil since then (attached), and the
             #: film to exit-pupil distance (attached)
-            self._aim = (dr.opaque(F, gap_ref / self.pupil.dz), r_xp * dr.opaque(F, 1.0 / r_ref), self._z_img - z_xp)
+            self._aim = (dr.opaque(F, gap_ref / self.pupil.dz), geometry.extra["exit_pupil_scale"],
+                         self._z_img - z_xp)
         else:
             self._aim = None            # an exit pupil at infinity (or on the film): aim at the table's points
         #: the planes of the map as kernel inputs: the film (attached) and the front plane
@@ -183,6 +189,18 @@ class LensSensorBase(mi.Sensor):
     def _make_map(self, geometry):
         raise NotImplementedError
 
+    def _ray_numbers(self, n: int):
+        """``(z_img, normalisation, aim)`` for ``n`` camera rays (see :meth:`_set_planes`): the literals of a loaded
+        lens, or a live lens's attached numbers read per ray from its packed array
+        (:class:`~mi_neurallens.trace.parameters.Packed`), which keeps the reverse pass one kernel."""
+        g = self._live
+        if g is None:
+            return self._z_img, self._norm, self._aim
+        z_img = g.wide("image_z", n)
+        aim = None if self._aim is None else (self._aim[0], g.wide("exit_pupil_scale", n),
+                                              z_img - g.wide("exit_pupil_z", n))
+        return z_img, g.wide("normalisation", n), aim
+
     def _transport(self, o, d, lam, active):
         """Camera rays on the film plane → (position, direction, throughput, valid) of the ray
         leaving the lens (lens space, position on ``self.z_out``); ``fresnel = false``: T = 1."""
@@ -194,25 +212,26 @@ class LensSensorBase(mi.Sensor):
         return f"lens={self.setup.lens.name}"
 
     # ------------------------------------------------------------------ rays
-    def _film_rays(self, fx, fy, sample3):
+    def _film_rays(self, fx, fy, sample3, numbers):
         """Rays from the film points ``(fx, fy)`` (lens space, mm, on the sensor plane) toward the exit pupil
         points ``sample3`` picks (:attr:`pupil`): ``(o, d, area, cos_t)`` — origins and unit directions (lens
         space), the pupil sample's area weight, and the cosine of the ray to the axis."""
         X, Y, area = self.pupil.sample(mi, dr, fx, fy, sample3)
+        z_img, _, aim = numbers
         dzp = self._dz
-        if self._aim is not None:
+        if aim is not None:
             # a lens being differentiated: the sample P (on the table's plane, detached) becomes the point Q where
             # the ray from the film point crosses the paraxial exit pupil's plane, scaled with that pupil; the ray
             # is aimed at Q from the (attached) film point.  As the lens changes, Q stays on the image of the same
             # stop point (paraxially), so the rays that pass the stop keep passing it: the stop's rim adds no
             # boundary term (up to the pupil's aberrations).  The measure: dω = cos³θ dA_Q / gap², A_Q = k0² s² A.
-            k0, scale, dzp = self._aim
+            k0, scale, dzp = aim
             X, Y = dr.fma(X - fx, k0, fx) * scale, dr.fma(Y - fy, k0, fy) * scale
             area = area * (k0 * k0) * (scale * scale)
         ex, ey = X - fx, Y - fy
         inv_len = dr.rsqrt(dr.fma(ex, ex, dr.fma(ey, ey, dzp * dzp)))
         d = (ex * inv_len, ey * inv_len, -dzp * inv_len)
-        zf = dr.zeros(mi.Float, dr.width(fx)) + self._z_img
+        zf = dr.zeros(mi.Float, dr.width(fx)) + z_img
         return (fx, fy, zf), d, area, dzp * inv_len
 
     def _trace(self, time, sample1, sample2, sample3, active=True):
@@ -220,14 +239,16 @@ class LensSensorBase(mi.Sensor):
         lam, wav, wspec, time = sample_wavelength(mi, dr, self, self.lambda_mode, time, sample1,
                                                   sample2, sample3, active)
         fx, fy = film_to_sensor(mi, self, st, sample2)
-        o, d, area, cos_t = self._film_rays(fx, fy, sample3)
-        dzp = self._dz if self._aim is None else self._aim[2]
+        numbers = self._ray_numbers(dr.width(fx))
+        z_img, norm, aim = numbers
+        o, d, area, cos_t = self._film_rays(fx, fy, sample3, numbers)
+        dzp = self._dz if aim is None else aim[2]
         pos, dirn, T, valid = self._transport(o, d, lam, active)
         c2 = cos_t * cos_t
         # cos^4θ · A / Δz² · T / (π NA'²)
-        w = c2 * c2 * area * (self._norm / (dzp * dzp)) * T
+        w = c2 * c2 * area * (norm / (dzp * dzp)) * T
         w = dr.select(valid, w, 0.0)
-        (ox, oy, oz), (dx, dy, dz) = lens_to_camera(st, pos, dirn, self._z_img)
+        (ox, oy, oz), (dx, dy, dz) = lens_to_camera(st, pos, dirn, z_img)
         o = mi.Point3f(dr.select(valid, ox, 0.0), dr.select(valid, oy, 0.0), dr.select(valid, oz, 0.0))
         dcam = mi.Vector3f(dr.select(valid, dx, 0.0), dr.select(valid, dy, 0.0), dr.select(valid, dz, 1.0))
         ray = mi.Ray3f(self.m_to_world @ o, dr.normalize(self.m_to_world @ dcam), time,

@@ -176,12 +176,13 @@ class RealisticLens(LensSensorBase):
                         numbers=self.live_planes)
 
     def _transport(self, o, d, lam, active):
-        """As the base class's; for a lens being differentiated (``params.update()`` changed a parameter), traced
+        """As the base class's; for a lens being differentiated (a parameter ``params.update()`` changed has
+        gradients enabled), traced
         with the aperture margin ``m`` (the smallest of every clear aperture, housing and the stop), and the
         throughput multiplied by ``1 + s − detach(s)``, ``s = clip(m / RIM_BAND, 0, 1)``: the value unchanged,
         and the derivative of the rays within :data:`RIM_BAND` of a rim adds the rims' boundary term (how the set
         of rays that pass changes), ``∫ f δ(m) ∂m/∂θ``, estimated one-sided over the band (bias O(band))."""
-        if self.live_planes is None:
+        if self.live_planes is None or not self.lens_parameters.differentiating():
             return super()._transport(o, d, lam, active)
         import drjit as dr
         tm = self.tmap

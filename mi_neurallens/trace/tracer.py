@@ -115,6 +115,7 @@ class LensTracer:
         self.lens = lens
         self.fresnel = fresnel
         z = lens.vertex_z
+        self.geometry = geometry
         live = geometry.surfaces() if geometry is not None else [None] * len(lens.surfaces)
         self.geom = [SurfaceGeometry(s, z[i], live[i]) for i, s in enumerate(lens.surfaces)]
         #: the sensor plane (lens space, mm): a literal, or the live geometry's attached value
@@ -155,6 +156,8 @@ class LensTracer:
         (:meth:`_incidence`), then refraction or reflection with its Fresnel factor (:meth:`_interact`).
         """
         spec = self.path(path, direction)
+        if self.geometry is not None and self.geometry._packed() is not None:
+            self._widen(max(dr.width(o[0]), dr.width(d[0])))
         n_of = _media_indices(lam_nm)
         w = _Rays(o, d, active, record, margin)
         for si, step in enumerate(spec.steps):
@@ -167,6 +170,15 @@ class LensTracer:
             normal, cos_i = self._incidence(w, g, step.heading)
             self._interact(w, step, normal, cos_i, n_of, lam_nm)
         return self._to_output(w, direction, z_out)
+
+    def _widen(self, n: int):
+        """A live geometry with gradients: its values read per ray from the packed array (one scatter-add kernel
+        in the reverse pass, :class:`~mi_neurallens.trace.parameters.Packed`) for a trace of ``n`` rays."""
+        live = self.geometry.surfaces(n)
+        z = self.lens.vertex_z
+        self.geom = [SurfaceGeometry(s, z[i], live[i]) for i, s in enumerate(self.lens.surfaces)]
+        if self.geometry.stop_radius is not None:
+            self.iris = dataclasses.replace(self.iris, radius_mm=self.geometry.wide("stop_radius", n))
 
     @staticmethod
     def _advance(w, g, step, si):
