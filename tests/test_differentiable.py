@@ -184,6 +184,7 @@ def _loss(sc, p, key, value, seed, weight):
 
 @pytest.mark.parametrize("lens, key, rel", [
     ("wide-22mm", "surface_0_curvature", 1e-2),
+    ("wide-22mm", "focus_distance", 3e-2),
     ("dgauss-50mm", "surface_1_thickness", 1e-2),
 ])
 def test_render_gradient_matches_finite_differences(lens, key, rel):
