@@ -254,3 +254,24 @@ def test_the_calibration_example_converges():
     err = abs(res["final"]["focus_distance"] / res["true"]["focus_distance"] - 1)
     assert res["history"][0]["focus_distance"] / res["true"]["focus_distance"] - 1 > 0.25
     assert err < 0.02, res["final"]
+
+
+def test_the_design_example_sharpens_the_field():
+    """examples/design_lens.py, small: 40 Adam steps at 96 × 64 reduce the render loss and the RMS spot size at the
+    edge of the field (optiland's, an evaluator we did not write) of the starting triplet."""
+    import importlib.util
+    import os
+    import sys
+    here = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "examples")
+    sys.path.insert(0, here)
+    try:
+        spec = importlib.util.spec_from_file_location("design_lens", os.path.join(here, "design_lens.py"))
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        start = mod.start_design()
+        lens, history, *_ = mod.optimise_render(start, steps=40, width=96, height=64, spp=4, log=lambda *a: None)
+    finally:
+        sys.path.remove(here)
+    assert np.mean([h["loss"] for h in history[-5:]]) < 0.9 * np.mean([h["loss"] for h in history[:5]])
+    assert abs(lens.paraxial().efl / 50.0 - 1) < 0.03
+    assert mod.rms_spots(lens)[2] < 0.7 * mod.rms_spots(start)[2]

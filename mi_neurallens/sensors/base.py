@@ -212,12 +212,13 @@ class LensSensorBase(mi.Sensor):
         return f"lens={self.setup.lens.name}"
 
     # ------------------------------------------------------------------ rays
-    def _film_rays(self, fx, fy, sample3, numbers):
+    def _film_rays(self, fx, fy, sample3, numbers=None):
         """Rays from the film points ``(fx, fy)`` (lens space, mm, on the sensor plane) toward the exit pupil
         points ``sample3`` picks (:attr:`pupil`): ``(o, d, area, cos_t)`` — origins and unit directions (lens
-        space), the pupil sample's area weight, and the cosine of the ray to the axis."""
+        space), the pupil sample's area weight, and the cosine of the ray to the axis.  ``numbers``:
+        :meth:`_ray_numbers` of these rays (computed if None)."""
         X, Y, area = self.pupil.sample(mi, dr, fx, fy, sample3)
-        z_img, _, aim = numbers
+        z_img, _, aim = numbers if numbers is not None else self._ray_numbers(dr.width(fx))
         dzp = self._dz
         if aim is not None:
             # a lens being differentiated: the sample P (on the table's plane, detached) becomes the point Q where

@@ -37,16 +37,16 @@ from ..trace import parameters as lp
 
 FOCUS, SENSOR = "focus_distance", "sensor_distance"
 #: the numbers a configured lens derives from its parameters that enter the render with derivatives
-DERIVED = (SENSOR, "normalisation", "exit_pupil_z", "exit_pupil_radius", "stop_radius")
+DERIVED = (SENSOR, "normalisation", "exit_pupil_z", "exit_pupil_radius", "stop_radius", "efl")
 
 
 def _derived_numbers(setup) -> tuple:
     """:data:`DERIVED` of a configured lens (mm; 1/(π NA'²); lens-space z, mm; mm; the stop's radius for the
-    sensor's ``fstop``, mm)."""
+    sensor's ``fstop``, mm; the paraxial effective focal length at 587.6 nm, mm)."""
     from .common import PARAXIAL_WAVELENGTH_NM
     px = setup.lens.paraxial(PARAXIAL_WAVELENGTH_NM)
     return (setup.sensor_distance_mm, setup.normalisation, float(px.exit_pupil_z), float(px.exit_pupil_radius),
-            float(setup.lens.stop.semi_diameter))
+            float(setup.lens.stop.semi_diameter), float(px.efl))
 
 
 def _fd_step(lens, key: str, value: float) -> float:
@@ -104,6 +104,7 @@ class SensorParameters:
                 self.keys.append(key)
         #: the parameters that have changed since the scene loaded: kernel inputs from then on
         self.live: set = set()
+        self.derived: dict = {}
 
     # ------------------------------------------------------------------ traversal
     def put(self, cb):
@@ -150,8 +151,9 @@ class SensorParameters:
         """The configured lens of the current values and its attached numbers: ``(setup, live, derived)`` —
         ``live`` the kernel-input arrays by name (``sensor_distance`` the attached one), ``derived`` a dict of
         Dr.Jit arrays: ``sensor_distance`` (mm), ``normalisation`` (1/(π NA'²)), ``exit_pupil_z`` (lens space,
-        mm) and ``exit_pupil_radius`` (mm), the paraxial exit pupil at 587.6 nm, and ``stop_radius`` (mm: with
-        ``fstop``, the stop follows the lens's f-number)."""
+        mm) and ``exit_pupil_radius`` (mm), the paraxial exit pupil at 587.6 nm, ``stop_radius`` (mm: with
+        ``fstop``, the stop follows the lens's f-number) and ``efl`` (mm).  Kept as :attr:`derived`: a loss may
+        use them (a lens design holds its focal length with ``derived["efl"]``)."""
         import drjit as dr
         F = self.mi.Float
         numbers = {k: self._numbers(k) for k in self.keys}
@@ -185,6 +187,8 @@ class SensorParameters:
         values = dict(zip(DERIVED, _derived_numbers(setup)))
         derived = {n: attach(values[n], grads[n], self.values, F) for n in DERIVED}
         live[SENSOR] = derived[SENSOR]
+        #: the configured lens's derived numbers as attached Dr.Jit arrays (see :meth:`derive`), after an update
+        self.derived = derived
         return setup, live, derived
 
     def differentiating(self) -> bool:
