@@ -39,11 +39,11 @@ from .wavelengths import prepare_shutter, sample_wavelength
 #: where the camera rays are computed: inside the integrator's kernel, or in a kernel of their own
 AUTO, INLINE, SEPARATE = "auto", "inline", "separate"
 RAY_KERNELS = (AUTO, INLINE, SEPARATE)
-#: a lens being differentiated (a live parameter with gradients enabled) keeps its pupil bounds (in exit-pupil space,
-#: :meth:`LensSensorBase._film_rays`) while its
-#: paraxial exit pupil's radius and distance from the film and the stop's radius stay within this fraction of
-#: those the bounds were traced for, so that small steps (and finite differences) see the same samples; the
-#: bounds are traced with :data:`LIVE_PUPIL_MARGIN` more room than a loaded lens's, for what the steps move
+#: a lens being differentiated (a live parameter with gradients enabled) keeps its pupil bounds (in exit-pupil
+#: space, :meth:`LensSensorBase._film_rays`) while its paraxial exit pupil's radius and distance from the film and
+#: the stop's radius stay within this fraction of those the bounds were traced for, so that small steps (and
+#: finite differences) see the same samples; the bounds are traced with :data:`LIVE_PUPIL_MARGIN` more room than
+#: a loaded lens's, for what the steps move
 LIVE_PUPIL_TOLERANCE = 0.02
 LIVE_PUPIL_MARGIN = 1.05
 
@@ -159,7 +159,7 @@ class LensSensorBase(mi.Sensor):
             self.pupil = PupilBounds(self.setup, self.pupil.mode, opaque=True,
                                      margin=LIVE_PUPIL_MARGIN if differentiating else 1.01)
             self._pupil_ref = (z_xp0, r_xp0, gap, self.setup.lens.stop.semi_diameter)
-        z_ref, r_ref, gap_ref, _ = self._pupil_ref
+        _, r_ref, gap_ref, _ = self._pupil_ref
         self._z_img, self._dz, self._norm = geometry.image_z, dr.opaque(F, self.pupil.dz), derived["normalisation"]
         #: the live geometry: the attached numbers are read per ray through it (:meth:`_ray_numbers`)
         self._live = geometry

@@ -121,7 +121,8 @@ class SensorParameters:
     def _setup_of(self, numbers: dict, focus_driven: bool):
         """The configured lens of parameter ``numbers`` (name → float or tuple); a parameter set that is not a lens
         is a :class:`NeuralLensError` that says how to get back into the valid region."""
-        lens_values = {k: v for k, v in numbers.items() if lp.parse(k)}
+        # the changed parameters only: the others keep the lens file's float64 values (``values`` holds float32)
+        lens_values = {k: v for k, v in numbers.items() if lp.parse(k) and k in self.live}
         try:
             lens = lp.lens_with(self.base, lens_values) if lens_values else self.base
         except LensError as e:
