@@ -26,7 +26,6 @@ see (docs/differentiable.md measures what they add).
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
@@ -221,7 +220,7 @@ def project_values(lens, values: dict) -> dict:
         if kind == lp.THICKNESS and not float(v) > 0.0:
             out[key] = MIN_GAP_MM
     # the rim: |c| · sd · sqrt(1 + K) ≤ RIM_FRACTION
-    trial = _unchecked(lens, out)
+    trial = lp.replaced_surfaces(lens, out)
     for key in list(out):
         i, kind = lp.parse(key)
         if kind in (lp.CURVATURE, lp.CONIC):
@@ -232,10 +231,10 @@ def project_values(lens, values: dict) -> dict:
                 if abs(c) > cmax:
                     out.setdefault(lp.name(i, lp.CURVATURE), c)
                     out[lp.name(i, lp.CURVATURE)] = math.copysign(cmax, c)
-                    trial = _unchecked(lens, out)
+                    trial = lp.replaced_surfaces(lens, out)
     # crossings: grow the gap before the later surface
     for _ in range(len(lens.surfaces)):
-        trial = _unchecked(lens, out)
+        trial = lp.replaced_surfaces(lens, out)
         z = np.concatenate([[0.0], np.cumsum([s.thickness for s in trial[:-1]])])
         moved = False
         for i in range(len(trial) - 1):
@@ -249,23 +248,6 @@ def project_values(lens, values: dict) -> dict:
             break
     lp.lens_with(lens, out)           # raises if a move could not repair it
     return out
-
-
-def _unchecked(lens, values: dict):
-    """The surfaces of ``lens`` with ``values`` replaced, not validated (for :func:`project_valid`)."""
-    surfs = list(lens.surfaces)
-    for key, v in values.items():
-        i, kind = lp.parse(key)
-        s = surfs[i]
-        if kind == lp.CURVATURE:
-            surfs[i] = dataclasses.replace(s, radius=math.inf if float(v) == 0.0 else 1.0 / float(v))
-        elif kind == lp.CONIC:
-            surfs[i] = dataclasses.replace(s, conic=float(v))
-        elif kind == lp.ASPHERE:
-            surfs[i] = dataclasses.replace(s, aspheric=tuple(float(a) for a in np.ravel(v)))
-        else:
-            surfs[i] = dataclasses.replace(s, thickness=float(v))
-    return surfs
 
 
 def project_valid(params, sensor: str = "sensor", opt=None) -> dict:

@@ -72,26 +72,33 @@ def value_of(lens, key: str):
     return float(s.thickness)
 
 
-def lens_with(lens, values: dict):
-    """``lens`` with the parameters ``values`` (name → float, or a sequence for ``asphere``) replaced, validated:
-    a :class:`~mi_neurallens.errors.LensError` where the result is not a lens (its message names the surface
-    and what to change)."""
+def replaced_surfaces(lens, values: dict) -> list:
+    """The surfaces of ``lens`` with the parameters ``values`` (name → float, or a sequence for ``asphere``)
+    replaced, not validated (a curvature of 0 is a flat surface)."""
     surfs = list(lens.surfaces)
     for key, v in values.items():
         i, kind = parse(key)
         s = surfs[i]
         if kind == CURVATURE:
-            v = float(v)
-            if not math.isfinite(v):
-                raise LensError(f"surface {i}: curvature must be finite, got {v}", surface=i, field="radius")
-            surfs[i] = dataclasses.replace(s, radius=math.inf if v == 0.0 else 1.0 / v)
+            surfs[i] = dataclasses.replace(s, radius=math.inf if float(v) == 0.0 else 1.0 / float(v))
         elif kind == CONIC:
             surfs[i] = dataclasses.replace(s, conic=float(v))
         elif kind == ASPHERE:
             surfs[i] = dataclasses.replace(s, aspheric=tuple(float(a) for a in np.ravel(v)))
         else:
             surfs[i] = dataclasses.replace(s, thickness=float(v))
-    return dataclasses.replace(lens, surfaces=tuple(surfs))
+    return surfs
+
+
+def lens_with(lens, values: dict):
+    """``lens`` with the parameters ``values`` replaced (:func:`replaced_surfaces`), validated: a
+    :class:`~mi_neurallens.errors.LensError` where the result is not a lens (its message names the surface and
+    what to change)."""
+    for key, v in values.items():
+        i, kind = parse(key)
+        if kind == CURVATURE and not math.isfinite(float(v)):
+            raise LensError(f"surface {i}: curvature must be finite, got {v}", surface=i, field="radius")
+    return dataclasses.replace(lens, surfaces=tuple(replaced_surfaces(lens, values)))
 
 
 class Packed:
