@@ -1,13 +1,18 @@
-"""What differentiating a lens costs: the still life through ``realistic_lens``, rendered (one process, warm-up
-excluded, ``dr.sync_thread()``, best of ``--repeats``):
+"""What differentiating a lens costs: the still life through ``realistic_lens`` (or ``neural_lens``), rendered
+(one process, warm-up excluded, ``dr.sync_thread()``, best of ``--repeats``):
 
 * ``primal``: the ``path`` render of the loaded scene (nothing differentiated: the literal kernel);
-* ``primal, live lens``: the same after ``params.update()`` made the curvatures kernel inputs (no gradients);
+* ``primal, live lens``: the same after ``params.update()`` made the differentiated parameters kernel inputs (no
+  gradients);
 * ``lens_ad primal``: ``lens_ad``'s primal (a nested ``path``);
-* ``lens_ad primal + reverse``: ``mi.render`` and ``dr.backward`` of the image's mean with every curvature of the
-  lens gradient-enabled — what one step of an optimisation costs.
+* ``lens_ad primal + reverse``: ``mi.render`` and ``dr.backward`` of the image's mean with the parameters
+  gradient-enabled — what one step of an optimisation costs.
+
+The parameters: every curvature of the lens (``realistic_lens``), or the sensor distance and every weight of
+the camera map's regressor (``neural_lens``).
 
     python benchmarks/bench_differentiable.py [--res 160x120] [--spp 16] [--repeats 3] [--lens wide-22mm]
+                                              [--sensor realistic_lens|neural_lens]
 
 Prints the times and their ratios to ``primal`` and writes ``out/bench/bench_differentiable.json``.  The bar: a
 differentiable render at most 3x the primal at the same spp.
@@ -30,8 +35,12 @@ def main(argv=None):
     ap.add_argument("--spp", type=int, default=16)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--lens", default="wide-22mm")
-    ap.add_argument("--out", default=os.path.join(ROOT, "out", "bench", "bench_differentiable.json"))
+    ap.add_argument("--sensor", default="realistic_lens", choices=("realistic_lens", "neural_lens"))
+    ap.add_argument("--out", default=None, help="(default: out/bench/bench_differentiable[_neural].json)")
     args = ap.parse_args(argv)
+    if args.out is None:
+        args.out = os.path.join(ROOT, "out", "bench", "bench_differentiable" + (
+            "_neural" if args.sensor == "neural_lens" else "") + ".json")
     import drjit as dr
     import mitsuba as mi
     mi.set_variant("llvm_ad_rgb")
@@ -44,7 +53,12 @@ def main(argv=None):
 
     def scene():
         return load_scene(str(scene_path("still_life")), variant="llvm_ad_rgb", lens=args.lens, resolution=(w, h),
-                          spp=args.spp, sets=[])
+                          spp=args.spp, sets=[], sensor_type=args.sensor)
+
+    def differentiated(p):
+        if args.sensor == "neural_lens":
+            return [k for k in p.keys() if k.endswith(".sensor_distance") or ".regressor_" in k]
+        return [k for k in p.keys() if lp.parse(k) and lp.parse(k)[1] == lp.CURVATURE]
 
     def best(fn):
         fn()                                   # warm-up: compiles
@@ -61,16 +75,15 @@ def main(argv=None):
     sc = scene()
     rows["primal"] = best(lambda: dr.eval(mi.render(sc, spp=args.spp, seed=1)))
     p = mi.traverse(sc)
-    curv = [k for k in p.keys() if lp.parse(k) and lp.parse(k)[1] == lp.CURVATURE]
-    for k in curv:
-        p[k] = mi.Float(p[k].numpy()[0] * (1 + 1e-7) + 0.0)
+    for k in differentiated(p):
+        p[k] = p[k] * (1 + 1e-7)
     p.update()
     rows["primal, live lens"] = best(lambda: dr.eval(mi.render(sc, spp=args.spp, seed=1)))
 
     ad, lens_ad = scene(), mi.load_dict({"type": "lens_ad", "max_depth": 6})
     rows["lens_ad primal"] = best(lambda: dr.eval(mi.render(ad, integrator=lens_ad, spp=args.spp, seed=1)))
     pa = mi.traverse(ad)
-    keys = [k for k in pa.keys() if lp.parse(k) and lp.parse(k)[1] == lp.CURVATURE]
+    keys = differentiated(pa)
     for k in keys:
         dr.enable_grad(pa[k])
     pa.update()
@@ -81,11 +94,12 @@ def main(argv=None):
         dr.eval([dr.grad(pa[k]) for k in keys])
     rows["lens_ad primal + reverse"] = best(step)
     base = rows["primal"]
-    print(f"still life {w}x{h}, {args.spp} spp, {args.lens}, {len(keys)} curvatures differentiated")
+    print(f"still life {w}x{h}, {args.spp} spp, {args.sensor} {args.lens}, {len(keys)} parameters differentiated "
+          f"({', '.join(k.split('.')[-1] for k in keys[:3])}{', ...' if len(keys) > 3 else ''})")
     for k, v in rows.items():
         print(f"  {k:28s} {v:7.3f} s   {v / base:5.2f}x")
     atomic_write_json(args.out, {"machine": platform.processor() or platform.machine(), "res": [w, h],
-                                 "spp": args.spp, "lens": args.lens, "seconds": rows,
+                                 "spp": args.spp, "lens": args.lens, "sensor": args.sensor, "seconds": rows,
                                  "ratio_to_primal": {k: v / base for k, v in rows.items()}})
 
 

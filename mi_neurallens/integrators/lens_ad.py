@@ -29,9 +29,9 @@ Lens-differentiable path tracer (:monosp:`lens_ad`)
 
 Renders exactly what ``path`` renders (the primal image is a nested ``path`` integrator's), and in
 ``mi.render``'s forward and reverse modes differentiates it with respect to the camera: the parameters of a
-``realistic_lens`` (focus, sensor distance, curvatures, gaps, conics, aspheric coefficients), through the
-parameters' effect on where the camera rays go and on the camera's weight (Fresnel, normalisation, the
-aperture rims' band, docs/differentiable.md).
+``realistic_lens`` (focus, sensor distance, curvatures, gaps, conics, aspheric coefficients) or a ``neural_lens``
+(focus, sensor distance, the regressor's weights), through the parameters' effect on where the camera rays go
+and on the camera's weight (Fresnel, normalisation, the aperture rims' band, docs/differentiable.md).
 
 Mitsuba's own differentiable integrators (``prb``, ``direct_projective``, …) start from a *detached* camera ray:
 they differentiate the scene, never where the camera's rays go, and with a lens parameter they give a zero

@@ -66,3 +66,55 @@ def packed(owner, name: str, layers, activation: str, like) -> CoopVecMLP:
     if key not in cache:
         cache[key] = CoopVecMLP(layers, activation, type(like))
     return cache[key]
+
+
+class LiveNetwork:
+    """A network whose weights are Dr.Jit arrays, possibly with gradients enabled: the learned map's regressor
+    while ``mi.traverse`` has changed it (``neural_lens``: docs/differentiable.md).
+
+    ``layers``: list of ``(W, b)``, ``W`` a ``TensorXf`` of shape (out, in) and ``b`` a ``Float`` of width out, the
+    model file's layers (before the output transform); ``out_scale``, ``out_shift``: the map's output transform
+    ``shift + scale·y``, folded into the last layer here (numpy).  The layers are packed once, at construction, into
+    one cooperative-vector buffer (``drjit.nn.pack``: differentiable, so a reverse pass reaches ``layers``; its
+    training layout when a weight has gradients enabled), read by the kernel as an input: a new weight set
+    compiles no kernel.  fp32 on the CPU; on CUDA fp16, as ``mlp = "coopvec"``."""
+
+    def __init__(self, layers, out_scale, out_shift, activation: str = "tanh", float_t=None):
+        import drjit as dr
+        import drjit.nn as nn
+        if float_t is None:
+            import mitsuba as mi
+            float_t = mi.Float
+        cuda = dr.backend_v(float_t) == dr.JitBackend.CUDA
+        self.cuda, self.float_t = cuda, float_t
+        self.half_t = dr.float16_array_t(float_t) if cuda else None
+        tensor32 = dr.tensor_t(float_t)
+        tensor = dr.tensor_t(self.half_t) if cuda else tensor32
+        sc, sh = np.asarray(out_scale, np.float64), np.asarray(out_shift, np.float64)
+        mods, shapes = [], []
+        for i, (W, b) in enumerate(layers):
+            o, k = (int(v) for v in W.shape)
+            shapes.append((o, k))
+            mods.append(nn.Linear(k, o))
+            if i < len(layers) - 1:
+                mods.append(nn.Tanh() if activation == "tanh" else nn.ReLU())
+        net = nn.Sequential(*mods).alloc(tensor, shapes[0][1])
+        differentiable = False
+        for i, (W, b) in enumerate(layers):
+            o, k = shapes[i]
+            w, bb = W.array, b
+            if i == len(layers) - 1:                     # shift + scale·(W x + b), folded
+                w = w * float_t(np.repeat(sc, k).astype(np.float32))
+                bb = dr.fma(bb, float_t(sc.astype(np.float32)), float_t(sh.astype(np.float32)))
+            differentiable |= dr.grad_enabled(w) or dr.grad_enabled(bb)
+            net[f"layers.{2 * i}.weights"] = tensor(tensor32(w, (o, k)))
+            net[f"layers.{2 * i}.bias"] = tensor(tensor32(bb, (o,)))
+        self.net = nn.pack(net, layout="training" if differentiable else "inference")
+        self.n_out = shapes[-1][0]
+
+    def __call__(self, xs):
+        import drjit.nn as nn
+        if self.cuda:
+            xs = [self.half_t(x) for x in xs]
+        out = list(self.net(nn.CoopVec(*xs)))
+        return [self.float_t(o) for o in out] if self.cuda else out

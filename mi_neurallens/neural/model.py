@@ -236,6 +236,10 @@ class NeuralMap(TransportMap):
     iris: object = field(default=None, compare=False)
     #: the opaque scalars of ``mlp = "shared"``; one pool per map, handed on by ``dataclasses.replace``
     params_pool: KernelParams | None = field(default=None, compare=False, repr=False)
+    #: the regressor with its weights as Dr.Jit arrays (a :class:`~mi_neurallens.neural.coopvec.LiveNetwork`, the
+    #: output transform folded in), replacing :attr:`regressor` in Dr.Jit evaluations in float32: ``neural_lens``
+    #: after ``params.update()`` changed a weight (docs/differentiable.md); None: :attr:`regressor`
+    live_regressor: object = field(default=None, compare=False, repr=False)
 
     method = "neural"
     reduced = True
@@ -293,7 +297,10 @@ class NeuralMap(TransportMap):
             raise ModelError(f"unknown MLP evaluation {mlp!r}: use one of {MLP_MODES}")
         use_packed = packed_networks(mlp, x[0])
         logit = _network(self, "classifier", self.classifier, self.classifier_activation, xn, P, use_packed)[0]
-        y = _network(self, "regressor", self._folded(), self.regressor_activation, xn, P, use_packed)
+        if self.live_regressor is not None and dr.type_v(x[0]) == dr.VarType.Float32:
+            y = self.live_regressor(xn)
+        else:
+            y = _network(self, "regressor", self._folded(), self.regressor_activation, xn, P, use_packed)
         y = _add_skip(y, xn, self.skip, P, "regressor.skip")
         if self.odd_y:
             m = x[2] * number(P, "1/s_max", 1.0 / float(self.domain.s_max), x[2])

@@ -15,12 +15,14 @@ A subclass provides the transport (sensor → object space) by overriding:
 * ``_make_map(geometry)`` → the backward transmit :class:`~mi_neurallens.transport.base.TransportMap` of the
   configured lens (``self.setup``, ``self.pupil``); camera rays start on the film plane and leave on the map's
   output plane, which becomes ``self.z_out``.  ``geometry`` is None when the scene loads, and a
-  :class:`~mi_neurallens.trace.parameters.LiveGeometry` after ``params.update()`` changed a parameter of a sensor
-  with ``LENS_PARAMETERS`` (the planes ``self.live_planes`` then give are Dr.Jit arrays),
+  :class:`~mi_neurallens.trace.parameters.LiveGeometry` after ``params.update()`` changed a parameter (the
+  planes ``self.live_planes`` then give are Dr.Jit arrays),
 * ``_describe()`` → extra text for ``to_string``.
 
-``mi.traverse`` exposes ``to_world`` and, for a sensor with ``LENS_PARAMETERS`` (``realistic_lens``), the focus,
-the sensor distance and the prescription (:mod:`.live`); ``params.update()`` re-derives the configured lens.
+``mi.traverse`` exposes ``to_world``, the focus distance and the sensor distance and, for a sensor with
+``LENS_PARAMETERS`` (``realistic_lens``), the prescription (:mod:`.live`); ``params.update()`` re-derives the
+configured lens.  A subclass may add parameters of its own (``_traverse_more``, ``_changed_more``: the learned
+map's regressor weights of ``neural_lens``).
 """
 from __future__ import annotations
 
@@ -71,7 +73,7 @@ class LensSensorBase(mi.Sensor):
     pupil = untraversed()
     tmap = untraversed()
     lens_parameters = untraversed()
-    #: whether ``mi.traverse`` exposes the focus, the sensor distance and the prescription (differentiable)
+    #: whether ``mi.traverse`` exposes the prescription (differentiable) besides the focus and sensor distance
     LENS_PARAMETERS = False
 
     def __init__(self, props):
@@ -319,8 +321,16 @@ class LensSensorBase(mi.Sensor):
 
     def traverse(self, cb):
         cb.put("to_world", self.m_to_world, mi.ParamFlags.NonDifferentiable)
-        if self.LENS_PARAMETERS:
-            self.lens_parameters.put(cb)
+        self.lens_parameters.put(cb)
+        self._traverse_more(cb)
+
+    def _traverse_more(self, cb):
+        """Parameters of the subclass's own, put into the traversal ``cb`` after the lens's."""
+
+    def _changed_more(self, keys) -> bool:
+        """After ``params.update()``: apply changes to the subclass's own parameters (``keys``: the names after
+        the last dot); True when the transport map must be rebuilt."""
+        return False
 
     def parameters_changed(self, keys=[]):
         """After ``params.update()``: a changed focus, sensor distance or prescription parameter re-derives the
@@ -328,7 +338,10 @@ class LensSensorBase(mi.Sensor):
         (:mod:`.live`); an invalid parameter set is a :class:`~mi_neurallens.errors.NeuralLensError`."""
         from ..trace.parameters import LiveGeometry
         sp = self.lens_parameters
-        if not self.LENS_PARAMETERS or not sp.changed(keys):
+        own = self._changed_more(keys)
+        if not sp.changed(keys):
+            if own:
+                self.tmap = self._make_map(self._live)
             return
         setup, live, derived = sp.derive()
         self.setup = setup

@@ -35,6 +35,24 @@ from ..optics.prescription import surfaces_cross
 from ..trace import parameters as lp
 
 FOCUS, SENSOR = "focus_distance", "sensor_distance"
+#: a lens being differentiated: the width, in aperture margin (1 − r²/R², :attr:`TraceResult.margin`), of the band
+#: inside the rims whose rays carry the rims' boundary term (``realistic_lens``: the tracer's margin; ``neural_lens``: the classifier's logit over its margin scale).  0.003 (0.15 % of a
+#: rim's radius): on dgauss-50mm's front curvature the band estimate was −1.77 ± 0.35 against central differences'
+#: −1.76 ± 0.58; a band of 0.01 gave −1.46, 0.03 gave −1.55 (the one-sided band's bias grows with its width)
+RIM_BAND = 0.003
+
+
+def rim_band_factor(margin, per_unit: float = 1.0):
+    """``1 + s − detach(s)``, ``s = clip(margin / (per_unit · RIM_BAND), 0, 1)``: a throughput times it keeps its
+    value, and its derivative gains the rims' boundary term ``∫ f δ(m) ∂m/∂θ`` from the rays within :data:`RIM_BAND`
+    of a rim (one-sided, bias O(band)).  ``margin``: a Dr.Jit array that is 0 on the rims and grows inward, in units
+    of ``per_unit`` aperture margins (the tracer's margin: 1; a margin-trained classifier's logit: its margin
+    scale)."""
+    import drjit as dr
+    s = dr.clip(margin * (1.0 / (per_unit * RIM_BAND)), 0.0, 1.0)
+    return 1.0 + (s - dr.detach(s))
+
+
 #: the numbers a configured lens derives from its parameters that enter the render with derivatives
 DERIVED = (SENSOR, "normalisation", "exit_pupil_z", "exit_pupil_radius", "stop_radius", "efl")
 
@@ -282,3 +300,57 @@ def project_valid(params, sensor: str = "sensor", opt=None) -> dict:
             changed[k] = v
     return changed
 
+
+
+def regressor_names(n_layers: int) -> list:
+    """The ``mi.traverse`` names of a learned camera map's regressor (``neural_lens``), layer ``i`` as in the model
+    file (``backward.0.regressor.{i}.weight``/``.bias``): ``regressor_{i}_weight`` (a tensor (out, in)) and
+    ``regressor_{i}_bias`` (out)."""
+    return [f"regressor_{i}_{part}" for i in range(n_layers) for part in ("weight", "bias")]
+
+
+class NetworkParameters:
+    """The regressor of ``neural_lens``'s camera map in ``mi.traverse``: its layers ``(W, b)`` (the model file's,
+    before the output transform ``shift + scale·y``) as ``TensorXf`` (out, in) and ``Float`` (out), float32.
+
+    Like the lens parameters, the weights become kernel inputs the first time one changes (:attr:`live`): the
+    regressor is then evaluated as a :class:`~mi_neurallens.neural.coopvec.LiveNetwork` packed from these arrays at
+    each ``params.update()``, differentiable in them where they have gradients enabled (the classifier's decision
+    does not depend on them, so there is no boundary term)."""
+
+    def __init__(self, mi, layers):
+        from ..jit import from_numpy
+        self.mi = mi
+        self.n_layers = len(layers)
+        self.values = {}
+        for (W, b), (kw, kb) in zip(layers, zip(*[iter(regressor_names(len(layers)))] * 2)):
+            W = np.asarray(W, np.float32)
+            self.values[kw] = mi.TensorXf(from_numpy(mi.Float, W), W.shape)
+            self.values[kb] = from_numpy(mi.Float, np.asarray(b, np.float32))
+        #: whether a weight has changed since the scene loaded (the regressor then reads :attr:`values`)
+        self.live = False
+
+    def put(self, cb):
+        for key, v in self.values.items():
+            cb.put(key, v, self.mi.ParamFlags.Differentiable)
+
+    def changed(self, keys) -> bool:
+        """Note a change among ``keys`` (the names ``parameters_changed`` got); True when one is ours."""
+        if any(k in self.values for k in keys):
+            self.live = True
+            return True
+        return False
+
+    def layers(self) -> list:
+        """``[(W, b), ...]``: the current Dr.Jit arrays (attached where gradients are enabled)."""
+        names = regressor_names(self.n_layers)
+        return [(self.values[names[2 * i]], self.values[names[2 * i + 1]]) for i in range(self.n_layers)]
+
+    def numpy_layers(self) -> list:
+        """The current layers as float64 numpy arrays ``[(W (out, in), b (out,)), ...]``."""
+        import drjit as dr
+        out = []
+        for W, b in self.layers():
+            out.append((np.asarray(dr.detach(W).numpy(), np.float64).reshape(W.shape),
+                        np.asarray(dr.detach(b).numpy(), np.float64)))
+        return out

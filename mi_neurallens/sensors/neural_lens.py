@@ -12,6 +12,9 @@ from __future__ import annotations
 import dataclasses
 import os
 
+import drjit as dr
+import mitsuba as mi
+
 from .. import resources
 from ..errors import ModelError
 from ..jit import untraversed
@@ -19,6 +22,7 @@ from ..neural.model import MLP_MODES, load_model
 from ..trace.iris import Iris
 from .base import LensSensorBase
 from .common import SensorPropertyError, load_lens
+from .live import NetworkParameters, rim_band_factor
 
 PLUGIN = "neural_lens"
 
@@ -88,6 +92,12 @@ ray is moved to the model's input plane, reduced by the lens's rotational and mi
 (r, ωx, ωy ≥ 0, λ), the classifier decides whether it is blocked, the regressor gives the exit
 position, direction and throughput in the reduced frame, and the reduction is undone.
 
+``mi.traverse`` exposes ``focus_distance`` (scene units), ``sensor_distance`` (mm) and the camera map's
+regressor, ``regressor_{i}_weight`` (a tensor (out, in)) and ``regressor_{i}_bias`` per layer ``i``;
+``params.update()`` re-derives the focus, and with the ``lens_ad`` integrator renders are differentiable in all of
+them (docs/differentiable.md).  Changed regressor weights are read by the kernel through a cooperative-vector
+buffer (no recompilation per step).
+
 .. tabs::
 
     .. code-tab:: xml
@@ -138,6 +148,44 @@ class NeuralLens(LensSensorBase):
     __doc__ = DOC
     PLUGIN = PLUGIN
     model = untraversed()      # the neural model: Python data, kept out of Dr.Jit's traversal (see base)
+    network_parameters = untraversed()
+
+    # ------------------------------------------------------------------ the regressor's weights (docs/differentiable.md)
+    def _network_parameters(self) -> NetworkParameters | None:
+        """The camera map's regressor in ``mi.traverse`` (created on first use); None for a baseline ``method``."""
+        if self.method != "neural":
+            return None
+        if self.network_parameters is None:
+            self.network_parameters = NetworkParameters(mi, self.model.map("transmit", "backward").regressor)
+        return self.network_parameters
+
+    def _traverse_more(self, cb):
+        net = self._network_parameters()
+        if net is not None:
+            net.put(cb)
+
+    def _changed_more(self, keys) -> bool:
+        net = self._network_parameters()
+        return net is not None and net.changed(keys)
+
+    def fine_tuned_model(self, **record):
+        """The model with the camera map's regressor replaced by the current (traversed) weights, recording in
+        ``metadata()["fine_tuned"]`` that it no longer is the map of its prescription: the base model file, the
+        changed map, ``matches_prescription: false`` and ``record`` (what it was tuned toward, the steps, the loss).
+        The lens fingerprint stays, so the model still loads with its lens.  Save it with ``.save(path)``."""
+        import copy
+        net = self.network_parameters
+        if net is None or not net.live:
+            raise ModelError(f"{PLUGIN}: the regressor's weights were not changed (mi.traverse: "
+                             f"sensor.regressor_<i>_weight/_bias, then params.update()); nothing to save")
+        model = copy.copy(self.model)
+        tm = model.map("transmit", "backward")
+        tuned = dataclasses.replace(tm, regressor=net.numpy_layers(), live_regressor=None, params_pool=None,
+                                    training={**tm.training, "fine_tuned": {"matches_prescription": False, **record}})
+        model.maps = {**model.maps, tm.key: tuned}
+        model.extra = {**model.extra, "fine_tuned": {"from": os.path.basename(self.model_path), "maps": [tm.key],
+                                                     "matches_prescription": False, **record}}
+        return model
 
     def _read_properties(self, rd):
         self.lens_prop = rd.string("lens", None)
@@ -145,6 +193,7 @@ class NeuralLens(LensSensorBase):
         self.use_classifier = rd.bool("use_classifier", True)
         self.mlp = rd.string("mlp", "fused", choices=MLP_MODES)
         self.method = rd.string("method", "neural", choices=METHODS)
+        self.network_parameters = None
 
     def _default_model(self) -> str:
         """The ``model`` when none is given: the bundled model of ``lens`` (a bundled name, or a file whose
@@ -176,6 +225,10 @@ class NeuralLens(LensSensorBase):
             raise SensorPropertyError(PLUGIN, "model", f"model {self.model_path} has no backward transmit "
                                       f"map (it has {sorted(probe.maps)})")
         self.model = probe
+        tuned = probe.extra.get("fine_tuned")
+        if tuned:
+            mi.Log(mi.LogLevel.Warn, f"{PLUGIN}: model {self.model_path} was fine-tuned ({', '.join(tuned.get('maps', []))}"
+                   f" from {tuned.get('from', '?')}): its map no longer is the one of lens '{lens.name}'s prescription")
         return lens
 
     def _iris(self, tm):
@@ -216,15 +269,42 @@ class NeuralLens(LensSensorBase):
             raise SensorPropertyError(PLUGIN, which, str(e)) from e
         tm = self.model.map("transmit", "backward")
         if self.method == "neural":
-            return dataclasses.replace(tm, use_classifier=self.use_classifier, mlp=self.mlp, iris=self._iris(tm))
+            net = self.network_parameters
+            live = None
+            if net is not None and net.live:
+                from ..neural.coopvec import LiveNetwork
+                live = LiveNetwork(net.layers(), tm.out_scale, tm.out_shift, tm.regressor_activation, mi.Float)
+            return dataclasses.replace(tm, use_classifier=self.use_classifier, mlp=self.mlp, iris=self._iris(tm),
+                                       live_regressor=live)
         # a baseline between the same planes (docs/baselines.md); the map starts on its input
         # plane: the pupil sample only gives the direction
         from ..transport import make_map
         return make_map(st.lens, self.method, "transmit", "backward", z_in=tm.z_in, z_out=tm.z_out,
                         **({"fresnel": st.fresnel} if self.method == "exact" else {}))
 
+    def _margin_scale(self) -> float | None:
+        """Logit units per aperture margin of the map's classifier when it was trained on the tracer's margin
+        (``target = "margin"``), else None (a label-trained logit is no distance to the rim)."""
+        c = getattr(self.tmap, "training", {}).get("classifier", {})
+        return float(c.get("margin_scale", 0.0)) or None if c.get("target") == "margin" else None
+
+    def _transport(self, o, d, lam, active):
+        """As the base class's; while a lens parameter with gradients enabled is live, the throughput carries the
+        classifier's boundary term: :func:`.live.rim_band_factor` of the logit, which a margin-trained classifier
+        learned as its margin scale times the tracer's aperture margin (the stop head's iris test, a hard decision
+        too, gets none)."""
+        if self.method != "neural" or self.live_planes is None or not self.lens_parameters.differentiating():
+            return super()._transport(o, d, lam, active)
+        scale = self._margin_scale()
+        if scale is None or not self.use_classifier:
+            return super()._transport(o, d, lam, active)
+        res = self.tmap.eval_dr(o, d, lam, active)
+        T = res.throughput if self.setup.fresnel else dr.zeros(type(res.throughput), dr.width(res.throughput)) + 1.0
+        return res.position, res.direction, T * rim_band_factor(res.logit, scale), res.valid
+
     def _describe(self):
         iris = getattr(self.tmap, "iris", None)
-        return (f"model='{self.model_spec}' ({os.path.basename(self.model_path)}), lens={self.setup.lens.name}, "
+        tuned = " (fine-tuned: not the prescription's map)" if self.model.extra.get("fine_tuned") else ""
+        return (f"model='{self.model_spec}' ({os.path.basename(self.model_path)}){tuned}, lens={self.setup.lens.name}, "
                 f"iris={'as trained' if iris is None else iris.describe()}, "
                 f"use_classifier={self.use_classifier}, mlp={self.mlp}, method={self.method}")

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from .base import LensSensorBase
 from .common import load_lens
+from .live import rim_band_factor
 from ..transport.exact import ExactMap
 
 PLUGIN = "realistic_lens"
@@ -148,11 +149,6 @@ changed parameter becomes a kernel input, differentiable with the ``lens_ad`` in
 """
 
 
-#: a lens being differentiated: the width, in aperture margin (1 − r²/R², :attr:`TraceResult.margin`), of the band
-#: inside the rims whose rays carry the rims' boundary term (:meth:`RealisticLens._transport`).  0.003 (0.15 % of a
-#: rim's radius): on dgauss-50mm's front curvature the band estimate was −1.77 ± 0.35 against central differences'
-#: −1.76 ± 0.58; a band of 0.01 gave −1.46, 0.03 gave −1.55 (the one-sided band's bias grows with its width)
-RIM_BAND = 0.003
 
 
 class RealisticLens(LensSensorBase):
@@ -179,9 +175,9 @@ class RealisticLens(LensSensorBase):
         """As the base class's; for a lens being differentiated (a parameter ``params.update()`` changed has
         gradients enabled), traced
         with the aperture margin ``m`` (the smallest of every clear aperture, housing and the stop), and the
-        throughput multiplied by ``1 + s − detach(s)``, ``s = clip(m / RIM_BAND, 0, 1)``: the value unchanged,
-        and the derivative of the rays within :data:`RIM_BAND` of a rim adds the rims' boundary term (how the set
-        of rays that pass changes), ``∫ f δ(m) ∂m/∂θ``, estimated one-sided over the band (bias O(band))."""
+        throughput multiplied by :func:`.live.rim_band_factor` of it: the value unchanged, and the derivative of the
+        rays within :data:`.live.RIM_BAND` of a rim adds the rims' boundary term (how the set of rays that pass
+        changes), ``∫ f δ(m) ∂m/∂θ``, estimated one-sided over the band (bias O(band))."""
         if self.live_planes is None or not self.lens_parameters.differentiating():
             return super()._transport(o, d, lam, active)
         import drjit as dr
@@ -189,8 +185,7 @@ class RealisticLens(LensSensorBase):
         res = tm.tracer.trace(o, d, lam, tm.spec, tm.direction, z_out=self.live_planes["z_out"], margin=True,
                               active=active)
         T = res.throughput if self.setup.fresnel else dr.zeros(type(res.throughput), dr.width(res.throughput)) + 1.0
-        band = dr.clip(res.margin * (1.0 / RIM_BAND), 0.0, 1.0)
-        return res.position, res.direction, T * (1.0 + (band - dr.detach(band))), res.valid
+        return res.position, res.direction, T * rim_band_factor(res.margin), res.valid
 
     def _describe(self):
         return f"lens='{self.lens_spec}' ({self.setup.lens.name})"
