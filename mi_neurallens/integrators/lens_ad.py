@@ -98,6 +98,10 @@ class LensAD(ADIntegrator):
         cont = hit & (bs.pdf > 0.0)
         with dr.suspend_grad():
             Li, _, _ = self.continuation.sample(scene, sampler, dr.detach(si.spawn_ray(si.to_world(bs.wo))), None, cont)
+            if not dr.flag(dr.JitFlag.SymbolicScope):
+                # stored by the pass's forward kernel: the derivative kernel reads it instead of tracing the
+                # continuation again (that recomputation was a third path tracing per step)
+                dr.schedule(Li)
         return L + dr.select(cont, w * Li, 0.0)
 
     def aov_names(self):
