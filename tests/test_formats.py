@@ -129,7 +129,8 @@ def schema_ok(doc) -> bool:
 # ============================================================================ bundled lenses
 def test_bundled_names():
     assert set(F.bundled_lenses()) == {"wide-22mm", "ood-59mm", "canon-ef-24mm-f1.4l", "dgauss-50mm",
-                                       "fisheye-10mm", "telephoto-250mm", "canon-rf-24mm-f1.4l-vcm"}
+                                       "fisheye-10mm", "telephoto-250mm", "canon-rf-24mm-f1.4l-vcm",
+                                       "canon-ef-24-70mm-f2.8l"}
 
 
 @pytest.mark.parametrize("name", sorted(BUNDLED_REF))
@@ -167,7 +168,8 @@ def test_bundled_ood_59mm():
 
 
 @pytest.mark.parametrize("name", ["wide-22mm", "ood-59mm", "canon-ef-24mm-f1.4l", "dgauss-50mm",
-                                  "fisheye-10mm", "telephoto-250mm", "canon-rf-24mm-f1.4l-vcm"])
+                                  "fisheye-10mm", "telephoto-250mm", "canon-rf-24mm-f1.4l-vcm",
+                                  "canon-ef-24-70mm-f2.8l"])
 def test_bundled_files_validate_and_round_trip(name, tmp_path):
     import jsonschema
     path = F.bundled_lens_path(name)

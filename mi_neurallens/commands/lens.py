@@ -1,14 +1,20 @@
 """``mi-neurallens lens``: inspect, list and draw lens prescriptions.
 
-  lens info PATH [--json] [--wavelength NM]   the prescription and every paraxial number
+  lens info PATH [--json] [--wavelength NM] [--focal-length MM] [--focus-distance MM]
+                                              the prescription and every paraxial number
   lens plot PATH [-o layout.png] [--fields DEG ...] [--wavelengths NM ...] [--rays N] [--dpi N]
+                 [--focal-length MM] [--focus-distance MM]
   lens list [--json]                          the lenses (bundled and $MI_NEURALLENS_LENSES) with EFL, f-number, model
   lens convert IN OUT.json [--name NAME] [--glass NAME=SPEC ...] [--stop-radius MM]
-                                              any readable lens file -> project JSON (atomic write)
+                           [--focal-length MM] [--focus-distance MM]
+                                              any readable lens file -> project JSON (atomic write); with the
+                                              last two, one fixed configuration of a lens with moving groups
 
 PATH is a lens file (project JSON, pbrt .dat, Open Optical Designer JSON, LensVisualizer JSON,
 Zemax .zmx, CODE V .seq) or the name of a bundled lens (``lens list``).  Lengths are in mm; ``*_z`` are lens-space positions
-(first vertex at z = 0, +z toward the sensor).
+(first vertex at z = 0, +z toward the sensor).  ``--focal-length`` (a zoom lens's) and ``--focus-distance`` (mm from
+the sensor plane, or inf) show the lens as ``realistic_lens`` configures it: its moving groups set, or (a lens
+without) the whole lens moved to focus.
 """
 from __future__ import annotations
 
@@ -31,6 +37,7 @@ def add_parser(subparsers):
     pi.add_argument("--json", action="store_true", help="print JSON instead of text")
     pi.add_argument("--wavelength", type=float, default=LAMBDA_D, metavar="NM",
                     help="wavelength of the paraxial numbers in nm (default 587.5618, the d line)")
+    _configuration_args(pi)
     pi.set_defaults(func=run_info)
 
     pp = sub.add_parser("plot", help="draw the lens layout with traced ray fans (PNG/SVG/PDF)")
@@ -44,6 +51,7 @@ def add_parser(subparsers):
     pp.add_argument("--rays", type=int, default=11, metavar="N", help="rays per fan (default 11)")
     pp.add_argument("--title", help="extra first title line")
     pp.add_argument("--dpi", type=int, default=150, help="resolution of raster output (default 150)")
+    _configuration_args(pp)
     pp.set_defaults(func=run_plot)
 
     pl = sub.add_parser("list", help="list the lenses (bundled, and those of $MI_NEURALLENS_LENSES) and where each comes from")
@@ -64,10 +72,19 @@ def add_parser(subparsers):
     pc.add_argument("--stop-radius", type=float, metavar="MM",
                     help="Zemax/CODE V/Open Optical Designer: the stop radius in mm instead of the file's "
                          "aperture")
+    _configuration_args(pc)
     pc.set_defaults(func=run_convert)
 
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
     return p
+
+
+def _configuration_args(p):
+    p.add_argument("--focal-length", type=float, metavar="MM",
+                   help="a zoom lens's focal length in mm (EFL at infinity focus, d line): its zoom groups move to it")
+    p.add_argument("--focus-distance", type=float, metavar="MM",
+                   help="focus on an object this many mm from the sensor plane (inf: infinity), by the lens's "
+                        "focusing groups where it has them, else by moving the whole lens")
 
 
 def _raw_formatter():
@@ -233,19 +250,80 @@ def _text_info(lens, wavelength_nm) -> str:
     return "\n".join(out)
 
 
+def configured(lens, focal_length_mm=None, focus_distance_mm=None):
+    """``lens`` as ``realistic_lens`` configures it: ``(configured lens, configuration dict or None)``.  With moving
+    groups: at the focal length (None: the first listed position) focused on ``focus_distance_mm`` (from the
+    sensor plane; None: infinity); without: ``focal_length_mm`` refused, the whole lens moved to focus."""
+    from ..errors import LensError
+    from ..optics import moving as mv
+    if lens.moving is None:
+        if focal_length_mm is not None:
+            raise LensError(f"lens '{lens.name}' is not a zoom lens (its focal length is {lens.efl():.4g} mm): "
+                            "leave --focal-length out", file=lens.path)
+        if focus_distance_mm is None:
+            return lens, None
+        from ..sensors.common import solve_sensor_distance
+        s = solve_sensor_distance(lens, float(focus_distance_mm))
+        return lens.with_sensor_distance(s), {"focusing": "unit (the whole lens moves)",
+                                              "focus_distance_mm": _num(focus_distance_mm), "sensor_distance_mm": s}
+    focus = math.inf if focus_distance_mm is None else float(focus_distance_mm)
+    L, t, f = mv.configure(lens, focal_length_mm, focus)
+    mg = lens.moving
+    lo, hi = mv.focal_length_range(lens) if mg.is_zoom else (None, None)
+    conf = {"focusing": "moving groups", "focal_length_mm": mv.focal_length(lens, t) if mg.is_zoom else None,
+            "focal_length_range_mm": [lo, hi] if mg.is_zoom else None,
+            "focus_distance_mm": _num(focus), "zoom": t, "focus": f,
+            "gaps_mm": {str(i): float(L.surfaces[i].thickness) for i in mg.gaps},
+            "positions": mg.positions, "zoom_focal_lengths_mm": list(mg.zoom_efl_mm) if mg.zoom_efl_mm else None,
+            "close_focus_mm": mg.close_focus_mm, "close_gaps": mg.close_gaps}
+    return L, conf
+
+
+def _configuration_text(lens, conf) -> list:
+    """The lines ``lens info`` adds for a configured lens."""
+    if conf is None:
+        return []
+    if conf["focusing"].startswith("unit"):
+        return [f"  focused on {_fmt(conf['focus_distance_mm'], 1)} from the sensor by moving the whole lens: sensor "
+                f"distance {conf['sensor_distance_mm']:.4f} mm", ""]
+    out = ["Moving groups (docs/lens-format.md, 'Moving groups')"]
+    if conf["focal_length_range_mm"]:
+        lo, hi = conf["focal_length_range_mm"]
+        zl = ", ".join(f"{z:g}" for z in conf["zoom_focal_lengths_mm"] or [])
+        out.append(f"  zoom: {conf['positions']} listed positions ({zl} mm), focal length {lo:.4f}-{hi:.4f} mm at "
+                   "infinity focus")
+        out.append(f"  this configuration: focal length {conf['focal_length_mm']:.4f} mm (zoom parameter "
+                   f"{conf['zoom']:.4f})")
+    if conf["close_focus_mm"]:
+        out.append(f"  focusing groups: infinity to {conf['close_focus_mm'] / 1000:g} m (close gaps "
+                   f"{conf['close_gaps']})")
+    out.append(f"  focused on {_fmt(conf['focus_distance_mm'], 1)} from the sensor (focus parameter "
+               f"{conf['focus']:.4f}; 0 = the listed infinity gaps, 1 = the close ones)")
+    out.append("  variable gaps: " + ", ".join(f"after {i}: {d:.4f}" for i, d in conf["gaps_mm"].items()) + " mm")
+    out.append("")
+    return out
+
+
 # ------------------------------------------------------------------------------ commands
 def run_info(args) -> int:
-    lens = _load(args.path)
+    base = _load(args.path)
+    lens, conf = configured(base, args.focal_length, args.focus_distance)
     if args.json:
-        print(json.dumps(info_dict(lens, args.wavelength), indent=2, allow_nan=False))
+        d = info_dict(lens, args.wavelength)
+        d["fingerprint"] = base.fingerprint()
+        d["configuration"] = conf
+        print(json.dumps(d, indent=2, allow_nan=False))
     else:
-        print(_text_info(lens, args.wavelength))
+        text = _text_info(lens, args.wavelength).splitlines()
+        text[0] = f"{base.name}  (fingerprint {base.fingerprint()})"
+        k = next((i for i, line in enumerate(text) if line.startswith("Surfaces")), len(text))
+        print("\n".join(text[:k] + _configuration_text(base, conf) + text[k:]))
     return 0
 
 
 def run_plot(args) -> int:
     from ..optics.plot import plot_lens
-    lens = _load(args.path)
+    lens, _ = configured(_load(args.path), args.focal_length, args.focus_distance)
     out = args.output or f"{lens.name}-layout.png"
     path = plot_lens(lens, out, fields_deg=args.fields, wavelengths_nm=tuple(args.wavelengths),
                      rays_per_fan=args.rays, title=args.title, dpi=args.dpi)
@@ -314,7 +392,26 @@ def run_convert(args) -> int:
         opts["glasses"] = dict(glass_spec(g) for g in args.glass)
     if args.stop_radius is not None:
         opts["stop_radius"] = args.stop_radius
+    configure = args.focal_length is not None or args.focus_distance is not None
+    if configure:
+        from ..optics.formats import load_lens
+        if load_lens(args.input, **opts).moving is None:
+            raise SystemExit(f"mi-neurallens: error: {args.input} has no moving groups: --focal-length and "
+                             "--focus-distance configure a lens that zooms or focuses by moving groups")
     lens = convert_file(args.input, args.output, name=args.name, **opts)
+    if configure:
+        # one fixed configuration: what a lens without moving groups is (neural_lens can learn it)
+        from ..optics.formats import save_lens
+        fixed, conf = configured(lens, args.focal_length, args.focus_distance)
+        md = dict(fixed.metadata)
+        src = dict(md.get("source", {}))
+        src["conversion"] = list(src.get("conversion", [])) + [
+            f"one configuration of the moving groups: focal length {conf['focal_length_mm'] or fixed.efl():.6g} mm, "
+            f"focused on {'infinity' if conf['focus_distance_mm'] is None else format(conf['focus_distance_mm'], 'g') + ' mm'}"
+            f" (zoom parameter {conf['zoom']:.6g}, focus parameter {conf['focus']:.6g})"]
+        md["source"] = src
+        lens = fixed.replace(metadata=md, path=None)
+        save_lens(lens, args.output)
     p = lens.paraxial()
     print(f"wrote {args.output}: {lens.name}, {len(lens.surfaces)} surfaces, EFL {p.efl:.4f} mm, f/{p.fnumber:.3f} "
           f"(fingerprint {lens.fingerprint()})")

@@ -109,6 +109,9 @@ class Lens:
     surfaces: tuple[Surface, ...]
     name: str = "lens"
     object_medium: Medium = AIR
+    #: variable gaps for zoom and focusing (:class:`~mi_neurallens.optics.moving.MovingGroups`), or None: one
+    #: configuration, focused by moving the whole lens (unit focusing).  Part of the fingerprint.
+    moving: object = field(default=None, hash=False)
     #: provenance and free-form metadata (source file, patent, notes); not part of the fingerprint
     metadata: dict = field(default_factory=dict, compare=False, hash=False)
     #: file this lens was read from, used in error messages
@@ -162,6 +165,15 @@ class Lens:
     def replace(self, **kw) -> "Lens":
         return dataclasses.replace(self, **kw)
 
+    def unchecked(self, **kw) -> "Lens":
+        """A copy with ``kw`` replaced and **no validation**: for numeric searches that only need the paraxial
+        optics of many trial configurations (:mod:`.moving`); build the result with :meth:`replace`."""
+        out = object.__new__(Lens)
+        for f in dataclasses.fields(self):
+            object.__setattr__(out, f.name, kw.get(f.name, getattr(self, f.name)))
+        object.__setattr__(out, "surfaces", tuple(out.surfaces))
+        return out
+
     def with_surface(self, i: int, **kw) -> "Lens":
         s = list(self.surfaces)
         s[i] = dataclasses.replace(s[i], **kw)
@@ -197,6 +209,8 @@ class Lens:
                 for s in self.surfaces
             ],
         }
+        if self.moving is not None:         # only then: a lens without moving groups keeps its fingerprint
+            payload["moving"] = self.moving.key()
         blob = json.dumps(payload, sort_keys=True, separators=(",", ":")).encode()
         return hashlib.sha256(blob).hexdigest()[:16]
 
@@ -320,6 +334,8 @@ def validate(lens: Lens) -> None:
             if s.coating is not None:
                 raise LensError("the aperture stop cannot carry a coating", field="coating", **where)
     _check_sags(lens)
+    if lens.moving is not None:
+        _check_moving(lens)
 
 
 def surfaces_cross(a: Surface, za: float, b: Surface, zb: float):
@@ -343,3 +359,23 @@ def _check_sags(lens: Lens) -> None:
                             f"{hit[1]:.4g} mm in front of surface {i} (increase thickness {i} or reduce "
                             f"the semi-diameters)", file=lens.path, surface=i, label=a.label or None,
                             field="thickness")
+
+
+def _check_moving(lens: Lens) -> None:
+    """Moving groups name existing surfaces and hold the surfaces' own gaps at their first position and infinity
+    focus (the lens as written is that configuration).  The other configurations are checked when one is built
+    (:func:`~mi_neurallens.optics.moving.at`): a catalogue's computed close-focus gaps can make groups collide at
+    a position the lens is never asked for."""
+    from .moving import MovingGroups
+    mg, f = lens.moving, lens.path
+    if not isinstance(mg, MovingGroups):
+        raise LensError(f"moving groups must be a MovingGroups, got {type(mg).__name__}", file=f)
+    n = len(lens.surfaces)
+    for i, v in mg.gaps.items():
+        if not 0 <= i < n:
+            raise LensError(f"moving groups: variable gap after surface {i}, but the lens has surfaces 0-{n - 1}",
+                            file=f, field="moving")
+        if abs(v[0][0] - lens.surfaces[i].thickness) > 1e-9 * max(1.0, abs(v[0][0])):
+            raise LensError(f"moving groups: the gap after surface {i} is {lens.surfaces[i].thickness:g} mm, but its "
+                            f"first position at infinity focus lists {v[0][0]:g} mm (the lens as written must be that "
+                            "configuration)", file=f, surface=i, field="thickness")

@@ -82,6 +82,7 @@ class LensSensorBase(mi.Sensor):
         self._read_properties(rd)
         focus = rd.float("focus_distance", None, allow_inf=True)
         sdist = rd.float("sensor_distance", None)
+        focal = rd.float("focal_length", None, positive=True)
         fstop = rd.float("fstop", None)
         blades = rd.int("blades", None)
         rotation = rd.float("blade_rotation", None)
@@ -106,8 +107,9 @@ class LensSensorBase(mi.Sensor):
             raise SensorPropertyError(plugin, "fstop", f"must be > 0, got {fstop:g}")
         base = self._load_lens(rd)
         # the wavelength mode must be known before the base class reads the shutter
-        probe = configure_lens(base, fstop=fstop, sensor_distance_mm=base.surfaces[-1].thickness,
-                               blades=blades, blade_rotation_deg=rotation, fresnel=fresnel, plugin=plugin)
+        probe = configure_lens(base, fstop=fstop, blades=blades, blade_rotation_deg=rotation, fresnel=fresnel,
+                               plugin=plugin, focal_length_mm=focal,
+                               sensor_distance_mm=base.surfaces[-1].thickness if base.moving is None else None)
         lambda_mode = prepare_shutter(mi, props, self._lambda_dependent(probe))
         super().__init__(props)
         self.lambda_mode = lambda_mode
@@ -117,7 +119,7 @@ class LensSensorBase(mi.Sensor):
             return configure_lens(
                 lens, fstop=fstop, blades=blades, blade_rotation_deg=rotation, sensor_distance_mm=sensor_distance_mm,
                 focus_distance_mm=focus_mm, sensor_width_mm=width, film_size=(int(size[0]), int(size[1])),
-                scene_unit_mm=unit, fresnel=fresnel, plugin=plugin)
+                scene_unit_mm=unit, fresnel=fresnel, plugin=plugin, focal_length_mm=focal)
         self.setup = configure(base, None if focus is None else focus * unit, sdist)
         self.pupil = PupilBounds(self.setup, mode)
         self.lens_parameters = SensorParameters(mi, base, self.setup, configure, lens_params=self.LENS_PARAMETERS,
@@ -352,7 +354,9 @@ class LensSensorBase(mi.Sensor):
     def to_string(self):
         st = self.setup
         fd = st.focus_distance_mm / st.scene_unit_mm
-        return (f"{type(self).__name__}[{self._describe()}, f/{st.fnumber:.3g} "
+        zoom = (f"focal_length={st.focal_length_mm:.4g} mm (EFL {st.lens.efl():.4g} mm at this focus), "
+                if st.focal_length_mm is not None else "")
+        return (f"{type(self).__name__}[{self._describe()}, {zoom}f/{st.fnumber:.3g} "
                 f"(widest f/{st.max_fnumber:.3g}), focus_distance={fd:g} (sensor_distance="
                 f"{st.sensor_distance_mm:.4f} mm), sensor {st.sensor_width_mm:g}x{st.sensor_height_mm:.4g} mm, "
                 f"scene_unit_mm={st.scene_unit_mm:g}, fresnel={st.fresnel}, "

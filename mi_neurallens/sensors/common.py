@@ -21,6 +21,7 @@ Frames (the single place they are written down for the sensors)
 from __future__ import annotations
 
 from dataclasses import dataclass
+import dataclasses
 import math
 import os
 
@@ -218,6 +219,12 @@ class LensSetup:
 
     #: paraxial working f-number at the focus distance (= fnumber when focused at infinity)
     working_fnumber: float = math.nan
+    #: a lens with moving groups: its focal length (mm: the EFL at infinity focus, d line, of this zoom; the
+    #: configured lens's own EFL breathes with the focus) and the zoom and focus parameters
+    #: (:mod:`mi_neurallens.optics.moving`); None for a lens without
+    focal_length_mm: float | None = None
+    zoom: float | None = None
+    focus_parameter: float | None = None
 
     @property
     def na_image(self) -> float:
@@ -285,14 +292,28 @@ def focus_for_sensor_distance(lens, sensor_distance_mm: float) -> float:
 
 def configure_lens(base_lens, *, fstop=None, focus_distance_mm=None, sensor_distance_mm=None,
                    blades=None, blade_rotation_deg=None, sensor_width_mm=FULL_FRAME_MM[0], film_size=(1, 1),
-                   scene_unit_mm=1000.0, fresnel=True, plugin="realistic_lens") -> LensSetup:
+                   scene_unit_mm=1000.0, fresnel=True, plugin="realistic_lens", focal_length_mm=None) -> LensSetup:
     """Stop down (``fstop``), shape the iris (``blades`` straight blades, 0 = circular, rotated by
     ``blade_rotation_deg``; None keeps the lens file's) and focus (``focus_distance_mm`` from the
-    sensor plane XOR ``sensor_distance_mm`` behind the last vertex; default: infinity) a loaded lens."""
+    sensor plane XOR ``sensor_distance_mm`` behind the last vertex; default: infinity) a loaded lens.
+
+    A lens with moving groups (:mod:`mi_neurallens.optics.moving`) is first set to ``focal_length_mm`` (a zoom
+    lens's; None: its first listed position) and focused by its groups on ``focus_distance_mm`` (the sensor stays:
+    ``sensor_distance_mm`` is refused); the f-number, pupils and field follow that configuration."""
     if focus_distance_mm is not None and sensor_distance_mm is not None:
         raise SensorPropertyError(plugin, "focus_distance",
                                   "give either 'focus_distance' (scene units from the sensor plane) or "
                                   "'sensor_distance' (mm behind the last vertex), not both")
+    moving = getattr(base_lens, "moving", None)
+    if focal_length_mm is not None and (moving is None or not moving.is_zoom):
+        raise SensorPropertyError(plugin, "focal_length", f"lens '{base_lens.name}' is not a zoom lens (its focal "
+                                  f"length is {base_lens.efl(PARAXIAL_WAVELENGTH_NM):.4g} mm): leave focal_length out")
+    if moving is not None:
+        return _configure_moving(base_lens, fstop=fstop, focus_distance_mm=focus_distance_mm,
+                                 sensor_distance_mm=sensor_distance_mm, blades=blades,
+                                 blade_rotation_deg=blade_rotation_deg, sensor_width_mm=sensor_width_mm,
+                                 film_size=film_size, scene_unit_mm=scene_unit_mm, fresnel=fresnel, plugin=plugin,
+                                 focal_length_mm=focal_length_mm)
     px0 = base_lens.paraxial(PARAXIAL_WAVELENGTH_NM)
     n_max = float(px0.fnumber)
     lens = base_lens
@@ -342,6 +363,30 @@ def configure_lens(base_lens, *, fstop=None, focus_distance_mm=None, sensor_dist
                      working_fnumber=nw,
                      sensor_distance_mm=s, focus_distance_mm=focus, sensor_width_mm=w, sensor_height_mm=h,
                      scene_unit_mm=float(scene_unit_mm), fresnel=bool(fresnel))
+
+
+def _configure_moving(base_lens, *, focus_distance_mm, sensor_distance_mm, focal_length_mm, plugin, **kw) -> LensSetup:
+    """:func:`configure_lens` of a lens with moving groups: the configuration at the focal length and focus
+    distance (:func:`mi_neurallens.optics.moving.configure`), then stopped down like any lens, its sensor at the
+    configuration's image distance."""
+    from ..optics import moving as mv
+    if sensor_distance_mm is not None:
+        raise SensorPropertyError(plugin, "sensor_distance",
+                                  f"lens '{base_lens.name}' focuses by moving groups of its elements (its sensor "
+                                  "stays where it is): give focus_distance instead (docs/lens-format.md, "
+                                  "'Moving groups')")
+    focus = math.inf if focus_distance_mm is None else float(focus_distance_mm)
+    if not focus > 0:
+        raise SensorPropertyError(plugin, "focus_distance", f"must be > 0 (or inf), got {focus:g}")
+    try:
+        lens, zoom, fpar = mv.configure(base_lens, focal_length_mm, focus)
+    except LensError as e:
+        which = "focal_length" if ("focal length" in str(e) or "zoom lens" in str(e)) else "focus_distance"
+        raise SensorPropertyError(plugin, which, str(e)) from e
+    setup = configure_lens(lens, sensor_distance_mm=lens.surfaces[-1].thickness, plugin=plugin, **kw)
+    efl_inf = float(focal_length_mm) if focal_length_mm is not None else mv.focal_length(base_lens, zoom)
+    return dataclasses.replace(setup, base_lens=base_lens, focus_distance_mm=focus, focal_length_mm=efl_inf, zoom=zoom,
+                               focus_parameter=fpar)
 
 
 # ----------------------------------------------------------------------------- Dr.Jit helpers

@@ -75,7 +75,7 @@ Neural lens camera (:monosp:`neural_lens`)
      (Taylor polynomial optics), ``fitted`` (sparse polynomials fitted to traced rays; built when the
      scene loads, ~20–40 s).  See docs/baselines.md.  (Default: ``neural``)
 
- * - focus_distance, sensor_distance, fstop, blades, blade_rotation, sensor_width, scene_unit_mm,
+ * - focus_distance, sensor_distance, focal_length, fstop, blades, blade_rotation, sensor_width, scene_unit_mm,
      fresnel, pupil_sampling, ray_kernel, to_world, film, sampler, shutter_open, shutter_close
    - 
    - As for :ref:`realistic_lens <sensor-realistic_lens>`, so the two sensors are interchangeable in a
@@ -85,7 +85,8 @@ Neural lens camera (:monosp:`neural_lens`)
      when the model has a stop head: the map was learned wide open and also predicts where each ray
      crosses the stop plane, and that crossing is tested against the requested iris, exactly as the
      tracer tests it (a model without one is fixed at its trained aperture, with a clear error).
-     ``fresnel=false`` replaces the learned throughput by 1.
+     ``fresnel=false`` replaces the learned throughput by 1.  A lens with moving groups (zoom, internal
+     focusing) has no learned map yet: ``focal_length`` and such lenses are refused (use ``realistic_lens``).
 
 The evaluation order per camera ray: film point and pupil sample (as ``realistic_lens``), then the
 ray is moved to the model's input plane, reduced by the lens's rotational and mirror symmetry to
@@ -215,6 +216,10 @@ class NeuralLens(LensSensorBase):
         except ModelError as e:
             raise SensorPropertyError(PLUGIN, "model", str(e)) from e
         lens = load_lens(self.lens_prop or probe.lens_name, PLUGIN)
+        if lens.moving is not None:
+            raise SensorPropertyError(PLUGIN, "lens", f"lens '{lens.name}' zooms or focuses by moving groups of its "
+                                      "elements; no learned map of such a lens exists yet (zoom and focus as map "
+                                      "inputs): render it with realistic_lens")
         if lens.fingerprint() != probe.fingerprint:
             raise SensorPropertyError(
                 PLUGIN, "lens" if self.lens_prop else "model",

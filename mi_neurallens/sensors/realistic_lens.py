@@ -30,13 +30,22 @@ Realistic lens camera (:monosp:`realistic_lens`)
  * - focus_distance
    - |float|
    - Distance in scene units from the SENSOR PLANE (the camera origin, like the distance scale of a
-     real lens) to the plane in paraxial focus at 587.6 nm.  The whole lens moves (unit focusing).
-     ``inf`` focuses at infinity.  Exclusive with ``sensor_distance``.  (Default: infinity)
+     real lens) to the plane in paraxial focus at 587.6 nm.  The whole lens moves (unit focusing), or, for a
+     lens whose file gives moving groups (docs/lens-format.md, "Moving groups"), its focusing groups move as the
+     prescription says, the sensor stays, and the plane is the real rays' best focus (on axis, whole pupil).  ``inf`` focuses at infinity.  Exclusive with ``sensor_distance``.
+     (Default: infinity)
 
  * - sensor_distance
    - |float|
    - Manual focusing: distance in mm from the last lens vertex to the sensor plane.  Exclusive with
-     ``focus_distance``.  (Default: unset)
+     ``focus_distance``; refused for a lens with moving groups (it focuses by them).  (Default: unset)
+
+ * - focal_length
+   - |float|
+   - A zoom lens's focal length in mm (its EFL at infinity focus, 587.6 nm): the zoom groups move to it, the
+     focusing groups keep ``focus_distance`` on the sensor, and the f-number, pupils and field of view follow.
+     Within the range the prescription lists (a clear error outside it); refused for a lens that does not zoom.
+     (Default: the prescription's first listed position)
 
  * - fstop
    - |float|

@@ -46,15 +46,18 @@ def parse(key: str):
 
 
 def parameter_names(lens) -> list[str]:
-    """Every parameter of ``lens``, front to back (see the module docstring)."""
+    """Every parameter of ``lens``, front to back (see the module docstring); the gaps its moving groups set
+    (zoom, focusing: :mod:`mi_neurallens.optics.moving`) are not parameters."""
     out = []
     last = len(lens.surfaces) - 1
+    moving = getattr(lens, "moving", None)
+    variable = set(moving.gaps) if moving is not None else set()
     for i, s in enumerate(lens.surfaces):
         if not s.is_stop:
             out += [name(i, CURVATURE), name(i, CONIC)]
             if s.aspheric:
                 out.append(name(i, ASPHERE))
-        if i < last:
+        if i < last and i not in variable:
             out.append(name(i, THICKNESS))
     return out
 

@@ -107,6 +107,12 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
     ``auto``, which learns a ghost only where its record passes and the map is the faster.  Last, with
     ``cfg.verify_flare_refine_minutes`` and no base, a ghost whose records all miss the gate gets its regressor's
     finish again past its goals and the better map kept (:func:`_finish_missed`).  Returns the model."""
+    if getattr(lens, "moving", None) is not None:
+        from ..errors import NeuralLensError
+        raise NeuralLensError(
+            f"lens '{lens.name}' zooms or focuses by moving groups: a learned map with zoom and focus as inputs is "
+            "not built yet.  Train one fixed configuration of it: `mi-neurallens lens convert "
+            f"{lens.name} {lens.name}-50mm.json --focal-length 50 [--focus-distance MM]`, then train that file")
     keep, finish_only = run_mode(keep, finish_only)
     based = keep is not None or finish_only is not None
     base_model = _base_model(lens, keep, finish_only, base_path)

@@ -261,7 +261,16 @@ BUNDLED: dict[str, dict] = {
         path="src/lens-data/canon/CanonRF24mmF14LVCM.data.ts", commit="bf55b14f5ebdf8234ffb11cbace476fddb39b236",
         description="Canon RF 24mm F1.4 L VCM (JP 2025-15010 A, Numerical Example 3): a modern many-element "
                     "lens, 15 elements in 27 surfaces, two aspheres",
-        reference="JP 2025-15010 A, Numerical Example 3, Canon / K. Shinohara, Y. Matsuba"),
+        reference="JP 2025-15010 A, Numerical Example 3, Canon / K. Shinohara, Y. Matsuba",
+        # its internal focusing (four variable gaps) is left out while its bundled model is one of unit focusing
+        read=dict(moving=False)),
+    "canon-ef-24-70mm-f2.8l": dict(
+        file="other/CanonEF2470mmf28L.json", repository="ronbuening/LensVisualizer",
+        path="src/lens-data/canon/CanonEF2470mmf28L.data.ts", commit="bf55b14f5ebdf8234ffb11cbace476fddb39b236",
+        description="Canon EF 24-70mm f/2.8L USM (JP 2014-041222 A, Numerical Example 1): a zoom lens, 16 elements "
+                    "in 31 surfaces, two aspheres; zoom positions 24.9 / 35.13 / 68.14 mm and internal focusing to "
+                    "0.38 m (moving groups)",
+        reference="JP 2014-041222 A, Numerical Example 1, Canon / H. Endo"),
 }
 
 
@@ -279,7 +288,7 @@ def convert_bundled(source_dir: str | os.PathLike, out_dir: str | os.PathLike | 
         f = src / info["file"]
         if not f.is_file():
             raise LensError(f"missing source file for bundled lens '{name}'", file=str(f))
-        lens = load_lens(f, name=name)
+        lens = load_lens(f, name=name, **info.get("read", {}))
         md = dict(lens.metadata)
         fmt_src = dict(md.get("source", {}))
         conv = _conversion_notes(lens)
@@ -330,6 +339,15 @@ def _conversion_notes(lens: Lens) -> list[str]:
     if "lensvisualizer" in md:
         notes += list(md.get("notes", []))
         notes.append("label 'STO' -> aperture stop; asph K/A4…A16 by label; no coatings, no housings")
+        mg = lens.moving
+        if mg is not None:
+            notes.append(f"var -> moving groups: the gaps after surfaces {', '.join(map(str, mg.gaps))} at "
+                         f"{mg.positions} position(s)" + (f" (zoomPositions {', '.join(f'{z:g}' for z in mg.zoom_efl_mm)} mm)"
+                                                          if mg.zoom_efl_mm else "")
+                         + (f", close focus {mg.close_focus_mm / 1000:g} m (closeFocusM), close gaps {mg.close_gaps}"
+                            if mg.close_focus_mm else ""))
+        elif md["lensvisualizer"].get("var"):
+            notes.append("var (variable gaps) not read: the lens is the file's infinity-focus configuration")
     return notes
 
 

@@ -14,7 +14,12 @@ Mapping (see ``docs/lens-format.md``):
   ``indexReference: "e"`` means the numbers are e-line values (ne, νe with F′, C′): with line
   indices they go to ``lines_glass`` as ne; without, a model glass is fitted so that it reproduces
   ne at 546.074 nm and νe = (ne − 1)/(nF′ − nC′) exactly (see :func:`eline_model_glass`).
-* ``var`` (variable gaps) are applied only when asked: ``focus="close"`` and/or ``zoom=k``.
+* ``var`` (variable gaps): read as the lens's moving groups (:mod:`mi_neurallens.optics.moving`) — per labelled
+  gap ``[d_inf, d_close]`` (primes) or one such pair per ``zoomPositions`` entry (zooms); ``closeFocusM`` the close
+  focus (m from the sensor plane).  Whether the close-focus gaps are the patent's or the catalogue author's
+  computation is not recorded in the files: close gaps written with more decimals than every infinity gap of the
+  lens are taken as computed (``close_gaps: "modelled"``), the others as ``"published"``.  With ``focus="close"``
+  and/or ``zoom=k`` the reader returns instead that one configuration, without moving groups.
 """
 from __future__ import annotations
 
@@ -85,11 +90,13 @@ def _model(nd: float, vd: float, name: str | None) -> Medium:
 
 
 def read_lensvisualizer(doc: Any, *, file: str | None = None, name: str | None = None,
-                        focus: str = "infinity", zoom: int = 0) -> Lens:
+                        focus: str = "infinity", zoom: int = 0, moving: bool = True) -> Lens:
     """Build a :class:`Lens` from a parsed LensVisualizer document.
 
     ``focus``: ``"infinity"`` (default; the file's ``d`` values) or ``"close"`` (the second value of each
-    ``var`` entry).  ``zoom``: zoom position index for zoom lenses (``zoomPositions``), 0 = the file's.
+    ``var`` entry).  ``zoom``: zoom position index for zoom lenses (``zoomPositions``), 0 = the file's.  With
+    both defaults the lens carries the file's ``var`` as moving groups, unless ``moving`` is false; otherwise it is
+    that one configuration.
     """
     ctx = Ctx(file or "<LensVisualizer dict>")
     if not isinstance(doc, dict):
@@ -105,6 +112,7 @@ def read_lensvisualizer(doc: Any, *, file: str | None = None, name: str | None =
     if not isinstance(asph, dict):
         raise ctx.error(f"must be an object {{label: {{K, A4, …}}}}, got {type_name(asph)}", field="asph")
     var = _var(ctx, doc, focus, zoom)
+    configured = bool(var) or focus != "infinity" or zoom != 0
 
     labels = []
     for i, s in enumerate(rows):
@@ -177,6 +185,7 @@ def read_lensvisualizer(doc: Any, *, file: str | None = None, name: str | None =
     meta = {k: doc[k] for k in _META_KEYS if k in doc}
     meta["focus"] = focus
     meta["zoom_position"] = zoom
+    moving = None if (configured or not moving) else _moving(ctx, doc, labels)
     meta["media"] = {str(e): m.name for e, m in media.items()}
     notes = [f"surfaces with |R| ≥ {FLAT_R:g} are flat",
              "the last 'd' is kept as the image distance (as printed in the patent)",
@@ -195,7 +204,7 @@ def read_lensvisualizer(doc: Any, *, file: str | None = None, name: str | None =
     md = {"description": str(doc.get("name", "")), "source": source, "lensvisualizer": meta, "notes": notes}
     if name is None:
         name = str(doc.get("key") or (Path(file).stem if file else "lens"))
-    return Lens(tuple(surfaces), name=name, object_medium=AIR, metadata=md, path=ctx.file)
+    return Lens(tuple(surfaces), name=name, object_medium=AIR, moving=moving, metadata=md, path=ctx.file)
 
 
 def _elements(ctx: Ctx, els: Any) -> dict[int, dict]:
@@ -310,3 +319,35 @@ def _var(ctx: Ctx, doc: dict, focus: str, zoom: int) -> dict[str, float]:
             raise ctx.error("must be [d_inf, d_close]", field=f)
         out[lab] = number(ctx, v[fi], field=f, minimum=0)
     return out
+
+
+def _decimals(v: float) -> int:
+    """Decimal places of ``v`` as written (at most 15)."""
+    t = repr(float(v))
+    return 0 if "e" in t or "." not in t else len(t.split(".")[1].rstrip("0"))
+
+
+def _moving(ctx: Ctx, doc: dict, labels: list):
+    """The file's ``var`` as :class:`~mi_neurallens.optics.moving.MovingGroups` (None without variable gaps)."""
+    from ..moving import MovingGroups
+    var = doc.get("var", {}) or {}
+    if not var:
+        return None
+    zooms = doc.get("zoomPositions")
+    pairs = {}
+    for lab, v in var.items():
+        rows = v if isinstance(zooms, list) else [v]
+        pairs[labels.index(lab)] = [(number(ctx, a, field=f"var.{lab}", minimum=0),
+                                     number(ctx, b, field=f"var.{lab}", minimum=0)) for a, b in rows]
+    inf_digits = max(_decimals(a) for v in pairs.values() for a, _ in v)
+    focuses = any(a != b for v in pairs.values() for a, b in v)
+    modelled = any(_decimals(b) > inf_digits for v in pairs.values() for _, b in v)
+    close = doc.get("closeFocusM")
+    try:
+        return MovingGroups(pairs, zoom_efl_mm=[float(z) for z in zooms] if isinstance(zooms, list) else None,
+                            close_focus_mm=float(close) * 1000.0 if is_number(close) and focuses else None,
+                            close_gaps=("modelled" if modelled else "published") if focuses else None,
+                            focus_label="LensVisualizer var" + (" (close gaps written with more digits than the "
+                                                                "infinity gaps: computed)" if modelled else ""))
+    except LensError as e:
+        raise ctx.error(str(e), field="var") from e

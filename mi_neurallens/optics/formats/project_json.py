@@ -6,6 +6,8 @@ Layout (see ``docs/lens-format.md`` and the JSON Schema ``mi_neurallens/data/len
      "units": "mm", "object_medium": <medium spec>,
      "surfaces": [{"label", "radius", "thickness", "medium", "semi_diameter", "conic", "aspheric",
                    "housing_radius", "stop", "blades", "blade_rotation_deg", "coating"}, ...],
+     "moving": {"gaps": {"<surface index>": [[d_inf, d_close] per position]}, "zoom_focal_lengths_mm",
+                "close_focus_mm", "close_gaps", "note"},            (optional: zoom and focusing groups)
      "source": {provenance}, "metadata": {free-form}}
 
 Unknown keys anywhere (except inside the free-form ``metadata`` and a medium's ``source``) are
@@ -24,6 +26,7 @@ from pathlib import Path
 import tempfile
 from typing import Any
 
+from ...errors import LensError
 from ..glass import AIR, Medium
 from ..coatings import COATING_MATERIALS, PRESETS, CoatingStack, Layer, preset
 from ..prescription import MAX_ASPHERIC, Coating, Lens, Surface
@@ -33,7 +36,10 @@ FORMAT_ID = "mi-neurallens-lens"
 VERSION = 1
 
 TOP_KEYS = ("format", "version", "name", "description", "units", "object_medium", "surfaces",
-            "source", "metadata")
+            "moving", "source", "metadata")
+#: the moving groups' keys (:mod:`mi_neurallens.optics.moving`)
+MOVING_KEYS = ("gaps", "zoom_focal_lengths_mm", "close_focus_mm", "close_gaps", "note")
+CLOSE_GAPS = ("published", "modelled")
 TOP_REQUIRED = ("format", "version", "name", "surfaces")
 SURFACE_KEYS = ("label", "radius", "thickness", "medium", "semi_diameter", "conic", "aspheric",
                 "housing_radius", "stop", "blades", "blade_rotation_deg", "coating")
@@ -115,7 +121,45 @@ def lens_from_dict(doc: Any, *, path: str | None = None) -> Lens:
                         "surface may have \"stop\": true", surface=stops[1],
                         label=surfaces[stops[1]].label, field="stop")
     metadata = {"description": desc, "source": source, **meta}
-    return Lens(tuple(surfaces), name=name, object_medium=obj, metadata=metadata, path=path)
+    moving = _read_moving(ctx, doc["moving"], len(surfaces)) if "moving" in doc else None
+    return Lens(tuple(surfaces), name=name, object_medium=obj, moving=moving, metadata=metadata, path=path)
+
+
+def _read_moving(ctx: Ctx, m: Any, n_surfaces: int):
+    """The ``moving`` object: variable gaps by surface index, each a list of ``[d_infinity, d_close]`` per position."""
+    from ..moving import MovingGroups
+    if not isinstance(m, dict):
+        raise ctx.error(f"must be an object, got {type_name(m)}", field="moving")
+    check_keys(ctx, m, MOVING_KEYS, required=("gaps",), prefix="moving.")
+    gaps = m["gaps"]
+    if not isinstance(gaps, dict) or not gaps:
+        raise ctx.error("must be an object {\"<surface index>\": [[d_inf, d_close], ...]} with at least one gap",
+                        field="moving.gaps")
+    out = {}
+    for k, v in gaps.items():
+        f = f"moving.gaps.{k}"
+        if not (isinstance(k, str) and k.isdigit() and int(k) < n_surfaces):
+            raise ctx.error(f"keys are surface indices 0-{n_surfaces - 1}, got {k!r}", field=f)
+        if not (isinstance(v, list) and v and all(isinstance(p, list) and len(p) == 2 for p in v)):
+            raise ctx.error("must be a list of [d_inf, d_close] pairs, one per position", field=f)
+        out[int(k)] = [(number(ctx, a, field=f, exclusive_minimum=0), number(ctx, b, field=f, exclusive_minimum=0))
+                       for a, b in v]
+    zooms = m.get("zoom_focal_lengths_mm")
+    if zooms is not None and not (isinstance(zooms, list) and all(is_number(z) and z > 0 for z in zooms)):
+        raise ctx.error("must be a list of focal lengths in mm, one per position", field="moving.zoom_focal_lengths_mm")
+    close = m.get("close_focus_mm")
+    if close is not None:
+        close = number(ctx, close, field="moving.close_focus_mm", exclusive_minimum=0)
+    cg = m.get("close_gaps", "published")
+    if cg not in CLOSE_GAPS and cg is not None:
+        raise ctx.error(f"must be one of {list(CLOSE_GAPS)}, got {cg!r}", field="moving.close_gaps")
+    note = m.get("note", "")
+    if not isinstance(note, str):
+        raise ctx.error(f"must be a string, got {type_name(note)}", field="moving.note")
+    try:
+        return MovingGroups(out, zoom_efl_mm=zooms, close_focus_mm=close, close_gaps=cg, focus_label=note)
+    except LensError as e:
+        raise ctx.error(str(e), field="moving") from e
 
 
 def _read_source(ctx: Ctx, src: Any) -> dict:
@@ -285,8 +329,10 @@ def lens_to_dict(lens: Lens) -> dict:
         d["medium"] = _medium_dict(s.medium)
         surfaces.append(d)
     out = {"format": FORMAT_ID, "version": VERSION, "name": lens.name, "description": str(desc),
-           "units": "mm", "object_medium": _medium_dict(lens.object_medium), "surfaces": surfaces,
-           "source": dict(source), "metadata": md}
+           "units": "mm", "object_medium": _medium_dict(lens.object_medium), "surfaces": surfaces}
+    if lens.moving is not None:
+        out["moving"] = lens.moving.to_dict()
+    out["source"], out["metadata"] = dict(source), md
     return out
 
 

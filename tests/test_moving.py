@@ -1,0 +1,216 @@
+"""Moving groups (zoom and the lens's own focusing, mi_neurallens/optics/moving.py) on the bundled Canon EF 24-70 mm
+f/2.8L: the listed positions reproduced, the interpolation, focal lengths and focus distances solved (paraxially
+and by real rays), the sensors' ``focal_length``, the breathing of an internally focused lens, the file format."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from mi_neurallens.errors import LensError
+from mi_neurallens.optics import moving as mv
+from mi_neurallens.optics.prescription import Lens
+
+ZOOM = "canon-ef-24-70mm-f2.8l"
+#: the file's (JP 2014-041222 A, Ex. 1) listed positions and gaps (the label's surface index: its gap after it)
+LISTED_EFL = (24.9, 35.13, 68.14)
+LISTED = {5: [(55.36, 55.36), (31.61, 31.61), (3.78, 3.78)],
+          24: [(1.19, 2.3838035791), (3.58, 5.6647305554), (10.91, 18.3469018668)]}
+
+
+@pytest.fixture(scope="module")
+def zoom():
+    return Lens.load(ZOOM)
+
+
+def test_pchip_is_scipys():
+    """The monotone cubic through the positions is scipy's PchipInterpolator (an implementation we did not write)."""
+    from scipy.interpolate import PchipInterpolator
+    rng = np.random.default_rng(3)
+    for n in (2, 3, 5):
+        x = np.cumsum(rng.uniform(0.5, 2.0, n))
+        y = rng.uniform(-5, 5, n)
+        xq = np.linspace(x[0], x[-1], 57)
+        np.testing.assert_allclose(mv.pchip(x, y, xq), PchipInterpolator(x, y)(xq), rtol=0, atol=1e-12)
+
+
+def test_listed_positions_are_reproduced_exactly(zoom):
+    mg = zoom.moving
+    assert mg.positions == 3 and mg.zoom_efl_mm == LISTED_EFL and mg.close_focus_mm == 380.0
+    assert mg.close_gaps == "modelled"                      # the catalogue's 10-digit close gaps
+    for i, rows in LISTED.items():
+        for k, (d_inf, d_close) in enumerate(rows):
+            assert mg.gaps_at(k, 0.0)[i] == d_inf and mg.gaps_at(k, 1.0)[i] == pytest.approx(d_close, abs=1e-12)
+    # a gap listed equal at two positions (none here) stays put; a monotone one stays between its neighbours
+    g = [mg.gaps_at(t, 0.0)[5] for t in np.linspace(0, 2, 41)]
+    assert all(a >= b for a, b in zip(g, g[1:]))
+
+
+def test_focal_lengths_at_the_listed_positions_and_between(zoom):
+    """EFL at infinity focus within 0.1 % of the listed focal lengths; monotone in the zoom parameter; a requested
+    focal length is met; outside the range a clear error naming it."""
+    for k, f in enumerate(LISTED_EFL):
+        assert abs(mv.focal_length(zoom, float(k)) / f - 1) < 1e-3
+    efl = [mv.focal_length(zoom, t) for t in np.linspace(0, 2, 21)]
+    assert all(b > a for a, b in zip(efl, efl[1:]))
+    for f in (28.0, 50.0, 60.0):
+        t = mv.zoom_parameter(zoom, f)
+        assert mv.focal_length(zoom, t) == pytest.approx(f, rel=1e-7)
+    with pytest.raises(LensError, match="24.9-68.14 mm"):
+        mv.zoom_parameter(zoom, 80.0)
+
+
+@pytest.mark.parametrize("focal", [24.9, 50.0, 68.14])
+def test_the_solved_focus_images_the_object_on_the_sensor(zoom, focal):
+    """The close-focus distance (0.38 m) and 1.5 m: paraxially on the sensor to 1e-6 mm (focus parameter solved
+    paraxially), and the default (real-ray) solution puts the real rays' best focus within 0.03 mm of the sensor,
+    checked by a brute-force search of the smallest RMS spot over random pupil samples (not the solver's closed
+    form).  At the listed close focus the paraxial solution is the listed close gaps (f = 1)."""
+    t = mv.zoom_parameter(zoom, focal)
+    for D in (380.0, 1500.0):
+        f = mv.focus_parameter(zoom, t, D)
+        assert abs(mv.focus_error(zoom, t, f, D)) < 1e-6
+        lens, _, _ = mv.configure(zoom, focal, D)
+        assert abs(_brute_best_focus(lens, D)) <= 0.03
+    if focal in LISTED_EFL:
+        assert mv.focus_parameter(zoom, t, 380.0) == pytest.approx(1.0, abs=0.01)
+
+
+def _brute_best_focus(lens, D, n=3000):
+    rng = np.random.default_rng(1)
+    px = lens.paraxial(587.5618)
+    r = px.entrance_pupil_radius * np.sqrt(rng.random(n))
+    a = 2 * np.pi * rng.random(n)
+    tgt = np.stack([r * np.cos(a), r * np.sin(a), np.full(n, px.entrance_pupil_z)], 1)
+    o = np.tile([0.0, 0.0, lens.image_z - D], (n, 1))
+    d = tgt - o
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    res = lens.trace(o, d, 587.5618, precision="float64")
+    P, V = res.position[res.valid], res.direction[res.valid]
+    zs = np.linspace(-0.3, 0.3, 601)
+    rms = [np.mean((P[:, 0] + z * V[:, 0] / V[:, 2]) ** 2 + (P[:, 1] + z * V[:, 1] / V[:, 2]) ** 2) for z in zs]
+    return zs[int(np.argmin(rms))]
+
+
+def test_closer_than_close_focus_is_refused(zoom):
+    with pytest.raises(LensError, match="no nearer than 0.38 m"):
+        mv.configure(zoom, 50.0, 300.0)
+
+
+def test_breathing_of_the_internal_focus(zoom):
+    """Focusing the 24-70 at 68 mm from infinity to 0.38 m moves its focusing group (EFL 68.1 → 58.4 mm), and its
+    field of view changes as the configured prescription's paraxial optics say: realistic_lens's camera rays
+    through a film point 9.6 mm off axis leave at the slope of the paraxial chief ray (object-side slope per mm
+    of image height: 0.01468 at infinity, 0.01357 at 0.38 m: the view narrows by 7.6 %), within 1 %."""
+    import mitsuba as mi
+    import drjit as dr
+    from mi_neurallens.render_utils import default_variant
+    mi.set_variant(default_variant())
+    import mi_neurallens as nl
+    nl.register()
+    h = 0.4 * 24.0                                   # film x = 0.9 of a 24 mm wide sensor: 9.6 mm off axis
+    measured, predicted = {}, {}
+    for D in (math.inf, 0.38):
+        s = mi.load_dict({"type": "realistic_lens", "lens": ZOOM, "focal_length": 68.14, "focus_distance": D,
+                          "film": {"type": "hdrfilm", "width": 64, "height": 64}, "sensor_width": 24.0})
+        n = 20000
+        rng = np.random.default_rng(0)
+        u3 = mi.Point2f(rng.random(n).astype(np.float32), rng.random(n).astype(np.float32))
+        ray, w = s.sample_ray(0.0, mi.Float(0.5), mi.Point2f(0.9, 0.5), u3)
+        ok = dr.detach(w[0]).numpy() > 0
+        d = np.stack([c.numpy() for c in (ray.d.x, ray.d.z)], 1)[ok]
+        measured[D] = abs(np.mean(d[:, 0] / d[:, 1])) / h          # the bundle's mean slope per mm of image height
+        L = s.setup.lens
+        px = L.paraxial(587.5618)
+        if math.isinf(D):
+            predicted[D] = 1.0 / px.image_height_per_tan()
+        else:
+            dmm = D * 1000.0
+            m = px.magnification(dmm - L.total_track - L.surfaces[-1].thickness)
+            predicted[D] = (1.0 / abs(m)) / (px.entrance_pupil_z - (L.image_z - dmm))
+    assert predicted[0.38] < 0.95 * predicted[math.inf]                       # it narrows, by 7.6 %
+    assert measured[0.38] / measured[math.inf] == pytest.approx(predicted[0.38] / predicted[math.inf], rel=0.01)
+    for D in measured:
+        assert measured[D] == pytest.approx(predicted[D], rel=0.02)
+
+
+def test_sensors_take_the_focal_length(zoom):
+    import mitsuba as mi
+    from mi_neurallens.render_utils import default_variant
+    mi.set_variant(default_variant())
+    import mi_neurallens as nl
+    nl.register()
+    film = {"type": "hdrfilm", "width": 48, "height": 32}
+    s = mi.load_dict({"type": "realistic_lens", "lens": ZOOM, "focal_length": 50.0, "focus_distance": 2.0,
+                      "film": film})
+    assert s.setup.focal_length_mm == pytest.approx(50.0) and s.setup.sensor_distance_mm == 38.47
+    wide = mi.load_dict({"type": "realistic_lens", "lens": ZOOM, "film": film})
+    assert wide.setup.focal_length_mm == pytest.approx(24.898, abs=1e-3)
+    assert wide.setup.max_fnumber < s.setup.max_fnumber                      # the f-number changes with zoom
+    for kw, match in (({"focal_length": 90.0}, "24.9-68.14 mm"), ({"sensor_distance": 40.0}, "moving groups"),
+                      ({"focus_distance": 0.2}, "no nearer")):
+        with pytest.raises(Exception, match=match):
+            mi.load_dict({"type": "realistic_lens", "lens": ZOOM, "film": film, **kw})
+    with pytest.raises(Exception, match="not a zoom lens"):
+        mi.load_dict({"type": "realistic_lens", "lens": "wide-22mm", "focal_length": 22.0, "film": film})
+    with pytest.raises(Exception, match="moving groups"):
+        mi.load_dict({"type": "neural_lens", "lens": ZOOM, "model": "wide-22mm", "film": film})
+    # a render between two listed positions: finite, lit, in focus enough to differ from the wide end
+    sc = mi.load_dict({"type": "scene", "sensor": {"type": "realistic_lens", "lens": ZOOM, "focal_length": 45.0,
+                                                   "focus_distance": 1.0, "film": film,
+                                                   "sampler": {"type": "independent", "sample_count": 4}},
+                       "light": {"type": "constant"}, "integrator": {"type": "path"}})
+    img = np.array(mi.render(sc))
+    assert np.isfinite(img).all() and 0.05 < img.mean() < 2.0
+
+
+def test_moving_groups_are_in_the_fingerprint_and_the_file(zoom, tmp_path):
+    """A model trained for one set of moving groups cannot be used with another: the fingerprint covers them (and
+    a lens without keeps its fingerprint); the project JSON writes and reads them, schema-valid."""
+    fixed = mv.at(zoom, 0.0, 0.0)
+    assert fixed.moving is None and fixed.fingerprint() != zoom.fingerprint()
+    other = zoom.replace(moving=mv.MovingGroups({**zoom.moving.gaps, 12: ((2.9, 2.9), (6.6, 6.6), (20.41, 20.41))},
+                                                zoom.moving.zoom_efl_mm, zoom.moving.close_focus_mm))
+    assert other.fingerprint() != zoom.fingerprint()
+    p = tmp_path / "z.json"
+    zoom.save(p)
+    back = Lens.load(p)
+    assert back == zoom and back.fingerprint() == zoom.fingerprint()
+    import jsonschema
+    from importlib import resources as ir
+    schema = json.loads((ir.files("mi_neurallens") / "data" / "lens.schema.json").read_text())
+    jsonschema.validate(json.loads(p.read_text()), schema)
+    doc = json.loads(p.read_text())
+    doc["moving"]["gaps"]["5"][0][0] = 50.0                  # no longer the lens as written
+    with pytest.raises(LensError, match="first position"):
+        from mi_neurallens.optics.formats.project_json import lens_from_dict
+        lens_from_dict(doc)
+
+
+def test_lens_info_prints_the_configuration(capsys):
+    from mi_neurallens.cli import main
+    assert main(["lens", "info", ZOOM, "--focal-length", "50", "--focus-distance", "1000", "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["configuration"]["focal_length_mm"] == pytest.approx(50.0)
+    assert d["efl"] < 50.0                                   # breathing: shorter at 1 m than at infinity
+    assert d["fingerprint"] == Lens.load(ZOOM).fingerprint()
+    assert main(["lens", "info", ZOOM, "--focal-length", "35"]) == 0
+    assert "Moving groups" in capsys.readouterr().out
+    assert main(["lens", "info", ZOOM, "--focal-length", "10"]) != 0
+
+
+def test_convert_writes_one_configuration(tmp_path, capsys):
+    """``lens convert --focal-length`` writes one fixed configuration (no moving groups: a lens neural_lens can
+    learn), and refuses a lens without moving groups before writing anything."""
+    from mi_neurallens.cli import main
+    out = tmp_path / "z50.json"
+    assert main(["lens", "convert", ZOOM, str(out), "--focal-length", "50", "--focus-distance", "2000"]) == 0
+    fixed = Lens.load(out)
+    assert fixed.moving is None and "one configuration" in fixed.metadata["source"]["conversion"][-1]
+    assert abs(mv.focal_length(Lens.load(ZOOM), mv.zoom_parameter(Lens.load(ZOOM), 50.0)) - 50.0) < 1e-6
+    assert fixed.efl() < 50.0                               # focused at 2 m: a little shorter (breathing)
+    with pytest.raises(SystemExit):
+        main(["lens", "convert", "wide-22mm", str(tmp_path / "w.json"), "--focal-length", "22"])
+    assert not (tmp_path / "w.json").exists()
