@@ -748,6 +748,7 @@ def test_codev_private_glass(tmp_path):
     (("S -200.0 &\n   90.0", "S -200.0 9x0"), "S", 3),
     (("  ASP; K -1.5", "  ASP; K -1.5; CIR S2 3.0"), "CIR", 3),
     (("SI 0.0 0.5", "SI -100.0 0.5"), "SI", 4),
+    (("EPD 10.0; DIM M", "EPD 10.0; DIM M; ZOO 3"), "ZOO", None),      # zoom positions: not read (clearly)
 ])
 def test_codev_refusals(tmp_path, change, keyword, surface):
     text = SEQ.replace(*change)
@@ -825,3 +826,57 @@ if __name__ == "__main__":  # `PYTHONPATH=. python3 tests/test_zemax.py`: the ta
         b = lens.bfl(pw) + shift
         print(f"| {Path(rel).name} | {pw:g} | {lens.efl(pw):.6f} | {abs(lens.efl(pw) / efl - 1):.0e} | {b:.6f} | "
               f"{abs(b / bfl - 1):.0e} | {n} | {dp:.0e} | {dd:.0e} |")
+
+
+# ----------------------------------------------------------------------------------------- configurations
+#: a two-group lens whose gap after surface 2 and image distance change between configurations (Zemax's
+#: multi-configuration lines as OpticStudio writes them: operand, surface, configuration, value, …)
+ZOOM_SURFS = [
+    ["TYPE STANDARD", "CURV 0.02", "DISZ 4", "GLAS N-BK7 0 0 1.5168 64.17 0 0 0 0 0 0", "DIAM 12 1 0 0 1 \"\""],
+    ["TYPE STANDARD", "CURV 0.0", "DISZ 20", "DIAM 12 1 0 0 1 \"\""],
+    ["STOP", "TYPE STANDARD", "CURV 0.0", "DISZ 5", "DIAM 6 1 0 0 1 \"\""],
+    ["TYPE STANDARD", "CURV 0.03", "DISZ 4", "GLAS N-BK7 0 0 1.5168 64.17 0 0 0 0 0 0", "DIAM 10 1 0 0 1 \"\""],
+    ["TYPE STANDARD", "CURV -0.01", "DISZ 40", "DIAM 10 1 0 0 1 \"\""],
+]
+
+
+def _mce(rows):
+    return "".join(f"{op} {a} {c} {v} 0 0 0 1 1 1 0 0 \"\" 0\r\n" for op, a, c, v in rows)
+
+
+def test_zemax_configurations_are_zoom_positions(tmp_path):
+    """MNUM 3 with THIC rows: three zoom positions (ordered by focal length), the gaps that change are the moving
+    groups, each configuration's lens is the one the file describes in that configuration; with ENPD the stop's
+    radius follows each position's entrance pupil."""
+    from mi_neurallens.optics import moving as mv
+    head = "UNIT MM X W X CM MR CPMM\nENPD 8\nWAVM 1 0.5875618 1\nPWAV 1\nMNUM 3 1\n"
+    rows = [("THIC", 2, 1, 20), ("THIC", 2, 2, 12), ("THIC", 2, 3, 5), ("THIC", 5, 1, 40), ("THIC", 5, 2, 45),
+            ("THIC", 5, 3, 52)]
+    lens = nl.Lens.load(write(tmp_path, zmx(ZOOM_SURFS, header=head) + _mce(rows)))
+    mg = lens.moving
+    assert mg.positions == 3 and set(mg.gaps) == {1, 4}
+    assert [g[0] for g in mg.gaps[1]] == [5.0, 12.0, 20.0] and [g[0] for g in mg.gaps[4]] == [52.0, 45.0, 40.0]
+    assert list(mg.zoom_efl_mm) == sorted(mg.zoom_efl_mm)
+    for k, c in enumerate((3, 2, 1)):           # configuration c as a lens of its own: the same EFL and pupil
+        single = nl.Lens.load(write(tmp_path, zmx([
+            [ln.replace("DISZ 20", f"DISZ {dict(rows[i][2:] for i in range(3))[c]}") for ln in s] if j == 1 else
+            ([ln.replace("DISZ 40", f"DISZ {dict(r[2:] for r in rows[3:])[c]}") for ln in s] if j == 4 else s)
+            for j, s in enumerate(ZOOM_SURFS)], header=head.replace("MNUM 3 1\n", "")), f"c{c}.zmx"))
+        conf = mv.at(lens, float(k), 0.0)
+        assert conf.efl() == pytest.approx(single.efl(), rel=1e-12)
+        assert conf.stop.semi_diameter == pytest.approx(single.stop.semi_diameter, rel=1e-9)
+
+
+def test_zemax_configurations_with_a_close_focus(tmp_path):
+    """A configuration with the object at a finite distance (THIC 0) is the close focus of the one at infinity; the
+    close-focus distance is measured from the sensor.  An operand that changes a curvature is refused."""
+    head = "UNIT MM X W X CM MR CPMM\nENPD 8\nWAVM 1 0.5875618 1\nPWAV 1\nMNUM 2 1\n"
+    rows = [("THIC", 0, 1, "INFINITY"), ("THIC", 0, 2, 500), ("THIC", 5, 1, 40), ("THIC", 5, 2, 44)]
+    lens = nl.Lens.load(write(tmp_path, zmx(ZOOM_SURFS, header=head) + _mce(rows)))
+    mg = lens.moving
+    assert mg.positions == 1 and mg.gaps == {4: ((40.0, 44.0),)} and mg.close_gaps == "published"
+    assert mg.close_focus_mm == pytest.approx(500 + 4 + 20 + 5 + 4 + 44)
+    bad = _mce(rows + [("CRVT", 4, 2, 0.031)])
+    with pytest.raises(LensError) as ei:
+        nl.Lens.load(write(tmp_path, zmx(ZOOM_SURFS, header=head) + bad, "bad.zmx"))
+    assert "CRVT" in str(ei.value) and "only gaps" in str(ei.value)

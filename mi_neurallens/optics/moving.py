@@ -86,19 +86,27 @@ class MovingGroups:
     close-focus gaps are for (mm from the sensor plane), or None.  ``close_gaps``: where the close-focus gaps
     come from: ``"published"`` (the prescription's), ``"modelled"`` (solved here, e.g. paraxially for the
     close distance), or None without close focus data (``d_close = d_infinity``: zoom only).
-    ``focus_label``: a note on how the lens focuses (free text, not part of the fingerprint)."""
+    ``focus_label``: a note on how the lens focuses (free text, not part of the fingerprint).
+    ``stop_semi_diameters``: the stop's radius (mm) at each position, where the prescription gives one per
+    position (a Zemax file's per-configuration aperture), interpolated like the gaps; None: the stop stays."""
 
     gaps: dict
     zoom_efl_mm: tuple | None = None
     close_focus_mm: float | None = None
     close_gaps: str | None = "published"
     focus_label: str = field(default="", compare=False)
+    stop_semi_diameters: tuple | None = None
 
     def __post_init__(self):
         gaps = {int(k): tuple((float(a), float(b)) for a, b in v) for k, v in dict(self.gaps).items()}
         object.__setattr__(self, "gaps", dict(sorted(gaps.items())))
         if self.zoom_efl_mm is not None:
             object.__setattr__(self, "zoom_efl_mm", tuple(float(v) for v in self.zoom_efl_mm))
+        if self.stop_semi_diameters is not None:
+            object.__setattr__(self, "stop_semi_diameters", tuple(float(v) for v in self.stop_semi_diameters))
+            if len(self.stop_semi_diameters) != len(next(iter(gaps.values()), ())) or \
+                    any(not v > 0 for v in self.stop_semi_diameters):
+                raise LensError(f"moving groups: one stop semi-diameter > 0 per position, got {self.stop_semi_diameters}")
         n = {len(v) for v in gaps.values()}
         if not gaps:
             raise LensError("moving groups: no variable gap")
@@ -144,12 +152,21 @@ class MovingGroups:
             out[i] = d_inf + focus * (d_close - d_inf)
         return out
 
+    def stop_at(self, zoom: float) -> float | None:
+        """The stop's semi-diameter (mm) at zoom parameter ``zoom``, or None where the stop does not change."""
+        if self.stop_semi_diameters is None:
+            return None
+        return float(pchip(np.arange(self.positions, dtype=np.float64), self.stop_semi_diameters, zoom))
+
     # ------------------------------------------------------------------ identity and file form
     def key(self) -> list:
         """What the lens fingerprint covers: the gaps, the zoom focal lengths, the close-focus distance."""
         r = lambda v: None if v is None else float(f"{float(v):.12g}")
-        return [[[i, [[r(a), r(b)] for a, b in v]] for i, v in self.gaps.items()],
-                None if self.zoom_efl_mm is None else [r(v) for v in self.zoom_efl_mm], r(self.close_focus_mm)]
+        key = [[[i, [[r(a), r(b)] for a, b in v]] for i, v in self.gaps.items()],
+               None if self.zoom_efl_mm is None else [r(v) for v in self.zoom_efl_mm], r(self.close_focus_mm)]
+        if self.stop_semi_diameters is not None:
+            key.append([r(v) for v in self.stop_semi_diameters])
+        return key
 
     def to_dict(self) -> dict:
         d = {"gaps": {str(i): [[a, b] for a, b in v] for i, v in self.gaps.items()}}
@@ -159,6 +176,8 @@ class MovingGroups:
             d["close_focus_mm"] = self.close_focus_mm
         if self.close_gaps is not None:
             d["close_gaps"] = self.close_gaps
+        if self.stop_semi_diameters is not None:
+            d["stop_semi_diameters_mm"] = list(self.stop_semi_diameters)
         if self.focus_label:
             d["note"] = self.focus_label
         return d
@@ -167,7 +186,7 @@ class MovingGroups:
     def from_dict(cls, d: dict) -> "MovingGroups":
         return cls(gaps={int(k): v for k, v in d["gaps"].items()}, zoom_efl_mm=d.get("zoom_focal_lengths_mm"),
                    close_focus_mm=d.get("close_focus_mm"), close_gaps=d.get("close_gaps", "published"),
-                   focus_label=d.get("note", ""))
+                   focus_label=d.get("note", ""), stop_semi_diameters=d.get("stop_semi_diameters_mm"))
 
 
 # ---------------------------------------------------------------------------------------------- configurations
@@ -184,6 +203,10 @@ def at(lens, zoom: float = 0.0, focus: float = 0.0, *, check: bool = True):
             raise LensError(f"lens '{lens.name}' at zoom {zoom:.4g}, focus {focus:.4g}: the gap after surface {i} "
                             f"closes ({d:.4g} mm)", file=lens.path)
         surfaces[i] = dataclasses.replace(surfaces[i], thickness=float(d))
+    r = mg.stop_at(zoom)
+    if r is not None:
+        k = lens.stop_index
+        surfaces[k] = dataclasses.replace(surfaces[k], semi_diameter=r)
     meta = dict(lens.metadata)
     meta["configuration"] = {"zoom": float(zoom), "focus": float(focus)}
     if not check:

@@ -379,3 +379,7 @@ def _check_moving(lens: Lens) -> None:
             raise LensError(f"moving groups: the gap after surface {i} is {lens.surfaces[i].thickness:g} mm, but its "
                             f"first position at infinity focus lists {v[0][0]:g} mm (the lens as written must be that "
                             "configuration)", file=f, surface=i, field="thickness")
+    if mg.stop_semi_diameters is not None and abs(mg.stop_semi_diameters[0] - lens.stop.semi_diameter) > 1e-9 * max(
+            1.0, lens.stop.semi_diameter):
+        raise LensError(f"moving groups: the stop's semi-diameter is {lens.stop.semi_diameter:g} mm, but its first "
+                        f"position lists {mg.stop_semi_diameters[0]:g} mm", file=f, field="moving")

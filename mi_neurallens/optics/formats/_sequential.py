@@ -304,3 +304,71 @@ def substitute_glass(ctx: Ctx, name: str, subst: dict, used: set, table: dict, *
         raise ctx.error(f"glasses={{{name!r}: …}}: {e.what}", surface=surface, field=field) from None
     table.setdefault(name, {"from": "glasses= option", "medium": m.name})
     return m
+
+
+def moving_from_configurations(ctx: Ctx, lenses: list, object_distances: list, *, field: str,
+                               focus_distance_offsets: list | None = None) -> Lens:
+    """A design file's configurations as one lens with moving groups (:mod:`mi_neurallens.optics.moving`).
+
+    ``lenses``: the lens of each configuration (built like the file's own, each with that configuration's
+    thicknesses and aperture); ``object_distances``: each configuration's object distance in front of its first
+    vertex (mm, ``inf``).  Configurations with the object at infinity are zoom positions (ordered by focal
+    length); configurations with the object at one finite distance are their close-focus states, each paired with
+    the zoom position whose gaps differ least from it (as many as there are positions).  The gaps that differ
+    between configurations become the variable gaps, and a stop radius that differs between positions (a
+    per-configuration aperture) is kept per position.  Anything else — other object distances, configurations
+    that differ in anything but gaps and the stop — is a :class:`LensError` naming ``field``.  Returns the first
+    position's lens with the moving groups (its name, path and metadata those of ``lenses[0]``)."""
+    from ..moving import MovingGroups
+    n = len(lenses)
+    shape = [(s.radius, s.medium, s.conic, s.aspheric, s.is_stop, s.label) for s in lenses[0].surfaces]
+    for k, L in enumerate(lenses[1:], 2):
+        if [(s.radius, s.medium, s.conic, s.aspheric, s.is_stop, s.label) for s in L.surfaces] != shape:
+            raise ctx.error(f"configuration {k} differs from configuration 1 in more than its gaps and aperture (a "
+                            "surface, glass or shape changes): only moving groups (gaps) and the stop's size may "
+                            "change between configurations", field=field)
+    inf = [k for k in range(n) if math.isinf(object_distances[k])]
+    fin = [k for k in range(n) if not math.isinf(object_distances[k])]
+    if not inf:
+        raise ctx.error("no configuration has the object at infinity: the zoom positions (or the infinity focus) "
+                        "must be given with the object at infinity", field=field)
+    dists = sorted({round(object_distances[k], 6) for k in fin})
+    if len(dists) > 1:
+        raise ctx.error(f"configurations at {len(dists)} finite object distances ({', '.join(f'{d:g}' for d in dists)} "
+                        "mm): one close-focus distance is supported", field=field)
+    if fin and len(fin) != len(inf):
+        raise ctx.error(f"{len(inf)} configuration(s) with the object at infinity but {len(fin)} at "
+                        f"{dists[0]:g} mm: each zoom position needs its close-focus state", field=field)
+    gaps = lambda k: np.array([s.thickness for s in lenses[k].surfaces])
+    inf.sort(key=lambda k: lenses[k].efl())
+    partner = {}
+    free = list(fin)
+    for k in inf:
+        if not free:
+            break
+        j = min(free, key=lambda f: float(np.abs(gaps(f) - gaps(k)).sum()))
+        partner[k] = j
+        free.remove(j)
+    base = lenses[inf[0]]
+    table = {}
+    for i in range(len(base.surfaces)):
+        rows = [(lenses[k].surfaces[i].thickness,
+                 lenses[partner.get(k, k)].surfaces[i].thickness) for k in inf]
+        if any(a != rows[0][0] or b != rows[0][0] for a, b in rows):
+            table[i] = rows
+    stops = [lenses[k].stop.semi_diameter for k in inf]
+    stop_sd = stops if any(abs(v - stops[0]) > 1e-12 for v in stops) else None
+    if not table and stop_sd is None:
+        return base
+    close = None
+    if fin:
+        j = partner[inf[0]]
+        close = object_distances[j] + lenses[j].image_z + (focus_distance_offsets[j] if focus_distance_offsets else 0.0)
+    try:
+        mg = MovingGroups(table, zoom_efl_mm=[lenses[k].efl() for k in inf] if len(inf) > 1 else None,
+                          close_focus_mm=close, close_gaps="published" if fin else None, stop_semi_diameters=stop_sd,
+                          focus_label=f"{n} configurations of the file: {len(inf)} position(s)"
+                                      + (f", close focus {close:g} mm from the sensor" if fin else ""))
+        return base.replace(moving=mg)
+    except LensError as e:
+        raise ctx.error(f"the configurations do not make a lens with moving groups: {e}", field=field) from e

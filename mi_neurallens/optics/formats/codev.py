@@ -268,6 +268,11 @@ def read_codev(text: str, *, file: str | None = None, name: str | None = None, g
             pwl = [_float(ctx, t, surface=None, command="PWL", line=ln) for t in args]
         elif k == "END":
             in_prv = False
+        elif k == "ZOO":
+            raise ctx.error(f"zoom positions ({' '.join(toks)}, line {ln}) are not read from CODE V files yet: export the "
+                            "lens as a Zemax .zmx (its configurations are read as moving groups) or write its "
+                            "variable gaps into the project JSON's 'moving' (docs/lens-format.md, 'Moving groups')",
+                            field="ZOO")
         elif k in _REFUSE:
             raise ctx.error(f"{_REFUSE[k]} ({' '.join(toks)}, line {ln}) is not supported: the lens must be a "
                             "rotationally symmetric refractive system", surface=where_s, field=k)

@@ -38,7 +38,7 @@ VERSION = 1
 TOP_KEYS = ("format", "version", "name", "description", "units", "object_medium", "surfaces",
             "moving", "source", "metadata")
 #: the moving groups' keys (:mod:`mi_neurallens.optics.moving`)
-MOVING_KEYS = ("gaps", "zoom_focal_lengths_mm", "close_focus_mm", "close_gaps", "note")
+MOVING_KEYS = ("gaps", "zoom_focal_lengths_mm", "close_focus_mm", "close_gaps", "stop_semi_diameters_mm", "note")
 CLOSE_GAPS = ("published", "modelled")
 TOP_REQUIRED = ("format", "version", "name", "surfaces")
 SURFACE_KEYS = ("label", "radius", "thickness", "medium", "semi_diameter", "conic", "aspheric",
@@ -156,8 +156,12 @@ def _read_moving(ctx: Ctx, m: Any, n_surfaces: int):
     note = m.get("note", "")
     if not isinstance(note, str):
         raise ctx.error(f"must be a string, got {type_name(note)}", field="moving.note")
+    stops = m.get("stop_semi_diameters_mm")
+    if stops is not None and not (isinstance(stops, list) and all(is_number(v) and v > 0 for v in stops)):
+        raise ctx.error("must be a list of semi-diameters in mm, one per position", field="moving.stop_semi_diameters_mm")
     try:
-        return MovingGroups(out, zoom_efl_mm=zooms, close_focus_mm=close, close_gaps=cg, focus_label=note)
+        return MovingGroups(out, zoom_efl_mm=zooms, close_focus_mm=close, close_gaps=cg, focus_label=note,
+                            stop_semi_diameters=stops)
     except LensError as e:
         raise ctx.error(str(e), field="moving") from e
 

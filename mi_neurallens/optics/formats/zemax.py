@@ -6,7 +6,10 @@ surface.  What is read (see ``docs/lens-format.md``, "Zemax .zmx"):
 
 header   ``UNIT`` (MM, CM, IN, M: every length is converted to mm), ``NAME``, ``NOTE``, ``MODE SEQ``,
          ``GCAT`` (catalogue search order), ``WAVM``/``WAVL`` + ``PWAV`` (the primary wavelength),
-         ``ENPD``/``FNUM``/``FLOA`` (the system aperture, which sets the stop radius), ``MNUM``.
+         ``ENPD``/``FNUM``/``FLOA`` (the system aperture, which sets the stop radius), ``MNUM`` with the
+         multi-configuration lines ``THIC surface config value …`` and ``APER 0 config value …``: the
+         configurations as moving groups (zoom positions at infinity, close focus at one finite object distance;
+         :func:`~._sequential.moving_from_configurations`).
 surface  ``TYPE STANDARD``/``EVENASPH``, ``CURV``, ``DISZ``, ``CONI``, ``PARM 2…8`` (A4…A16 of
          ``EVENASPH``), ``GLAS``, ``STOP``, ``DIAM`` (semi-diameter), ``FLAP``/``CLAP`` (a clear
          aperture, preferred to ``DIAM``), ``MEMA`` (mechanical semi-diameter -> housing radius).
@@ -52,6 +55,14 @@ _OTHER_APERTURES = {"OBSC": "a circular obscuration", "SQAP": "a rectangular ape
 _KEYWORDS = {"radius": "CURV", "thickness": "DISZ", "medium": "GLAS", "semi_diameter": "DIAM", "conic": "CONI",
              "aspheric": "PARM", "housing_radius": "MEMA", "epd": "ENPD", "fno": "FNUM", "float": "FLOA"}
 _SURF_LINE = re.compile(r"^SURF\s+(\S+)\s*$")
+#: multi-configuration operands that change the prescription beyond gaps and the aperture (refused), and all that
+#: are recognised (the others set fields, wavelengths, weights, which do not change the lens)
+_MCE_REFUSED = {"CRVT": "a curvature", "CONN": "a conic", "GLSS": "a glass", "PRAM": "a surface parameter",
+                "PAR1": "a surface parameter", "PAR2": "a surface parameter", "PAR3": "a surface parameter",
+                "SDIA": "a semi-diameter", "IGNR": "which surfaces are ignored", "TEMP": "the temperature",
+                "PRES": "the pressure", "STPS": "the stop surface", "MCSD": "a semi-diameter", "COTN": "a coating"}
+_MCE_OPERANDS = {"THIC", "APER", "WAVE", "WLWT", "XFIE", "YFIE", "FVDX", "FVDY", "FVCX", "FVCY", "FVAN", "FLWT",
+                 "MOFF", "PWAV"} | set(_MCE_REFUSED)
 
 
 def looks_like_zemax(text: str) -> bool:
@@ -145,6 +156,7 @@ def read_zemax(text: str, *, file: str | None = None, name: str | None = None, g
     aperture_kw: list[tuple[str, int, list[str]]] = []
     surfs: list[_Surf] = []
     cur: _Surf | None = None
+    mce: list[tuple] = []       # multi-configuration values: (operand, surface or slot, configuration, value, line)
 
     for ln, raw in enumerate(text.splitlines(), 1):
         line = raw.strip()
@@ -189,6 +201,8 @@ def read_zemax(text: str, *, file: str | None = None, name: str | None = None, g
                 notes.append(" ".join(args[1:] if args[:1] == ["0"] else args))
             else:
                 header[key] = (ln, args)
+        elif key in _MCE_OPERANDS and len(args) >= 3 and args[0].isdigit() and args[1].isdigit():
+            mce.append((key, int(args[0]), int(args[1]), args[2], ln))      # a configuration's value
         elif key == "MIRR" or key in _HARMLESS_SURF:
             ignored[key] = ignored.get(key, 0) + 1
         elif cur is not None and key in ("TYPE", "CURV", "DISZ", "GLAS", "DIAM", "STOP", "CONI", "PARM"):
@@ -332,11 +346,13 @@ def read_zemax(text: str, *, file: str | None = None, name: str | None = None, g
     if ap_note:
         notes.append(ap_note)
 
-    if "MNUM" in header:
-        ln, args = header["MNUM"]
-        if args and args[0].isdigit() and int(args[0]) > 1:
-            notes.append(f"the file has {args[0]} configurations (MNUM, line {ln}); the one saved in the surface "
-                         "data is read")
+    n_conf = int(header["MNUM"][1][0]) if "MNUM" in header and header["MNUM"][1][:1] and \
+        header["MNUM"][1][0].isdigit() else 1
+    configs = _configurations(ctx, n_conf, mce, seq, scale, aperture, object_distance, stop_radius) \
+        if n_conf > 1 else None
+    if n_conf > 1 and configs is None:
+        notes.append(f"the file has {n_conf} configurations (MNUM, line {header['MNUM'][0]}) that change no gap or "
+                     "aperture: the one saved in the surface data is read")
     title = " ".join(header["NAME"][1]) if "NAME" in header else ""
     md = {"encoding": encoding, "unit": unit, "mm_per_unit": scale, "primary_wavelength_nm": primary,
           "wavelengths_nm": wl_list, "object_distance_mm": object_distance if math.isfinite(object_distance) else None,
@@ -349,11 +365,63 @@ def read_zemax(text: str, *, file: str | None = None, name: str | None = None, g
     lens_name = name or (Path(file).stem if file else "zemax-lens")
     lens = build_lens(ctx, seq, keywords=_KEYWORDS, object_medium=object_medium, aperture=aperture,
                       wavelength_nm=primary, name=lens_name, metadata=md, stop_keyword="STOP")
+    if configs is not None:
+        from ._sequential import moving_from_configurations
+        mds = [{} for _ in configs]
+        lenses = [build_lens(ctx, c_seq, keywords=_KEYWORDS, object_medium=object_medium, aperture=c_ap,
+                             wavelength_nm=primary, name=lens_name, metadata=m, stop_keyword="STOP")
+                  for (c_seq, c_ap, _), m in zip(configs, mds)]
+        # the object distance in front of our first vertex: the file's, plus dummy surfaces dropped in front
+        z0 = [float(m.get("first_vertex_z_in_file", 0.0) or 0.0) for m in mds]
+        lens = moving_from_configurations(ctx, lenses, [c[2] + z for c, z in zip(configs, z0)], field="MNUM")
+        md["configurations"] = n_conf
     source = {"format": "Zemax OpticStudio .zmx"}
     if file:
         source["file"] = Path(file).name
     meta = {"description": title, "source": source, "zemax": md}
     return lens.replace(metadata=meta)
+
+
+def _configurations(ctx: Ctx, n: int, mce: list, seq: list, scale: float, aperture: tuple, object_distance: float,
+                    stop_radius):
+    """The file's ``n`` configurations as ``[(surfaces, aperture, object distance (mm)), ...]`` from its
+    multi-configuration values (``THIC surface configuration value …``: a gap, surface 0 the object distance;
+    ``APER 0 configuration value …``: the system aperture, in the unit of the file's ``ENPD``/``FNUM``), or None
+    when they change no gap and no aperture.  Operands that only set fields, wavelengths or weights are left
+    alone; one that changes the prescription otherwise (a curvature, conic, glass, parameter, …) is an error."""
+    import dataclasses
+    changes = False
+    thick = {}      # (surface, config) -> mm
+    aper = {}       # config -> value
+    for key, a, c, v, ln in mce:
+        if key in _MCE_REFUSED:
+            raise ctx.error(f"the configurations change {_MCE_REFUSED[key]} ({key} {a} {c}, line {ln}): only gaps "
+                            "(THIC) and the aperture (APER) may differ between configurations (moving groups)",
+                            field=key)
+        if not 1 <= c <= n:
+            raise ctx.error(f"{key} {a} {c} (line {ln}) names configuration {c}, but MNUM gives {n}", field=key)
+        if key == "THIC":
+            if a > len(seq):
+                raise ctx.error(f"THIC {a} {c} (line {ln}): no surface {a} before the image", field="THIC")
+            thick[(a, c)] = _num(ctx, v, surface=a, keyword="THIC", line=ln, allow_inf=True) * scale
+            changes = True
+        elif key == "APER":
+            aper[c] = _num(ctx, v, surface=None, keyword="APER", line=ln)
+            changes = True
+    if not changes:
+        return None
+    out = []
+    for c in range(1, n + 1):
+        c_seq = [dataclasses.replace(s, thickness=thick.get((s.number, c), s.thickness)) for s in seq]
+        od = thick.get((0, c), object_distance)
+        od = math.inf if od >= 1e10 else od
+        ap = aperture
+        if c in aper and stop_radius is None and aperture[0] in ("epd", "fno"):
+            if not aper[c] > 0:
+                raise ctx.error(f"configuration {c}'s aperture must be > 0, got {aper[c]:g}", field="APER")
+            ap = (aperture[0], aper[c] * (scale if aperture[0] == "epd" else 1.0))
+        out.append((c_seq, ap, od))
+    return out
 
 
 def _surface_keyword(ctx: Ctx, s: _Surf, key: str, args: list[str], ln: int, ignored: dict) -> None:
