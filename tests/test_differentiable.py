@@ -7,6 +7,8 @@ group's, docs/differentiable.md).  The camera rays' part of the derivative is ch
 kind of parameter on three lenses, with fixed samples (no integrator noise), rim crossings included."""
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 import pytest
 
@@ -262,23 +264,31 @@ def test_neural_regressor_weight_gradients_match_finite_differences():
     assert np.abs(g).max() > 1e-2
 
 
-def test_the_fine_tuning_example_corrects_the_map(tmp_path):
-    """examples/fine_tune_map.py, small: 40 Adam steps at 64 × 43 on the regressor bring the map of the nominal
-    dgauss-50mm toward the lens as built (front curvature +0.5 %): where its rays meet the chart moves at least 2x
-    closer to the as-built lens's (measured: 449 -> 94 µm in the full run), and the tuned model records that it no
-    longer is its prescription's map, loads with its lens, and says so."""
+@contextlib.contextmanager
+def _example(name: str):
+    """The module of ``examples/<name>.py``, loaded with the examples folder on ``sys.path`` (examples import each
+    other's helpers) for the duration of the block."""
     import importlib.util
     import os
     import sys
     here = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "examples")
     sys.path.insert(0, here)
     try:
-        spec = importlib.util.spec_from_file_location("fine_tune_map", os.path.join(here, "fine_tune_map.py"))
+        spec = importlib.util.spec_from_file_location(name, os.path.join(here, name + ".py"))
         mod = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(mod)
-        res = mod.fine_tune(steps=40, width=64, height=43, spp=4, log=lambda *a: None)
+        yield mod
     finally:
         sys.path.remove(here)
+
+
+def test_the_fine_tuning_example_corrects_the_map(tmp_path):
+    """examples/fine_tune_map.py, small: 40 Adam steps at 64 × 43 on the regressor bring the map of the nominal
+    dgauss-50mm toward the lens as built (front curvature +0.5 %): where its rays meet the chart moves at least 2x
+    closer to the as-built lens's (measured: 449 -> 94 µm in the full run), and the tuned model records that it no
+    longer is its prescription's map, loads with its lens, and says so."""
+    with _example("fine_tune_map") as mod:
+        res = mod.fine_tune(steps=40, width=64, height=43, spp=4, log=lambda *a: None)
     assert res["final_miss_um"] < 0.5 * res["start_miss_um"], (res["start_miss_um"], res["final_miss_um"])
     path = tmp_path / "tuned.model.safetensors"
     res["model"].save(path)
@@ -330,13 +340,8 @@ def test_the_calibration_example_converges():
     """examples/calibrate_lens.py, small: 40 Adam steps at 64 × 43 bring the focus distance from 30 % off (and the
     curvature from 3 %) to
     within 2 % (measured: 0.03 %)."""
-    import importlib.util
-    import os
-    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "examples", "calibrate_lens.py")
-    spec = importlib.util.spec_from_file_location("calibrate_lens", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    res = mod.calibrate(steps=40, curvature_off=0.03, width=64, height=43, spp=4, lr=0.02, log=lambda *a: None)
+    with _example("calibrate_lens") as mod:
+        res = mod.calibrate(steps=40, curvature_off=0.03, width=64, height=43, spp=4, lr=0.02, log=lambda *a: None)
     err = abs(res["final"]["focus_distance"] / res["true"]["focus_distance"] - 1)
     assert res["history"][0]["focus_distance"] / res["true"]["focus_distance"] - 1 > 0.25
     assert err < 0.02, res["final"]
@@ -345,19 +350,9 @@ def test_the_calibration_example_converges():
 def test_the_design_example_sharpens_the_field():
     """examples/design_lens.py, small: 40 Adam steps at 96 × 64 reduce the render loss and the RMS spot size at the
     edge of the field (optiland's, an evaluator we did not write) of the starting triplet."""
-    import importlib.util
-    import os
-    import sys
-    here = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "examples")
-    sys.path.insert(0, here)
-    try:
-        spec = importlib.util.spec_from_file_location("design_lens", os.path.join(here, "design_lens.py"))
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
+    with _example("design_lens") as mod:
         start = mod.start_design()
         lens, history, *_ = mod.optimise_render(start, steps=40, width=96, height=64, spp=4, log=lambda *a: None)
-    finally:
-        sys.path.remove(here)
     assert np.mean([h["loss"] for h in history[-5:]]) < 0.9 * np.mean([h["loss"] for h in history[:5]])
     assert abs(lens.paraxial().efl / 50.0 - 1) < 0.03
     assert mod.rms_spots(lens)[2] < 0.7 * mod.rms_spots(start)[2]
