@@ -157,6 +157,17 @@ def test_sensors_take_the_focal_length(zoom):
         mi.load_dict({"type": "realistic_lens", "lens": "wide-22mm", "focal_length": 22.0, "film": film})
     with pytest.raises(Exception, match="moving groups"):
         mi.load_dict({"type": "neural_lens", "lens": ZOOM, "model": "wide-22mm", "film": film})
+    # params.update() refocuses by the groups; gradients would miss the groups' motion: a clear error
+    import drjit as dr
+    sc0 = mi.load_dict({"type": "scene", "sensor": {"type": "realistic_lens", "lens": ZOOM, "focal_length": 50.0,
+                                                    "focus_distance": 2.0, "film": film}})
+    p = mi.traverse(sc0)
+    p["sensor.focus_distance"] = mi.Float(1.0)
+    p.update()
+    assert sc0.sensors()[0].setup.focus_parameter > s.setup.focus_parameter        # the group moved to focus nearer
+    dr.enable_grad(p["sensor.focus_distance"])
+    with pytest.raises(Exception, match="not differentiated"):
+        p.update()
     # a render between two listed positions: finite, lit, in focus enough to differ from the wide end
     sc = mi.load_dict({"type": "scene", "sensor": {"type": "realistic_lens", "lens": ZOOM, "focal_length": 45.0,
                                                    "focus_distance": 1.0, "film": film,

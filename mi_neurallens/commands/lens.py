@@ -339,7 +339,11 @@ def run_list(args) -> int:
         p = lens.paraxial()
         lib = resources.lens_origin(name)
         model, recipe = resources.find_model(name), resources.find_recipe(name)
-        rows.append({"name": name, "efl": p.efl, "bfl": p.bfl, "fnumber": p.fnumber,
+        zoom = None
+        if lens.moving is not None and lens.moving.is_zoom:
+            from ..optics import moving as mv
+            zoom = list(mv.focal_length_range(lens))
+        rows.append({"name": name, "efl": p.efl, "bfl": p.bfl, "fnumber": p.fnumber, "focal_length_range_mm": zoom,
                      "surfaces": len(lens.surfaces),
                      "description": (lens.metadata or {}).get("description", ""),
                      "origin": lib.origin, "path": str(lib.lens(name)),
@@ -353,9 +357,11 @@ def run_list(args) -> int:
         desc = r["description"]
         desc = desc if len(desc) <= 60 else desc[:59] + "…"
         origin = "bundled" if r["origin"] == resources.BUNDLED else "user"
-        print(f"{r['name']:<{w}}  {r['efl']:>9.3f}  {r['fnumber']:>6.2f}  {r['surfaces']:>4}  "
+        efl = f"{r['efl']:.3f}" if not r["focal_length_range_mm"] else "{:.1f}-{:.1f}".format(*r["focal_length_range_mm"])
+        print(f"{r['name']:<{w}}  {efl:>9}  {r['fnumber']:>6.2f}  {r['surfaces']:>4}  "
               f"{'yes' if r['model'] else '-':>5}  {origin:<9}  {desc}")
-    print("(paraxial at 587.56 nm, stop fully open; `mi-neurallens lens info NAME` for details)")
+    print("(paraxial at 587.56 nm, stop fully open, a zoom lens's range and its f-number at the first position; "
+          "`mi-neurallens lens info NAME` for details)")
     print(f"lens libraries, first wins: {resources.search_path_text()}")
     return 0
 

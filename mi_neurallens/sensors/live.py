@@ -178,6 +178,12 @@ class SensorParameters:
         setup = self._setup_of(numbers, self.focus_driven)
         live = {k: self.values[k] for k in self.live if k not in (FOCUS, SENSOR)}
         diff = [k for k in self.live if dr.grad_enabled(self.values[k])]
+        if diff and getattr(self.base, "moving", None) is not None:
+            raise NeuralLensError(
+                f"{self.plugin}: lens '{self.base.name}' zooms or focuses by moving groups, whose motion (solved for "
+                f"the focus and the focal length) is not differentiated: gradients with respect to {', '.join(diff)} "
+                "would miss it.  Change the parameters without gradients, or differentiate a fixed configuration "
+                "(`mi-neurallens lens convert LENS OUT.json --focal-length F --focus-distance D`)")
         driver = FOCUS if self.focus_driven else SENSOR
         # the derived numbers' derivatives: central differences of the float64 set-up
         grads = {n: {} for n in DERIVED}
