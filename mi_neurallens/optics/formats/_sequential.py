@@ -306,8 +306,7 @@ def substitute_glass(ctx: Ctx, name: str, subst: dict, used: set, table: dict, *
     return m
 
 
-def moving_from_configurations(ctx: Ctx, lenses: list, object_distances: list, *, field: str,
-                               focus_distance_offsets: list | None = None) -> Lens:
+def moving_from_configurations(ctx: Ctx, lenses: list, object_distances: list, *, field: str) -> Lens:
     """A design file's configurations as one lens with moving groups (:mod:`mi_neurallens.optics.moving`).
 
     ``lenses``: the lens of each configuration (built like the file's own, each with that configuration's
@@ -363,7 +362,7 @@ def moving_from_configurations(ctx: Ctx, lenses: list, object_distances: list, *
     close = None
     if fin:
         j = partner[inf[0]]
-        close = object_distances[j] + lenses[j].image_z + (focus_distance_offsets[j] if focus_distance_offsets else 0.0)
+        close = object_distances[j] + lenses[j].image_z          # from the sensor plane
     try:
         mg = MovingGroups(table, zoom_efl_mm=[lenses[k].efl() for k in inf] if len(inf) > 1 else None,
                           close_focus_mm=close, close_gaps="published" if fin else None, stop_semi_diameters=stop_sd,
