@@ -176,12 +176,13 @@ class TransportMap:
         return to_numpy(res, n)
 
     def core_reduced_np(self, x):
-        """Reduced inputs (N, 4) numpy → ``(valid, outputs (N, 5 + 2·crossings), logit or None)`` of the
-        core in the reduced frame (float64; no domain check, no iris), through the same Dr.Jit code."""
+        """Reduced inputs (N, 4) numpy (a domain with configuration inputs: (N, 4 + their number)) →
+        ``(valid, outputs (N, 5 + 2·crossings), logit or None)`` of the core in the reduced frame (float64; no
+        domain check, no iris), through the same Dr.Jit code."""
         import drjit as dr
         F = float64_type()
         x = np.asarray(x, np.float64)
-        xs = [from_numpy(F, x[:, i]) for i in range(4)]
+        xs = [from_numpy(F, x[:, i]) for i in range(x.shape[1])]
         valid, y, logit = self.core_reduced_dr(xs, True)
         arrays = list(y) + ([logit] if logit is not None else [])
         dr.eval(valid, arrays)

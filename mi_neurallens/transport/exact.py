@@ -59,13 +59,23 @@ class ExactMap(TransportMap):
 
     def trace_reduced(self, x, margin: bool = False, active=True):
         """Reduced inputs ``x = (r, ωx, ωy, λ)`` → the tracer's
-        :class:`~mi_neurallens.trace.tracer.TraceResult` (reduced frame; ``margin`` as the tracer's)."""
+        :class:`~mi_neurallens.trace.tracer.TraceResult` (reduced frame; ``margin`` as the tracer's).  A domain with
+        configuration inputs (:class:`~mi_neurallens.transport.configurations.Configurations`) takes them after λ,
+        one configuration per ray, traced in the configurations' frame."""
         import dataclasses
         import drjit as dr
-        r, wx, wy, lam = x
+        r, wx, wy, lam = x[:4]
+        tracer = self.tracer
+        cond = getattr(self.domain, "conditions", None)
+        if cond is not None:
+            from ..trace.tracer import LensTracer
+            if len(x) < 4 + cond.dims:
+                raise ValueError(f"exact map {self.key}: {len(x)} reduced inputs, its domain has {4 + cond.dims}")
+            tracer = LensTracer(self.lens, fresnel=self.fresnel,
+                                geometry=cond.geometry(type(r), x[4:4 + cond.dims], self.lens))
         (px, py), d = symmetry.reduced_ray(r, wx, wy, self.heading)
-        res = self.tracer.trace((px, py, px * 0.0 + self.z_in), d, lam, self.spec, self.direction,
-                                z_out=self.z_out, margin=margin, active=active)
+        res = tracer.trace((px, py, px * 0.0 + self.z_in), d, lam, self.spec, self.direction,
+                           z_out=self.z_out, margin=margin, active=active)
         reach = getattr(self.domain, "reach", None)
         if reach is None:
             return res

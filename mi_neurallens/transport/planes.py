@@ -137,6 +137,24 @@ def planes(lens, s_min: float):
     return z_front, z_rear
 
 
+def moving_planes(configs):
+    """(z_front, z_rear) (mm) of a map of a lens with moving groups, in its configurations' frame
+    (:class:`~mi_neurallens.transport.configurations.Configurations`: the sensor fixed at ``z_sensor``): as
+    :func:`planes`, with the front-most and rear-most surface points over every configuration the map learns, and
+    the sensor plane the nearest one."""
+    from ..optics import moving as mv
+    lo, hi = math.inf, -math.inf
+    for t, f in configs.corner_configurations():
+        lens = mv.at(configs.lens, t, f, check=False)
+        shift = configs.shift_of(lens.image_z)
+        front, rear = surface_extent(lens)
+        lo, hi = min(lo, front - shift), max(hi, rear - shift)
+    if not configs.z_sensor > hi:
+        raise NeuralLensError(f"lens '{configs.lens.name}': a configuration reaches the sensor plane (rear-most "
+                              f"surface point z = {hi:.4g} mm, sensor {configs.z_sensor:.4g} mm)")
+    return min(lo, 0.0) - 1.0, min(0.5 * (hi + configs.z_sensor), hi + 1.0)
+
+
 # ----------------------------------------------------------------------------- input domains
 def default_field_half_angle(lens, film_half_diagonal_mm: float = FULL_FRAME_HALF_DIAGONAL_MM,
                              margin: float = DEFAULT_FIELD_MARGIN) -> float:
@@ -166,23 +184,26 @@ def film_reach(lens, s_range, radius_mm: float) -> Reach:
 
 
 def backward_domain(lens, path_id: int, z_rear: float, z_front: float, rng, n: int = 1 << 22,
-                    margin: float = 1.04) -> Domain:
+                    margin: float = 1.04, conditions=None) -> Domain:
     """Pilot-traced extent of the valid backward region (largest r and |ω_xy| of a valid ray), plus
-    ``margin``: ``n`` unit-cube points from ``rng`` traced in float32 over a domain wider than the lens."""
+    ``margin``: ``n`` unit-cube points from ``rng`` traced in float32 over a domain wider than the lens.
+    ``conditions``: a lens with moving groups, its configuration inputs
+    (:class:`~mi_neurallens.transport.configurations.Configurations`; the planes in their frame): the extent over
+    every configuration, and the domain takes them."""
     import drjit as dr
     from ..jit import from_numpy
     from ..trace.api import float_type
     from .exact import ExactMap
     big = max(s.semi_diameter for s in lens.surfaces) * 2.0
-    pilot = Domain(big, 0.995)
+    pilot = Domain(big, 0.995, conditions=conditions)
     em = ExactMap(lens, path_id, "backward", z_rear, z_front, fresnel=True, domain=pilot)
-    u = rng.random((n, 4))
+    u = rng.random((n, pilot.dims))
     F = float_type("float32")
-    valid, outs = em.core_reduced_finite_dr(pilot.u_to_x_dr([from_numpy(F, u[:, i]) for i in range(4)]), 5)
+    valid, outs = em.core_reduced_finite_dr(pilot.u_to_x_dr([from_numpy(F, u[:, i]) for i in range(pilot.dims)]), 5)
     dr.eval(outs, valid)                # the kernel the training sampler's trace_u runs
     xv = pilot.u_to_x(u[valid.numpy().astype(bool)])
     if len(xv) == 0:
         raise NeuralLensError(f"lens '{lens.name}': no backward ray passes the lens")
     r = float(xv[:, 0].max()) * margin
     s = min(float(np.hypot(xv[:, 1], xv[:, 2]).max()) * margin, 0.999)
-    return Domain(r_max=r, s_max=s)
+    return Domain(r_max=r, s_max=s, conditions=conditions)

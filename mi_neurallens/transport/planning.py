@@ -101,11 +101,29 @@ class Domain:
     lam_min: float = CIE_MIN_NM
     lam_max: float = CIE_MAX_NM
     reach: Reach | None = None
+    #: a lens with moving groups: its configuration inputs (:class:`~mi_neurallens.transport.configurations.
+    #: Configurations`), one column each after λ; None: a lens of one configuration
+    conditions: object = None
+
+    @property
+    def dims(self) -> int:
+        """Columns of the unit cube and of the inputs a sample is traced from: 4, plus one per configuration input."""
+        return 4 + (self.conditions.dims if self.conditions is not None else 0)
+
+    @property
+    def n_inputs(self) -> int:
+        """Columns of the networks' inputs: :attr:`dims`, plus a lens with moving groups' product inputs
+        (:attr:`~mi_neurallens.transport.configurations.Configurations.monomials`), computed from the others."""
+        return self.dims + (self.conditions.n_products if self.conditions is not None else 0)
 
     def u_to_x(self, u: np.ndarray) -> np.ndarray:
-        """(N, 4) unit-cube points → (N, 4) reduced inputs (r, ωx, ωy, λ), float64."""
+        """(N, :attr:`dims`) unit-cube points → (N, :attr:`n_inputs`) reduced inputs (r, ωx, ωy, λ (, zoom, focus,
+        products)), float64."""
         u = np.asarray(u, dtype=np.float64)
-        x = np.empty((len(u), 4))
+        x = np.empty((len(u), self.n_inputs))
+        if self.conditions is not None:
+            t, f = self.conditions.u_to_tf(u[:, 4:])
+            x[:, 4:self.dims] = np.stack([t if n == "zoom" else f for n in self.conditions.names], 1)
         for a in range(0, len(u), 1 << 16):     # in blocks: the temporaries stay in the cache
             b = u[a:a + (1 << 16)]
             rho = self.s_max * np.sqrt(b[:, 1])
@@ -114,27 +132,40 @@ class Domain:
             x[a:a + len(b), 1] = rho * np.cos(th)
             x[a:a + len(b), 2] = rho * np.sin(th)
             x[a:a + len(b), 3] = 538.0 - np.arctanh(_CIE_A - _CIE_B * b[:, 3]) * _CIE_C   # sample_cie_wavelength's λ
+        if self.n_inputs > self.dims:
+            x[:, self.dims:] = self.conditions.products_np(x)
         return x
 
     def u_to_x_dr(self, u):
-        """Unit-cube components (4 Dr.Jit floats) → reduced inputs (r, ωx, ωy, λ) in Dr.Jit: :meth:`u_to_x` in a
-        kernel."""
+        """Unit-cube components (:attr:`dims` Dr.Jit floats) → reduced inputs (r, ωx, ωy, λ (, zoom, focus)) in
+        Dr.Jit: :meth:`u_to_x` in a kernel."""
         import drjit as dr
         rho = self.s_max * dr.sqrt(u[1])
         s, c = dr.sincos(math.pi * u[2])
         lam, _ = sample_cie_wavelength(u[3])
-        return self.r_max * u[0], rho * c, rho * s, lam
+        cond = tuple(self.conditions.u_to_tf_dr(list(u[4:]))) if self.conditions is not None else ()
+        return (self.r_max * u[0], rho * c, rho * s, lam) + cond
 
     def x_to_u(self, x: np.ndarray) -> np.ndarray:
         x = np.asarray(x, dtype=np.float64)
         rho = np.hypot(x[:, 1], x[:, 2])
-        return np.stack([x[:, 0] / self.r_max, (rho / self.s_max) ** 2,
-                         np.arctan2(x[:, 2], x[:, 1]) / math.pi, cie_u_of_lambda(x[:, 3])], 1)
+        u = np.stack([x[:, 0] / self.r_max, (rho / self.s_max) ** 2,
+                      np.arctan2(x[:, 2], x[:, 1]) / math.pi, cie_u_of_lambda(x[:, 3])], 1)
+        if self.conditions is None:
+            return u
+        t, f = self.conditions.split([x[:, 4 + j] for j in range(self.conditions.dims)])
+        t = np.broadcast_to(np.asarray(t, np.float64), (len(x),))
+        f = np.broadcast_to(np.asarray(f, np.float64), (len(x),))
+        return np.concatenate([u, self.conditions.tf_to_u(t, f)], 1)
 
     # input normalisation used by the networks: every column to about [-1, 1]
     def norm_center_scale(self):
         c = np.array([0.5 * self.r_max, 0.0, 0.5 * self.s_max, 0.5 * (self.lam_min + self.lam_max)])
         s = np.array([0.5 * self.r_max, self.s_max, 0.5 * self.s_max, 0.5 * (self.lam_max - self.lam_min)])
+        if self.conditions is not None:
+            cc, cs = self.conditions.norm_center_scale()
+            pc, ps = self.conditions.products_center_scale((self.r_max, self.s_max, self.s_max))
+            c, s = np.concatenate([c, cc, pc]), np.concatenate([s, cs, ps])
         return c, s
 
     def to_dict(self):
@@ -142,6 +173,8 @@ class Domain:
              "lambda_max_nm": self.lam_max}
         if self.reach is not None:
             d["reach"] = self.reach.to_dict()
+        if self.conditions is not None:
+            d["conditions"] = self.conditions.to_dict()
         return d
 
     def contains_dr(self, x, number=None):
@@ -150,7 +183,7 @@ class Domain:
         :meth:`~mi_neurallens.transport.base.TransportMap.number`; None: literals)."""
         import drjit as dr
         k = number or (lambda key, v, like: float(v))
-        r, wx, wy, lam = x
+        r, wx, wy, lam = x[:4]
         ok = (r <= k("domain.r_max", self.r_max, r)) & (dr.fma(wx, wx, wy * wy) <= k("domain.s_max^2", self.s_max ** 2, wx))
         return ok & (lam >= k("domain.lam_min", self.lam_min, lam)) & (lam <= k("domain.lam_max", self.lam_max, lam))
 
@@ -160,8 +193,12 @@ class Domain:
         if isinstance(d, Domain):
             return d
         reach = Reach(**{k: float(v) for k, v in d["reach"].items()}) if d.get("reach") else None
+        cond = None
+        if d.get("conditions"):
+            from .configurations import Configurations
+            cond = Configurations.from_dict(d["conditions"])
         return Domain(float(d["r_max_mm"]), float(d["s_max"]), float(d["lambda_min_nm"]), float(d["lambda_max_nm"]),
-                      reach)
+                      reach, cond)
 
 
 # ----------------------------------------------------------------------------- ghost selection

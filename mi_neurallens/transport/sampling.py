@@ -58,15 +58,22 @@ class PathSampler:
         self.n_out = len(OUTPUT_NAMES) + (2 * self.map.stop_crossings if stops else 0)
 
     # -- Dr.Jit core ---------------------------------------------------------------------------
+    @property
+    def dims(self) -> int:
+        """Columns of a sample's unit-cube address and inputs (:attr:`~mi_neurallens.transport.planning.Domain.dims`:
+        4, plus the configuration inputs of a lens with moving groups)."""
+        return self.domain.dims
+
     def u_to_x_dr(self, u):
-        """Unit-cube components (4 Dr.Jit floats) → reduced inputs (r, ωx, ωy, λ) in Dr.Jit
-        (:meth:`~mi_neurallens.transport.planning.Domain.u_to_x_dr`)."""
+        """Unit-cube components (:attr:`dims` Dr.Jit floats) → reduced inputs (r, ωx, ωy, λ (, zoom, focus)) in
+        Dr.Jit (:meth:`~mi_neurallens.transport.planning.Domain.u_to_x_dr`)."""
         return self.domain.u_to_x_dr(u)
 
-    def trace_dr(self, r, wx, wy, lam):
+    def trace_dr(self, r, wx, wy, lam, *cond):
         """Reduced inputs (Dr.Jit) → (valid, [x, y, dx, dy, T (, sx, sy, …)]) (Dr.Jit, reduced frame): the exact
-        map's reduced core, with rays whose outputs are not finite made invalid."""
-        return self.map.core_reduced_finite_dr((r, wx, wy, lam), self.n_out)
+        map's reduced core, with rays whose outputs are not finite made invalid.  ``cond``: the configuration
+        inputs of a lens with moving groups."""
+        return self.map.core_reduced_finite_dr((r, wx, wy, lam) + tuple(cond), self.n_out)
 
     def _to_np(self, valid, outs, n):
         import drjit as dr
@@ -80,12 +87,12 @@ class PathSampler:
         return v, y
 
     def _columns(self, a: np.ndarray) -> list:
-        """(N, 4) numpy → 4 Dr.Jit arrays of this sampler's precision."""
+        """(N, :attr:`dims`) numpy → :attr:`dims` Dr.Jit arrays of this sampler's precision."""
         a = np.asarray(a)
-        return [from_numpy(self.F, a[:, i]) for i in range(4)]
+        return [from_numpy(self.F, a[:, i]) for i in range(self.dims)]
 
     def trace_x(self, x: np.ndarray):
-        """Reduced inputs (N, 4) → (valid (N,), outputs (N, :attr:`n_out`) float64, NaN where invalid)."""
+        """Reduced inputs (N, :attr:`dims`) → (valid (N,), outputs (N, :attr:`n_out`) float64, NaN where invalid)."""
         valid, outs = self.trace_dr(*self._columns(x))
         return self._to_np(valid, outs, len(x))
 
@@ -97,7 +104,7 @@ class PathSampler:
         return self.trace_u(u)[0]
 
     def margin_u(self, u: np.ndarray):
-        """Unit-cube samples (N, 4) → (valid (N,), margin (N,) float64, hard_fail (N,)): the tracer's
+        """Unit-cube samples (N, :attr:`dims`) → (valid (N,), margin (N,) float64, hard_fail (N,)): the tracer's
         aperture margin (:attr:`~mi_neurallens.trace.tracer.TraceResult.margin`) and where the ray fails
         for another reason (then the margin says nothing).  ``valid == ~hard_fail & (margin >= 0)``."""
         import drjit as dr
@@ -111,7 +118,7 @@ class PathSampler:
 
     def random_valid(self, n_rays: int, seed: int, bounds: bool = True):
         """Trace ``n_rays`` random samples drawn with Dr.Jit's PCG32 (stream ``seed``) and return only
-        the valid ones, compacted inside Dr.Jit: (u (K, 4), y (K, :attr:`n_out`)), float64 arrays.
+        the valid ones, compacted inside Dr.Jit: (u (K, :attr:`dims`), y (K, :attr:`n_out`)), float64 arrays.
 
         Uniform over the unit cube, or, when :attr:`bounds` (a
         :class:`~mi_neurallens.transport.bounds.ValidBounds`) is set and ``bounds`` is true, uniform
@@ -122,17 +129,18 @@ class PathSampler:
         be = __import__(type(self.F(0)).__module__, fromlist=["PCG32"])
         rng = be.PCG32(n_rays, dr.opaque(be.UInt64, seed & 0xFFFFFFFFFFFF))  # opaque: no recompile per seed
         if self.F is float_type("float64"):
-            u = [rng.next_float64() for _ in range(4)]
+            u = [rng.next_float64() for _ in range(self.dims)]
         else:
-            u = [rng.next_float32() for _ in range(4)]
+            u = [rng.next_float32() for _ in range(self.dims)]
         if bounds and self.bounds is not None:
             d = self.domain
             r, wx, wy = self.bounds.sample_dr(self.F, u)
             lam, _ = sample_cie_wavelength(u[3])
             s2 = dr.fma(wx, wx, wy * wy)
-            valid, outs = self.trace_dr(r, wx, wy, lam)
+            cond = d.conditions.u_to_tf_dr(u[4:]) if d.conditions is not None else []
+            valid, outs = self.trace_dr(r, wx, wy, lam, *cond)
             valid &= s2 <= d.s_max * d.s_max
-            u = [r / d.r_max, s2 / (d.s_max * d.s_max), dr.atan2(wy, wx) / math.pi, u[3]]
+            u = [r / d.r_max, s2 / (d.s_max * d.s_max), dr.atan2(wy, wx) / math.pi, u[3]] + list(u[4:])
         else:
             valid, outs = self.trace_dr(*self.u_to_x_dr(u))
         # one kernel for the trace, then one for the compaction: compress() alone would evaluate only
@@ -143,9 +151,10 @@ class PathSampler:
         dr.eval(cols)
         self.rays_traced += n_rays
         k = dr.width(cols[0])
-        uo, yo = np.empty((k, 4)), np.empty((k, len(outs)))
+        nu = self.dims
+        uo, yo = np.empty((k, nu)), np.empty((k, len(outs)))
         for i, c in enumerate(cols):          # column by column: one float32 -> float64 pass, no temporaries
-            (uo[:, i] if i < 4 else yo[:, i - 4])[:] = c.numpy()
+            (uo[:, i] if i < nu else yo[:, i - nu])[:] = c.numpy()
         return uo, yo
 
     def build_bounds(self, rng: np.random.Generator, n_pilot: int = 1 << 22):
@@ -174,7 +183,7 @@ def rejection_sample(ps: PathSampler, n: int, rng: np.random.Generator, chunk: i
         ys.append(y)
         got += len(u)
     keep = slice(None) if whole_chunks else slice(n)
-    u = np.concatenate(us)[keep] if us else np.zeros((0, 4))
+    u = np.concatenate(us)[keep] if us else np.zeros((0, ps.dims))
     y = np.concatenate(ys)[keep] if ys else np.zeros((0, ps.n_out))
     dt = time.perf_counter() - t0
     stats = {"rays": traced, "valid": int(got), "acceptance": got / max(traced, 1), "seconds": dt,
@@ -215,8 +224,9 @@ class MCMCSampler:
     def step(self):
         n = len(self.u)
         large = self.rng.random(n) < self.p_large
-        prop = np.where(large[:, None], self.rng.random((n, 4)),
-                        np.mod(self.u + self.sigma * self.rng.standard_normal((n, 4)), 1.0))
+        k = self.ps.dims
+        prop = np.where(large[:, None], self.rng.random((n, k)),
+                        np.mod(self.u + self.sigma * self.rng.standard_normal((n, k)), 1.0))
         v, y = self.ps.trace_u(prop)
         self.u[v] = prop[v]
         self.y[v] = y[v]
@@ -250,7 +260,7 @@ class MCMCSampler:
 
 
 def valid_fraction(ps: PathSampler, rng: np.random.Generator, n: int = 1 << 20) -> float:
-    return float(ps.valid_u(rng.random((n, 4))).mean())
+    return float(ps.valid_u(rng.random((n, ps.dims))).mean())
 
 
 def heldout_valid(lens, tm_or_spec, domain, n: int, seed: int, mcmc_threshold: float = 0.02,

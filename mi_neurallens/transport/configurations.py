@@ -1,0 +1,374 @@
+"""A lens's moving groups as inputs of one learned map: zoom and focus beside the ray.
+
+A zoom lens, or one that focuses by moving groups of its elements (:mod:`mi_neurallens.optics.moving`), is a
+family of lenses: one per configuration (zoom parameter ``t``, focus parameter ``f``).  One learned map serves the
+whole family when the configuration is an input of its networks, beside the reduced ray ``(r, ωx, ωy, λ)``:
+:class:`Configurations` says which parameters are inputs (``"zoom"`` for a zoom lens, ``"focus"`` for a lens whose
+groups focus), over which range they were learned, and gives the tracer the geometry of a configuration **per
+ray**, so that one kernel traces training rays of many configurations at once.
+
+* **Range.**  ``t`` over the listed positions, ``[0, n−1]``; ``f`` at each ``t`` over the *focus band*: from the
+  focus parameter that images infinity on the sensor to the one that images the close-focus distance (paraxially,
+  d line: :func:`mi_neurallens.optics.moving.focus_parameter`), widened by :data:`FOCUS_MARGIN` of its width on
+  each side, since the renderer focuses where the real rays focus best, a little off the paraxial solution.
+  Tabulated at :data:`BAND_GRID` zoom parameters, linear between them.
+* **Sampling.**  A training sample's two extra unit-cube coordinates ``(u4, u5)`` give ``t = t0 + u4 (t1 − t0)``
+  and ``f = f_lo(t) + u5 (f_hi(t) − f_lo(t))``.
+* **Frame.**  The configurations differ in their gaps, so their vertices move relative to each other: the map's
+  planes are fixed relative to the **sensor**, which does not move.  The map works in the lens space of the
+  configuration whose image plane lies farthest behind its first vertex, every other configuration shifted along
+  the axis so that its sensor plane lies on the same :attr:`Configurations.z_sensor` (mm).  A renderer holding a
+  configured lens (first vertex at z = 0) moves the map's planes by ``image_z − z_sensor``
+  (:meth:`Configurations.shift_of`).
+* **Product inputs** (:attr:`Configurations.monomials`).  Across a zoom range the map's linear part — the paraxial
+  map of each configuration — changes several-fold, and a tanh network represents a product of its inputs only
+  approximately.  So the map also takes the products of the ray's r, ωx, ωy with a few monomials of (t, f)
+  (:data:`MONOMIALS`) as inputs: the regressor's linear skip over them spans a paraxial map whose coefficients are
+  cubic in the configuration, and the networks learn what is left (the aberrations).  They are computed from the
+  other inputs, never sampled (:meth:`Configurations.products_np`, :meth:`Configurations.products_dr`).
+* **Geometry per ray** (:meth:`Configurations.geometry`): the variable gaps as the prescription's monotone cubics
+  in ``t`` (the same Fritsch–Carlson cubics as :func:`mi_neurallens.optics.moving.pchip`, as per-interval
+  polynomials) plus ``f`` times the close-focus offset; each vertex's z counted back from the sensor; the stop's
+  radius where it changes with zoom.
+
+Units: mm, lens space (+z toward the sensor).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from ..errors import LensError, NeuralLensError
+
+#: the map inputs a lens's moving groups can give, in this order
+CONDITION_NAMES = ("zoom", "focus")
+#: zoom parameters at which the focus band is tabulated (linear between)
+BAND_GRID = 17
+#: the focus band's widening on each side, as a fraction of its width (the real rays' best focus lies a little
+#: off the paraxial focus the band is solved for)
+FOCUS_MARGIN = 0.08
+#: the monomials t^a f^b (a, b) whose products with the ray's r, ωx, ωy are inputs too, per set of configuration
+#: inputs (see the module docstring): the paraxial map's coefficients as cubics in the zoom, quadratics in the focus
+MONOMIALS = {("zoom", "focus"): ((1, 0), (0, 1), (2, 0), (1, 1), (0, 2), (3, 0), (2, 1)),
+             ("zoom",): ((1, 0), (2, 0), (3, 0)), ("focus",): ((0, 1), (0, 2))}
+#: the ray's inputs that the monomials multiply: r, ωx, ωy (not λ)
+PRODUCT_RAY_COLUMNS = (0, 1, 2)
+
+
+def _cubic_pieces(x, y) -> np.ndarray:
+    """(n−1, 4) coefficients ``c`` of :func:`~mi_neurallens.optics.moving.pchip` through ``(x, y)``
+    (``x = 0, 1, …, n−1``) on each interval ``k``: ``y(k + s) = c0 + c1 s + c2 s² + c3 s³`` for s in [0, 1]
+    (each interval's cubic, solved from four of its values: exact to rounding)."""
+    from ..optics.moving import pchip
+    n = len(x)
+    if n == 1:
+        return np.array([[float(y[0]), 0.0, 0.0, 0.0]])
+    s = np.array([0.0, 1.0 / 3.0, 2.0 / 3.0, 1.0])
+    V = np.vander(s, 4, increasing=True)
+    out = np.empty((n - 1, 4))
+    for k in range(n - 1):
+        out[k] = np.linalg.solve(V, pchip(x, y, k + s))
+    return out
+
+
+@dataclasses.dataclass(eq=False)
+class Configurations:
+    """Which of a lens's moving-group parameters a map takes as inputs, over which range, in which frame (see
+    the module docstring).  ``names``: a tuple of :data:`CONDITION_NAMES`; ``zoom_range``: (t0, t1);
+    ``band_t``, ``band_lo``, ``band_hi``: the focus band (zoom parameters, lowest and highest focus parameter);
+    ``z_sensor``: the frame's sensor plane (mm).  ``lens``: the prescription with its moving groups, needed for
+    :meth:`geometry` (training), not stored in a model file."""
+
+    names: tuple
+    zoom_range: tuple
+    band_t: np.ndarray
+    band_lo: np.ndarray
+    band_hi: np.ndarray
+    z_sensor: float
+    lens: object = dataclasses.field(default=None, compare=False, repr=False)
+    #: the (a, b) of the monomials t^a f^b whose products with r, ωx, ωy are inputs (:data:`MONOMIALS`; () none)
+    monomials: tuple = ()
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, Configurations) and self.to_dict() == other.to_dict()
+
+    __hash__ = None
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def of_lens(cls, lens, close_focus_mm: float | None = None) -> "Configurations":
+        """The configurations of ``lens`` (with :attr:`~mi_neurallens.optics.prescription.Lens.moving`) over its
+        whole zoom range and, where its groups focus, from infinity to ``close_focus_mm`` (mm from the sensor;
+        default: the prescription's close focus)."""
+        from ..optics import moving as mv
+        mg = getattr(lens, "moving", None)
+        if mg is None:
+            raise NeuralLensError(f"lens '{lens.name}' has no moving groups: it has one configuration")
+        names = tuple(n for n, on in zip(CONDITION_NAMES, (mg.is_zoom, mg.focuses)) if on)
+        if not names:
+            raise NeuralLensError(f"lens '{lens.name}': its moving groups neither zoom nor focus")
+        t0, t1 = mg.zoom_range
+        grid = np.linspace(t0, t1, BAND_GRID if mg.is_zoom else 1)
+        lo, hi = np.zeros(len(grid)), np.zeros(len(grid))
+        if mg.focuses:
+            close = float(close_focus_mm if close_focus_mm is not None else mg.close_focus_mm)
+            for i, t in enumerate(grid):
+                try:
+                    a = mv.focus_parameter(lens, float(t), math.inf)
+                    b = mv.focus_parameter(lens, float(t), close)
+                except LensError as e:
+                    raise NeuralLensError(f"lens '{lens.name}': no focus band at zoom parameter {t:.4g}: {e}") from e
+                w = abs(b - a)
+                lo[i], hi[i] = min(a, b) - FOCUS_MARGIN * w, max(a, b) + FOCUS_MARGIN * w
+        out = cls(names, (float(t0), float(t1)), grid, lo, hi, 0.0, lens, MONOMIALS[names])
+        out.z_sensor = max(mv.at(lens, float(t), float(f), check=False).image_z
+                           for t, f in out.corner_configurations())
+        return out
+
+    def corner_configurations(self, per_interval: int = 4):
+        """(t, f) pairs along the band's edges, ``per_interval`` per grid interval and the ends: where a
+        configuration's extremes (its track, its rear-most surface) lie."""
+        ts = np.linspace(*self.zoom_range, max((len(self.band_t) - 1) * per_interval + 1, 1))
+        return [(float(t), float(f)) for t in ts for f in self.band(t)]
+
+    # ------------------------------------------------------------------ ranges
+    @property
+    def dims(self) -> int:
+        """How many sampled inputs the configurations add to a map (1 or 2): the unit cube's extra columns."""
+        return len(self.names)
+
+    @property
+    def n_products(self) -> int:
+        """How many product inputs follow them (:attr:`monomials` × the ray's r, ωx, ωy)."""
+        return len(self.monomials) * len(PRODUCT_RAY_COLUMNS)
+
+    def _monomial(self, t, f, a: int, b: int):
+        out = None
+        for v, k in ((t, a), (f, b)):
+            for _ in range(k):
+                out = v if out is None else out * v
+        return out
+
+    def products_np(self, x: np.ndarray) -> np.ndarray:
+        """The product inputs (N, :attr:`n_products`) of the reduced inputs ``x`` (N, 4 + :attr:`dims`)."""
+        t, f = self.split([x[:, 4 + j] for j in range(self.dims)])
+        cols = []
+        for a, b in self.monomials:
+            m = self._monomial(np.asarray(t, np.float64), np.asarray(f, np.float64), a, b)
+            cols += [x[:, j] * m for j in PRODUCT_RAY_COLUMNS]
+        return np.stack(cols, 1) if cols else np.zeros((len(x), 0))
+
+    def products_dr(self, x) -> list:
+        """:meth:`products_np` in Dr.Jit: ``x`` the 4 + :attr:`dims` reduced inputs (the configuration's may be
+        scalars of width 1: the monomials are then computed once)."""
+        t, f = self.split(list(x[4:4 + self.dims]))
+        out = []
+        for a, b in self.monomials:
+            m = self._monomial(t, f, a, b)
+            out += [x[j] * m for j in PRODUCT_RAY_COLUMNS]
+        return out
+
+    def products_center_scale(self, ray_scale) -> tuple:
+        """Centre 0 and half-range of each product input (``ray_scale``: the largest |r|, |ωx|, |ωy| of the
+        domain), the monomial's largest magnitude over the learned range."""
+        t = np.linspace(*self.zoom_range, 33)
+        fs = np.linspace(float(self.band_lo.min()), float(self.band_hi.max()), 33)
+        T, Fo = np.meshgrid(t, fs)
+        s = []
+        for a, b in self.monomials:
+            m = float(np.abs(self._monomial(T, Fo, a, b)).max()) or 1.0
+            s += [max(float(ray_scale[j]) * m, 1e-6) for j in PRODUCT_RAY_COLUMNS]
+        return np.zeros(len(s)), np.array(s)
+
+    def band(self, t: float) -> tuple:
+        """(lowest, highest) focus parameter learned at zoom parameter ``t``."""
+        if len(self.band_t) == 1:
+            return float(self.band_lo[0]), float(self.band_hi[0])
+        return float(np.interp(t, self.band_t, self.band_lo)), float(np.interp(t, self.band_t, self.band_hi))
+
+    def check(self, zoom: float, focus: float) -> None:
+        """A :class:`~mi_neurallens.errors.NeuralLensError` when (``zoom``, ``focus``) lies outside what the map
+        learned, naming the range."""
+        t0, t1 = self.zoom_range
+        if "zoom" in self.names and not (t0 - 1e-9 <= zoom <= t1 + 1e-9):
+            raise NeuralLensError(f"zoom parameter {zoom:.4g} is outside the learned range [{t0:g}, {t1:g}]")
+        lo, hi = self.band(zoom)
+        if "focus" in self.names and not (lo - 1e-9 <= focus <= hi + 1e-9):
+            raise NeuralLensError(f"focus parameter {focus:.4g} at zoom parameter {zoom:.4g} is outside the learned "
+                                  f"band [{lo:.4g}, {hi:.4g}] (infinity to the close focus the map was trained for)")
+
+    def values(self, zoom: float, focus: float) -> tuple:
+        """The map's condition inputs of a configuration, in :attr:`names` order."""
+        return tuple(float(zoom) if n == "zoom" else float(focus) for n in self.names)
+
+    def shift_of(self, image_z: float) -> float:
+        """How far a configured lens's lens space (first vertex at 0, sensor at ``image_z``) lies along +z from
+        this frame: a plane at ``z`` here is at ``z + shift_of(image_z)`` there."""
+        return float(image_z) - self.z_sensor
+
+    # ------------------------------------------------------------------ unit cube ↔ (t, f)
+    def _band_np(self, t):
+        return np.interp(t, self.band_t, self.band_lo), np.interp(t, self.band_t, self.band_hi)
+
+    def u_to_tf(self, u: np.ndarray):
+        """The extra unit-cube columns (N, :attr:`dims`) → (t, f) (N,) each, float64."""
+        u = np.asarray(u, np.float64)
+        t0, t1 = self.zoom_range
+        j = 0
+        t = np.full(len(u), t0)
+        if "zoom" in self.names:
+            t = t0 + u[:, j] * (t1 - t0)
+            j += 1
+        lo, hi = self._band_np(t)
+        f = lo + u[:, j] * (hi - lo) if "focus" in self.names else np.zeros(len(u))
+        return t, f
+
+    def tf_to_u(self, t, f) -> np.ndarray:
+        t0, t1 = self.zoom_range
+        cols = []
+        if "zoom" in self.names:
+            cols.append((np.asarray(t, np.float64) - t0) / max(t1 - t0, 1e-30))
+        if "focus" in self.names:
+            lo, hi = self._band_np(t)
+            cols.append((np.asarray(f, np.float64) - lo) / np.maximum(hi - lo, 1e-30))
+        return np.stack(cols, 1)
+
+    def u_to_tf_dr(self, u):
+        """:meth:`u_to_tf` in Dr.Jit: the extra unit-cube components (a list of :attr:`dims` Dr.Jit floats) → the
+        map's condition inputs in :attr:`names` order."""
+        import drjit as dr
+        t0, t1 = self.zoom_range
+        out, j = [], 0
+        t = u[0] * 0.0 + t0
+        if "zoom" in self.names:
+            t = dr.fma(u[j], t1 - t0, t0)
+            out.append(t)
+            j += 1
+        if "focus" in self.names:
+            lo, hi = self._band_dr(t)
+            out.append(dr.fma(u[j], hi - lo, lo))
+        return out
+
+    def _band_dr(self, t):
+        import drjit as dr
+        from ..jit import from_numpy
+        F = type(t)
+        n = len(self.band_t)
+        if n == 1:
+            return t * 0.0 + float(self.band_lo[0]), t * 0.0 + float(self.band_hi[0])
+        g0, g1 = float(self.band_t[0]), float(self.band_t[-1])
+        x = dr.clip((t - g0) * ((n - 1) / (g1 - g0)), 0.0, n - 1.0)
+        k = dr.minimum(dr.uint32_array_t(F)(dr.floor(x)), n - 2)
+        s = x - F(k)
+        lo, hi = from_numpy(F, self.band_lo), from_numpy(F, self.band_hi)
+        a0, a1 = dr.gather(F, lo, k), dr.gather(F, lo, k + 1)
+        b0, b1 = dr.gather(F, hi, k), dr.gather(F, hi, k + 1)
+        return dr.fma(s, a1 - a0, a0), dr.fma(s, b1 - b0, b0)
+
+    def split(self, cond) -> tuple:
+        """(t, f) from the condition inputs (Dr.Jit or floats) in :attr:`names` order (a parameter that is no
+        input is 0)."""
+        d = dict(zip(self.names, cond))
+        return d.get("zoom", 0.0), d.get("focus", 0.0)
+
+    # ------------------------------------------------------------------ normalisation and file form
+    def norm_center_scale(self):
+        """Centre and half-range of each condition input (the networks see them in about [−1, 1])."""
+        c, s = [], []
+        for n in self.names:
+            lo, hi = (self.zoom_range if n == "zoom" else (float(self.band_lo.min()), float(self.band_hi.max())))
+            c.append(0.5 * (lo + hi))
+            s.append(max(0.5 * (hi - lo), 1e-6))
+        return np.array(c), np.array(s)
+
+    def to_dict(self) -> dict:
+        return {"names": list(self.names), "zoom_range": list(self.zoom_range),
+                "band": {"zoom": [float(v) for v in self.band_t], "focus_lo": [float(v) for v in self.band_lo],
+                         "focus_hi": [float(v) for v in self.band_hi]},
+                "z_sensor_mm": float(self.z_sensor), "product_monomials": [list(m) for m in self.monomials]}
+
+    @classmethod
+    def from_dict(cls, d, lens=None) -> "Configurations":
+        if isinstance(d, Configurations):
+            return d if lens is None else dataclasses.replace(d, lens=lens)
+        b = d["band"]
+        return cls(tuple(d["names"]), tuple(float(v) for v in d["zoom_range"]), np.asarray(b["zoom"], np.float64),
+                   np.asarray(b["focus_lo"], np.float64), np.asarray(b["focus_hi"], np.float64),
+                   float(d["z_sensor_mm"]), lens, tuple(tuple(int(v) for v in m) for m in d.get("product_monomials", ())))
+
+    # ------------------------------------------------------------------ the tracer's geometry, per ray
+    def geometry(self, float_type, cond, lens=None):
+        """The tracer's view (:class:`ConfigurationGeometry`) of the configurations ``cond`` (Dr.Jit arrays, one
+        value per ray, in :attr:`names` order) of ``lens`` (default :attr:`lens`; the prescription with its moving
+        groups): per-ray vertex positions in this frame and stop radius."""
+        if lens is not None and self.lens is None:
+            self.lens = lens
+        if self.lens is None:
+            raise NeuralLensError("Configurations.geometry: no lens attached (Configurations.from_dict(d, lens))")
+        return ConfigurationGeometry(self, float_type, *self.split(cond))
+
+    def pieces(self):
+        """Per variable gap ``i``: the (n−1, 4) interval cubics of its infinity gap and the close-focus cubic minus
+        it (:func:`_cubic_pieces`: each gap's own monotone cubic through its infinity and through its close values,
+        as :meth:`~mi_neurallens.optics.moving.MovingGroups.gaps_at`); and the stop radius's, or None."""
+        if not hasattr(self, "_pieces"):
+            mg = self.lens.moving
+            x = np.arange(mg.positions, dtype=np.float64)
+            gaps = {}
+            for i, v in mg.gaps.items():
+                a = np.asarray(v, np.float64)
+                inf, close = _cubic_pieces(x, a[:, 0]), _cubic_pieces(x, a[:, 1])
+                gaps[i] = (inf, close - inf)        # the cubics are linear in their coefficients
+            stop = None if mg.stop_semi_diameters is None else _cubic_pieces(x, np.asarray(mg.stop_semi_diameters))
+            self._pieces = (gaps, stop)
+        return self._pieces
+
+
+def _eval_pieces(coef: np.ndarray, k, s, F):
+    """The interval cubics ``coef`` (n−1, 4) at interval ``k`` (Dr.Jit uint), offset ``s`` (Dr.Jit float)."""
+    import drjit as dr
+    if len(coef) == 1:
+        c = [float(v) for v in coef[0]]
+        return dr.fma(dr.fma(dr.fma(s, c[3], c[2]), s, c[1]), s, c[0])
+    from ..jit import from_numpy
+    c = [dr.gather(F, from_numpy(F, coef[:, j]), k) for j in range(4)]
+    return dr.fma(dr.fma(dr.fma(s, c[3], c[2]), s, c[1]), s, c[0])
+
+
+class ConfigurationGeometry:
+    """What :class:`~mi_neurallens.trace.tracer.LensTracer` reads of a live geometry
+    (:class:`~mi_neurallens.trace.parameters.LiveGeometry`'s interface), for a configuration per ray: each vertex's
+    z (Dr.Jit, per ray) in the configurations' frame, the sensor plane (:attr:`Configurations.z_sensor`, a
+    literal), the stop's radius (per ray where it changes with zoom, else None: the lens's)."""
+
+    def __init__(self, configs: Configurations, F, t, f):
+        import drjit as dr
+        lens = configs.lens
+        gaps, stop = configs.pieces()
+        n = lens.moving.positions
+        if not isinstance(t, (int, float)):
+            k = dr.minimum(dr.uint32_array_t(F)(dr.clip(dr.floor(t), 0.0, float(max(n - 2, 0)))), max(n - 2, 0))
+            s = t - F(k)
+        else:
+            k, s = None, None
+        if k is None:                                   # zoom is no input: position 0
+            k = dr.zeros(dr.uint32_array_t(F), 1)
+            s = dr.zeros(F, 1)
+        d = [float(x.thickness) for x in lens.surfaces]
+        live = {i: _eval_pieces(a, k, s, F) + f * _eval_pieces(b, k, s, F) for i, (a, b) in gaps.items()}
+        z, acc = [], float(configs.z_sensor)
+        for i in reversed(range(len(lens.surfaces))):
+            acc = acc - (live[i] if i in live else d[i])
+            z.append(acc)
+        self._z = list(reversed(z))
+        self.image_z = float(configs.z_sensor)
+        self.stop_radius = None if stop is None else _eval_pieces(stop, k, s, F)
+
+    def _packed(self):
+        return None
+
+    def surfaces(self, n: int | None = None) -> list[dict]:
+        """Per surface, the ``live`` dict :class:`~mi_neurallens.trace.surfaces.SurfaceGeometry` takes: its z."""
+        return [{"z": z} for z in self._z]
