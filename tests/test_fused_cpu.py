@@ -125,7 +125,7 @@ def test_a_stack_trains_the_same_with_and_without_the_kernel():
 
 
 
-def _regressor_problem(direction_loss, odd, heading):
+def _regressor_problem(direction_loss, odd, heading, n_in=4):
     """A RegressorFit with just what its loss reads (no tracer): random transform, weights and constants."""
     from mi_neurallens.training.config import NetConfig
     from mi_neurallens.training.regressor import RegressorFit
@@ -137,23 +137,25 @@ def _regressor_problem(direction_loss, odd, heading):
     fit.wy_c, fit.wy_s = 0.2, 1.3
     fit.W = torch.as_tensor(rng.uniform(0.5, 2.0, 5), dtype=torch.float32)
     fit.T_shift = torch.as_tensor(rng.normal(0, 0.05, 5), dtype=torch.float32)
-    fit.T_skip = torch.as_tensor(rng.normal(0, 0.1, (5, 4)), dtype=torch.float32)
+    fit.T_skip = torch.as_tensor(rng.normal(0, 0.1, (5, n_in)), dtype=torch.float32)
     fit.T_scale = torch.as_tensor(rng.uniform(0.05, 0.2, 5), dtype=torch.float32)
     fit.sig_d2 = 0.013
     return fit
 
 
-@pytest.mark.parametrize("direction_loss,odd,edge,heading", [
-    ("mse+cosine", True, False, 1), ("cosine", False, True, 1), ("none", True, True, -1), ("mse+cosine", False, True, -1)])
-def test_regressor_loss_and_gradient_match_autograd(direction_loss, odd, edge, heading):
+@pytest.mark.parametrize("direction_loss,odd,edge,heading,n_in", [
+    ("mse+cosine", True, False, 1, 4), ("cosine", False, True, 1, 4), ("none", True, True, -1, 4),
+    ("mse+cosine", False, True, -1, 4), ("mse+cosine", True, True, -1, 6)])
+def test_regressor_loss_and_gradient_match_autograd(direction_loss, odd, edge, heading, n_in):
     """The kernel's regressor loss (fused_mlp.c loss_regressor) against RegressorFit.rows_loss and autograd, on a
-    window of stacked pools (strided rows), with exit directions near grazing (the dz clamp) among them."""
-    net = stacked.StackedMLP(torch, "cpu", range(3), 4, 5, 3, 16)
+    window of stacked pools (strided rows), with exit directions near grazing (the dz clamp) among them; with the
+    ray's four inputs, and with a zoom lens's six (zoom and focus as inputs: the skip term over every input)."""
+    net = stacked.StackedMLP(torch, "cpu", range(3), n_in, 5, 3, 16)
     kern = _kernel_or_skip(net.dims)
-    fit = _regressor_problem(direction_loss, odd, heading)
+    fit = _regressor_problem(direction_loss, odd, heading, n_in)
     g = torch.Generator().manual_seed(2)
     K, n, B = 3, 900, 700
-    pools = {"X": torch.rand(K, n, 4, generator=g) * 2 - 1, "Y": torch.randn(K, n, 5, generator=g) * 0.3,
+    pools = {"X": torch.rand(K, n, n_in, generator=g) * 2 - 1, "Y": torch.randn(K, n, 5, generator=g) * 0.3,
              "Yraw": torch.randn(K, n, 5, generator=g) * 0.4}
     pools["Yraw"][:, :50, 2] = 0.9999                  # grazing targets: 1 - |d|² below the clamp
     if edge:

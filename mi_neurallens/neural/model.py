@@ -240,6 +240,10 @@ class NeuralMap(TransportMap):
     #: output transform folded in), replacing :attr:`regressor` in Dr.Jit evaluations in float32: ``neural_lens``
     #: after ``params.update()`` changed a weight (docs/differentiable.md); None: :attr:`regressor`
     live_regressor: object = field(default=None, compare=False, repr=False)
+    #: a map of a lens with moving groups (its domain's ``conditions``): the configuration it renders, its condition
+    #: inputs in the domain's order (zoom parameter, focus parameter), kernel inputs beside the ray's four; None
+    #: where the map has none, or where every ray brings its own (training, evaluation)
+    condition_values: tuple | None = field(default=None, compare=False)
 
     method = "neural"
     reduced = True
@@ -291,6 +295,7 @@ class NeuralMap(TransportMap):
         import drjit as dr
         mlp = self.mlp if mlp is None else mlp
         P = self.params_pool if mlp in PARAM_MODES else None
+        x = self._inputs(x, P)
         xn = [dr.fma(v, number(P, ("norm.a", i), 1.0 / float(s), v), number(P, ("norm.b", i), -float(c) / float(s), v))
               for i, (v, c, s) in enumerate(zip(x, self.input_center, self.input_scale))]
         if mlp not in MLP_MODES:
@@ -311,6 +316,28 @@ class NeuralMap(TransportMap):
         if self.stop_head is not None:
             y = list(y) + self.stop_head.eval_dr(x, xn, self.domain.s_max, P, coopvec=use_packed)
         return logit, y
+
+    def _inputs(self, x, P) -> tuple:
+        """The networks' inputs from the reduced inputs ``x``: the four of the ray, and for a lens with moving groups
+        its configuration — ``x``'s next columns, or :attr:`condition_values` as opaque scalars (a new zoom or focus
+        compiles nothing) — and the product inputs computed from them
+        (:meth:`~mi_neurallens.transport.configurations.Configurations.products_dr`)."""
+        cond = self.domain.conditions
+        if cond is None:
+            return tuple(x)
+        x = tuple(x[:4 + cond.dims]) if len(x) >= 4 + cond.dims else tuple(x[:4]) + self._conditions(x, P)
+        return x + tuple(cond.products_dr(x))
+
+    def _conditions(self, x, P) -> tuple:
+        """:attr:`condition_values` as kernel inputs (see :meth:`_inputs`)."""
+        cond = self.domain.conditions
+        if self.condition_values is None or len(self.condition_values) != cond.dims:
+            raise ModelError(f"map {self.key} takes the configuration ({', '.join(cond.names)}) as inputs; set "
+                             "its condition_values (neural_lens does from focal_length and focus_distance)")
+        import drjit as dr
+        F = type(x[0])
+        return tuple(number(P, ("condition", i), v, x[0]) if P is not None else dr.opaque(F, float(v))
+                     for i, v in enumerate(self.condition_values))
 
     # ------------------------------------------------------------------ frozen kernels
     def kernel_signature(self):
@@ -537,8 +564,10 @@ def load_model(path, lens=None) -> NeuralLensModel:
             ac, ar = mm["classifier"].get("activation", "tanh"), mm["regressor"].get("activation", "tanh")
             if ac not in ACTIVATIONS or ar not in ACTIVATIONS:
                 raise ModelError(f"{path}: map {key}: unknown activation {ac!r}/{ar!r}; known: {ACTIVATIONS}")
-            if wc[0] != 4 or wr[0] != 4 or wc[-1] != 1 or wr[-1] != len(OUTPUTS):
-                raise ModelError(f"{path}: map {key}: architecture {wc} / {wr} does not map 4 inputs to 1 logit "
+            dom = Domain.from_dict(mm["domain"])
+            n_in = dom.n_inputs
+            if wc[0] != n_in or wr[0] != n_in or wc[-1] != 1 or wr[-1] != len(OUTPUTS):
+                raise ModelError(f"{path}: map {key}: architecture {wc} / {wr} does not map {n_in} inputs to 1 logit "
                                  f"and {len(OUTPUTS)} outputs")
             cls = [(get(f"{key}.classifier.{i}.weight", (wc[i + 1], wc[i])), get(f"{key}.classifier.{i}.bias", (wc[i + 1],)))
                    for i in range(len(wc) - 1)]
@@ -546,22 +575,22 @@ def load_model(path, lens=None) -> NeuralLensModel:
                    for i in range(len(wr) - 1)]
             tm = NeuralMap(
                 path_id=int(mm["path_id"]), direction=str(mm["direction"]), z_in=float(mm["z_in_mm"]),
-                z_out=float(mm["z_out_mm"]), domain=Domain.from_dict(mm["domain"]),
+                z_out=float(mm["z_out_mm"]), domain=dom,
                 input_center=np.asarray(mm["input_norm"]["center"], np.float64),
                 input_scale=np.asarray(mm["input_norm"]["scale"], np.float64),
                 classifier=cls, regressor=reg,
-                skip=get(f"{key}.regressor.skip.weight", (len(OUTPUTS), 4)),
+                skip=get(f"{key}.regressor.skip.weight", (len(OUTPUTS), n_in)),
                 out_scale=get(f"{key}.regressor.out_scale", (len(OUTPUTS),)),
                 out_shift=get(f"{key}.regressor.out_shift", (len(OUTPUTS),)),
                 classifier_activation=ac, regressor_activation=ar,
                 odd_y=bool(mm["regressor"].get("odd_y", False)),
                 position_cos=bool(mm["regressor"].get("position_cos", False)),
                 training=mm.get("training", {}), metrics=mm.get("metrics", {}),
-                stop_head=_load_stop_head(path, key, mm.get("stop"), get))
+                stop_head=_load_stop_head(path, key, mm.get("stop"), get, n_in))
             if tm.direction not in ("forward", "backward") or tm.key != key:
                 raise ModelError(f"{path}: map {key}: inconsistent key/direction/path id")
-            if tm.input_center.shape != (4,) or tm.input_scale.shape != (4,) or np.any(tm.input_scale == 0):
-                raise ModelError(f"{path}: map {key}: input_norm must hold 4 centres and 4 non-zero scales")
+            if tm.input_center.shape != (n_in,) or tm.input_scale.shape != (n_in,) or np.any(tm.input_scale == 0):
+                raise ModelError(f"{path}: map {key}: input_norm must hold {n_in} centres and {n_in} non-zero scales")
         except (KeyError, TypeError, ValueError) as e:
             if isinstance(e, ModelError):
                 raise
@@ -575,18 +604,18 @@ def load_model(path, lens=None) -> NeuralLensModel:
                            sensor_distance_range=srange, maps=maps, extra=extra, path=path)
 
 
-def _load_stop_head(path, key, meta, get):
+def _load_stop_head(path, key, meta, get, n_in: int = 4):
     if meta is None:
         return None
     w, k = meta["layers"], int(meta["crossings"])
     act = meta.get("activation", "tanh")
     if act not in ACTIVATIONS:
         raise ModelError(f"{path}: map {key}: unknown stop-head activation {act!r}; known: {ACTIVATIONS}")
-    if k < 1 or w[0] != 4 or w[-1] != 2 * k:
-        raise ModelError(f"{path}: map {key}: stop head {w} does not map 4 inputs to 2 × {k} crossing coordinates")
+    if k < 1 or w[0] != n_in or w[-1] != 2 * k:
+        raise ModelError(f"{path}: map {key}: stop head {w} does not map {n_in} inputs to 2 × {k} crossing coordinates")
     layers = [(get(f"{key}.stop.{i}.weight", (w[i + 1], w[i])), get(f"{key}.stop.{i}.bias", (w[i + 1],)))
               for i in range(len(w) - 1)]
-    return StopHead(crossings=k, layers=layers, skip=get(f"{key}.stop.skip.weight", (2 * k, 4)),
+    return StopHead(crossings=k, layers=layers, skip=get(f"{key}.stop.skip.weight", (2 * k, n_in)),
                     out_scale=get(f"{key}.stop.out_scale", (2 * k,)), out_shift=get(f"{key}.stop.out_shift", (2 * k,)),
                     activation=act, odd_y=bool(meta.get("odd_y", True)), training=meta.get("training", {}),
                     metrics=meta.get("metrics", {}))

@@ -86,7 +86,10 @@ Neural lens camera (:monosp:`neural_lens`)
      crosses the stop plane, and that crossing is tested against the requested iris, exactly as the
      tracer tests it (a model without one is fixed at its trained aperture, with a clear error).
      ``fresnel=false`` replaces the learned throughput by 1.  A lens with moving groups (zoom, internal
-     focusing) has no learned map yet: ``focal_length`` and such lenses are refused (use ``realistic_lens``).
+     focusing) takes ``focal_length`` and ``focus_distance`` as ``realistic_lens`` does, and its model's one camera
+     map takes the zoom and focus parameters as inputs beside the ray: any focal length and focus distance the map
+     learned renders without recompiling (a clear error outside them; docs/neural_lens.md, "Zoom and internal
+     focusing").
 
 The evaluation order per camera ray: film point and pupil sample (as ``realistic_lens``), then the
 ray is moved to the model's input plane, reduced by the lens's rotational and mirror symmetry to
@@ -216,10 +219,6 @@ class NeuralLens(LensSensorBase):
         except ModelError as e:
             raise SensorPropertyError(PLUGIN, "model", str(e)) from e
         lens = load_lens(self.lens_prop or probe.lens_name, PLUGIN)
-        if lens.moving is not None:
-            raise SensorPropertyError(PLUGIN, "lens", f"lens '{lens.name}' zooms or focuses by moving groups of its "
-                                      "elements; no learned map of such a lens exists yet (zoom and focus as map "
-                                      "inputs): render it with realistic_lens")
         if lens.fingerprint() != probe.fingerprint:
             raise SensorPropertyError(
                 PLUGIN, "lens" if self.lens_prop else "model",
@@ -229,6 +228,10 @@ class NeuralLens(LensSensorBase):
         if not probe.has("transmit", "backward"):
             raise SensorPropertyError(PLUGIN, "model", f"model {self.model_path} has no backward transmit "
                                       f"map (it has {sorted(probe.maps)})")
+        if lens.moving is not None and probe.map("transmit", "backward").domain.conditions is None:
+            raise SensorPropertyError(PLUGIN, "model", f"lens '{lens.name}' zooms or focuses by moving groups, and "
+                                      f"model {self.model_path}'s camera map does not take the zoom and focus as "
+                                      "inputs: train one with `mi-neurallens train`")
         self.model = probe
         tuned = probe.extra.get("fine_tuned")
         if tuned:
@@ -240,6 +243,9 @@ class NeuralLens(LensSensorBase):
         """The iris the learned map must test (None: the one it was trained with)."""
         st = self.setup
         trained, want = Iris.of_lens(st.base_lens), Iris.of_lens(st.lens)
+        moving = st.base_lens.moving
+        if moving is not None and moving.stop_at(st.zoom) is not None:    # the stop the map learned at this zoom
+            trained = dataclasses.replace(trained, radius_mm=moving.stop_at(st.zoom))
         if want.same_as(trained):
             return None
         prop = "fstop" if want.blades == trained.blades else "blades"
@@ -267,12 +273,15 @@ class NeuralLens(LensSensorBase):
 
     def _make_map(self, geometry):
         st = self.setup
-        try:
-            self.model.check_sensor_distance(st.sensor_distance_mm)
-        except ModelError as e:
-            which = "sensor_distance" if not (st.focus_distance_mm > 0) else "focus_distance"
-            raise SensorPropertyError(PLUGIN, which, str(e)) from e
         tm = self.model.map("transmit", "backward")
+        if tm.domain.conditions is not None:
+            tm = self._configured(tm)
+        else:
+            try:
+                self.model.check_sensor_distance(st.sensor_distance_mm)
+            except ModelError as e:
+                which = "sensor_distance" if not (st.focus_distance_mm > 0) else "focus_distance"
+                raise SensorPropertyError(PLUGIN, which, str(e)) from e
         if self.method == "neural":
             net = self.network_parameters
             live = None
@@ -286,6 +295,22 @@ class NeuralLens(LensSensorBase):
         from ..transport import make_map
         return make_map(st.lens, self.method, "transmit", "backward", z_in=tm.z_in, z_out=tm.z_out,
                         **({"fresnel": st.fresnel} if self.method == "exact" else {}))
+
+    def _configured(self, tm):
+        """The camera map of a lens with moving groups at the sensor's configuration: its zoom and focus parameters
+        as the map's condition inputs, its planes moved from the configurations' frame (the sensor fixed) into the
+        configured lens's space (:class:`~mi_neurallens.transport.configurations.Configurations`); a configuration
+        outside the learned range is a clear error."""
+        from ..errors import NeuralLensError
+        st, cond = self.setup, tm.domain.conditions
+        try:
+            cond.check(st.zoom, st.focus_parameter)
+        except NeuralLensError as e:
+            which = "focal_length" if str(e).startswith("zoom") else "focus_distance"
+            raise SensorPropertyError(PLUGIN, which, f"model {self.model_path}: {e}") from e
+        shift = cond.shift_of(st.lens.image_z)
+        return dataclasses.replace(tm, z_in=tm.z_in + shift, z_out=tm.z_out + shift,
+                                   condition_values=cond.values(st.zoom, st.focus_parameter))
 
     def _margin_scale(self) -> float | None:
         """Logit units per aperture margin of the map's classifier when it was trained on the tracer's margin

@@ -47,7 +47,8 @@ def train_classifiers(problems, nc: NetConfig, *, ckpt: str | None = None, threa
     torch.manual_seed(int(problems[0]["seed"]))
     keys = [p["key"] for p in problems]
     prior = peek_stack(ckpt, keys)
-    ncp = dataclasses.replace(nc, pool=pool_rows(nc, len(problems), 4 * 5) if start is None else FINISH_POOL)
+    ncp = dataclasses.replace(nc, pool=pool_rows(nc, len(problems), 4 * (len(problems[0]["center"]) + 1))
+                              if start is None else FINISH_POOL)
     fits = []
     for p in problems:
         resumed = p["key"] in prior
@@ -57,7 +58,8 @@ def train_classifiers(problems, nc: NetConfig, *, ckpt: str | None = None, threa
                                   center=p["center"], scale_in=p["scale_in"], log=log,
                                   desc=f"{p['key']} classifier" if len(problems) > 1 else desc))
     if start is None:
-        res = train_stack(torch, dev, fits, nc, seeds=[p["seed"] for p in problems], n_in=4, n_out=1, keys=keys,
+        res = train_stack(torch, dev, fits, nc, seeds=[p["seed"] for p in problems], n_in=len(problems[0]["center"]),
+                          n_out=1, keys=keys,
                           ckpt=ckpt, progress=progress, desc=desc, log=log)
     else:
         for f, s0 in zip(fits, start):        # "refined": a finish-only run's mark in the state (checkpoints carry it)
@@ -176,7 +178,7 @@ def calibrate_classifier(lens, tm, n: int = 200_000, seed: int = 0, fresnel: boo
     rng = np.random.default_rng(seed)
     dom = Domain.from_dict(tm.domain)
     ps = PathSampler(lens, tm.path_id, tm.direction, tm.z_in, tm.z_out, dom, fresnel=fresnel, precision="float64")
-    x = dom.u_to_x(rng.random((n, 4)))
+    x = dom.u_to_x(rng.random((n, dom.dims)))
     v, _ = ps.trace_x(x)
     logit, _ = map_outputs_np(tm, x)
     grid = np.linspace(-8.0, 8.0, 641)

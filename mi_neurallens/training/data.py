@@ -41,7 +41,7 @@ class RegressorStream:
                                   f"{like.ps.path_id}, not this sampler's map {ps.direction}.{ps.path_id}")
         self.fraction = valid_fraction(ps, self.rng) if like is None else like.fraction
         self.mcmc = None
-        self._u = np.zeros((0, 4))
+        self._u = np.zeros((0, ps.dims))
         self._y = np.zeros((0, ps.n_out))
         if self.fraction < mcmc_threshold:
             self.mcmc = MCMCSampler(ps, self.rng, n_chains=n_chains, p_large=p_large, sigma=sigma)
@@ -90,7 +90,7 @@ def classifier_samples(ps: PathSampler, valid_u: np.ndarray, n: int, rng: np.ran
         from .config import NetConfig
         sigma_range = NetConfig.boundary_sigma
     k = n // 3
-    u_uni = rng.random((k, 4))
+    u_uni = rng.random((k, ps.dims))
     pick = valid_u[rng.integers(0, len(valid_u), n - 2 * k)]
     u_val = valid_u[rng.integers(0, len(valid_u), k)]
     sig = np.exp(rng.uniform(math.log(sigma_range[0]), math.log(sigma_range[1]), (len(pick), 1)))

@@ -73,9 +73,10 @@ def boundary_distance(ps: PathSampler, xn_wrong: np.ndarray, label_true: np.ndar
         if not todo.any():
             break
         pts = xn_wrong[todo]
-        d = rng.standard_normal((len(pts), n_dir, 4))
+        k = xn_wrong.shape[1]
+        d = rng.standard_normal((len(pts), n_dir, k))
         d /= np.linalg.norm(d, axis=2, keepdims=True)
-        q = (pts[:, None, :] + r * d).reshape(-1, 4)
+        q = (pts[:, None, :] + r * d).reshape(-1, k)
         x = q * scale + center
         x[:, 0] = np.abs(x[:, 0])               # r ≥ 0 (mirror image is the same ray family)
         x[:, 2] = np.abs(x[:, 2])               # ωy ≥ 0 (mirror symmetry)
@@ -106,7 +107,7 @@ def evaluate_map(lens, tm, n: int = 200_000, seed: int = 999, mcmc_threshold: fl
         m["stop"] = stop_errors(yp[:, 5:5 + 2 * k], y[:, 5:5 + 2 * k])
     # classifier on the natural (uniform-domain) mix
     ps = PathSampler(lens, tm.path_id, tm.direction, tm.z_in, tm.z_out, dom, fresnel=fresnel, precision="float64")
-    xu = dom.u_to_x(rng.random((n, 4)))
+    xu = dom.u_to_x(rng.random((n, dom.dims)))
     v, _ = ps.trace_x(xu)
     logit, _ = map_outputs_np(tm, xu)
     pv = logit > 0

@@ -177,8 +177,9 @@ class FusedKernel:
         <mi_neurallens.training.regressor.RegressorFit.rows_loss>`; ``cos_mode`` 0: MSE, 1: cosine, 2: both."""
         K, B = out.shape[0], out.shape[1]
         self._check_rows(torch, out, 5, batch["X"], batch["Y"], batch["Yraw"], batch.get("W"))
-        if batch["X"].shape[-1] != 4:
-            raise ValueError(f"fused regressor loss: inputs {tuple(batch['X'].shape)}, not (K, B, 4)")
+        if batch["X"].shape[-1] != self.dims[0] or const["skip"].shape[-1] != self.dims[0]:
+            raise ValueError(f"fused regressor loss: inputs {tuple(batch['X'].shape)}, skip {tuple(const['skip'].shape)}"
+                             f", not (K, B, {self.dims[0]}) and (K, 5, {self.dims[0]})")
         out = out.detach().contiguous()
         keep = []
         rows = []

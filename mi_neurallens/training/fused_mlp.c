@@ -252,7 +252,7 @@ void loss_regressor(int K, int B, const float *out,
 #pragma omp parallel for schedule(static)
     for (int k = 0; k < K; k++) {
         double acc = 0.0;
-        const float *Wk = W + 5 * k, *sh = shift + 5 * k, *sk = skip + 20 * k, *sc = scale + 5 * k;
+        const float *Wk = W + 5 * k, *sh = shift + 5 * k, *sk = skip + 5 * NIN * k, *sc = scale + 5 * k;
         const float cos_c = cos_mode ? cosine_weight * 0.4f / (2.0f * sig_d2[k]) : 0.0f;
         for (int r = 0; r < B; r++) {
             const float *xr = x + k * xks + r * xrs, *tr = t + k * tks + r * trs, *o = out + ((long)k * B + r) * 5;
@@ -273,7 +273,7 @@ void loss_regressor(int K, int B, const float *out,
                 float d[2];
                 for (int c = 0; c < 2; c++) {
                     float lin = sh[2 + c];
-                    for (int i = 0; i < 4; i++) lin += xr[i] * sk[(2 + c) * 4 + i];
+                    for (int i = 0; i < NIN; i++) lin += xr[i] * sk[(2 + c) * NIN + i];
                     d[c] = M[2 + c] * lin + sc[2 + c] * p[2 + c];
                 }
                 float a[3], b[3], na, nb, sa, sb;

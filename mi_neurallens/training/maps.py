@@ -70,7 +70,7 @@ def classifier_problem(lens, spec, ps, stream, seed: int, key: str, cfg: TrainCo
     errors)."""
     p, d, zi, zo, dom = spec
     psv = PathSampler(lens, p, d, zi, zo, dom, fresnel=cfg.fresnel, precision="float64")
-    xcv = dom.u_to_x(np.random.default_rng(seed + 11).random((classifier_validation_size(cfg), 4)))
+    xcv = dom.u_to_x(np.random.default_rng(seed + 11).random((classifier_validation_size(cfg), dom.dims)))
     lcv, _ = psv.trace_x(xcv)
     center, scale_in = dom.norm_center_scale()
     return dict(ps=ps, valid_u_source=(lambda n, s=stream: s.sample(n)[0]), val=(xcv, lcv), center=center,

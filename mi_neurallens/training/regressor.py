@@ -56,13 +56,14 @@ def train_regressors(problems, nc: NetConfig, *, ckpt: str | None = None, thread
     torch.manual_seed(int(problems[0]["seed"]))
     keys = [p["key"] for p in problems]
     prior = peek_stack(ckpt, keys)
-    n_pool = pool_rows(nc, len(problems), 4 * (4 + 5 + 5 + 1)) if start is None else FINISH_POOL
+    n_in = len(problems[0]["center"])
+    n_pool = pool_rows(nc, len(problems), 4 * (n_in + 5 + 5 + 1)) if start is None else FINISH_POOL
     t_start = time.perf_counter()
     fits = [_regressor_fit(torch, dev, p, nc, prior, None if start is None else start[j], n_pool, ckpt, log,
                            f"{p['key']} regressor" if len(problems) > 1 else desc)
             for j, p in enumerate(problems)]
     if start is None:
-        res = train_stack(torch, dev, fits, nc, seeds=[p["seed"] for p in problems], n_in=4, n_out=5, keys=keys,
+        res = train_stack(torch, dev, fits, nc, seeds=[p["seed"] for p in problems], n_in=n_in, n_out=5, keys=keys,
                           ckpt=ckpt, progress=progress, desc=desc, log=log)
     else:
         res = [{"layers": s0["layers"], "state": f.state} for s0, f in zip(start, fits)]
@@ -193,7 +194,7 @@ class RegressorFit(Problem):
         return p * self.oscale + odd_factor(x[:, 2], self.odd_s) * (self.shift + xn @ self.skip.T)
 
     def M_of(self, xb, const=None):
-        """The odd-y factor M of a batch of normalised inputs ``xb`` (…, B, 4) (ones unless ``odd_s``);
+        """The odd-y factor M of a batch of normalised inputs ``xb`` (…, B, inputs) (ones unless ``odd_s``);
         ``const``: the (stacked) constants of :meth:`constants`, default this map's."""
         M = self.torch.ones(xb.shape[:-1] + (5,), device=xb.device, dtype=xb.dtype)
         if self.odd_s is not None:
@@ -252,7 +253,7 @@ class RegressorFit(Problem):
     FUSED_COS_MODE = {"cosine": 1, "mse+cosine": 2}
 
     def has_fused_loss(self) -> bool:
-        return self.T_skip.shape == (5, 4)
+        return self.T_skip.shape[0] == 5          # the kernel takes any input count (its NIN), checked per call
 
     def fused_loss(self, kern, out, batch, const):
         """:meth:`rows_loss` and its gradient in one pass of ``kern`` (:mod:`~mi_neurallens.training.fused_cpu`)."""

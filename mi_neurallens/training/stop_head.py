@@ -198,7 +198,8 @@ def train_stop_heads(lens, tms, nc: NetConfig, *, seeds, fresnel: bool = True, m
     k = ks.pop()
     keys = [tm.key for tm in tms]
     if start is None:
-        res = train_stack(torch, dev, fits, nc, seeds=seeds, n_in=4, n_out=2 * k, keys=keys, progress=progress,
+        res = train_stack(torch, dev, fits, nc, seeds=seeds, n_in=len(tms[0].input_center), n_out=2 * k, keys=keys,
+                          progress=progress,
                           desc=f"stop heads ×{len(tms)}" if len(tms) > 1 else f"{keys[0]} stop head", log=log)
     else:
         res = [_finish_start(tm, head, f, nc, log) for tm, head, f in zip(tms, start, fits)]
@@ -221,7 +222,7 @@ def _stop_fit(torch, dev, lens, tm, nc: NetConfig, stream, seed: int, n_maps: in
     center, scale_in, s_max = np.asarray(tm.input_center), np.asarray(tm.input_scale), tm.domain.s_max
     xv, yv = heldout_valid(lens, (tm.path_id, tm.direction, tm.z_in, tm.z_out), tm.domain, n_val, seed + 7,
                            mcmc_threshold, fresnel, stops=True)
-    _, x0, y0 = stream.sample(pool_rows(nc, n_maps, 4 * (4 + 2 * k)))
+    _, x0, y0 = stream.sample(pool_rows(nc, n_maps, 4 * (len(center) + 2 * k)))
     c0 = y0[:, 5:]
     if nc.input_box and s0 is None:
         center, scale_in = input_box(x0, center, scale_in)

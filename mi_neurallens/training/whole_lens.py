@@ -107,22 +107,24 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
     ``auto``, which learns a ghost only where its record passes and the map is the faster.  Last, with
     ``cfg.verify_flare_refine_minutes`` and no base, a ghost whose records all miss the gate gets its regressor's
     finish again past its goals and the better map kept (:func:`_finish_missed`).  Returns the model."""
-    if getattr(lens, "moving", None) is not None:
-        from ..errors import NeuralLensError
-        raise NeuralLensError(
-            f"lens '{lens.name}' zooms or focuses by moving groups: a learned map with zoom and focus as inputs is "
-            "not built yet.  Train one fixed configuration of it: `mi-neurallens lens convert "
-            f"{lens.name} {lens.name}-50mm.json --focal-length 50 [--focus-distance MM]`, then train that file")
     keep, finish_only = run_mode(keep, finish_only)
     based = keep is not None or finish_only is not None
     base_model = _base_model(lens, keep, finish_only, base_path)
-    s_range = plan.sensor_distance_range(lens, cfg.close_focus_mm)
-    z_planes = plan.planes(lens, s_range[0])
+    configs = _configurations(lens, cfg)
+    if configs is None:
+        s_range = plan.sensor_distance_range(lens, cfg.close_focus_mm)
+        z_planes = plan.planes(lens, s_range[0])
+    else:
+        z_planes = plan.moving_planes(configs)
+        s_range = _moving_sensor_distances(configs)
     workdir = workdir or (out_path + ".work")
     os.makedirs(workdir, exist_ok=True)
-    model = _open_model(lens, cfg, out_path, z_planes, s_range)
+    model = _open_model(lens, cfg, out_path, z_planes, s_range, configs)
     record_run(model, provenance)
-    todo = _plan_maps(lens, cfg, model, select_maps(cfg, paths), z_planes, s_range, workdir)
+    groups = select_maps(cfg, paths)
+    if configs is not None:
+        groups = _moving_groups(lens, groups, paths)
+    todo = _plan_maps(lens, cfg, model, groups, z_planes, s_range, workdir, configs)
     if base_model is not None:
         _carry_base(model, base_model, todo)
     # the maps left to train, one stack per direction (maps of one direction share shape and domain)
@@ -147,6 +149,41 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
         from ..neural.model import load_model
         return load_model(out_path, lens)
     return model
+
+
+def _configurations(lens, cfg: TrainConfig):
+    """A lens with moving groups: the configurations its maps take as inputs
+    (:class:`~mi_neurallens.transport.configurations.Configurations`: the zoom range, and from infinity to the
+    prescription's close focus, or to the recipe's ``close_focus_mm`` where it gives a number, mm from the sensor);
+    None for a lens of one configuration."""
+    if getattr(lens, "moving", None) is None:
+        return None
+    from ..transport.configurations import Configurations
+    close = cfg.close_focus_mm if isinstance(cfg.close_focus_mm, (int, float)) and cfg.close_focus_mm > 0 else None
+    return Configurations.of_lens(lens, close)
+
+
+def _moving_sensor_distances(configs) -> tuple:
+    """(least, greatest) sensor distance behind the last vertex (mm) over the configurations a map learns: what a
+    model file records as its sensor-distance range (the sensor itself does not move)."""
+    from ..optics import moving as mv
+    s = [mv.at(configs.lens, t, f, check=False).surfaces[-1].thickness for t, f in configs.corner_configurations()]
+    return float(min(s)), float(max(s))
+
+
+def _moving_groups(lens, groups, paths):
+    """The (direction, path) groups a lens with moving groups trains: its camera map (the backward maps); the
+    forward maps and ghosts with zoom and focus as inputs are not built, so asked for by name they are refused and
+    otherwise left out, said once."""
+    fwd = [g for g in groups if g[0] == "forward"]
+    if fwd and paths:
+        raise NeuralLensError(f"lens '{lens.name}' zooms or focuses by moving groups: only its camera map "
+                              "(--paths backward-transmit) is learned with zoom and focus as inputs; lens_flare traces "
+                              "its forward rays and ghosts exactly")
+    if fwd:
+        print(f"{lens.name}: moving groups: training the camera map only (zoom and focus as inputs); lens_flare "
+              "traces this lens's ghosts exactly", file=sys.stderr, flush=True)
+    return [g for g in groups if g[0] == "backward"]
 
 
 def _base_model(lens, keep, finish_only, base_path):
@@ -174,15 +211,17 @@ def record_run(model, provenance: dict | None) -> None:
     model.extra["runs"] = runs
 
 
-def _open_model(lens, cfg: TrainConfig, out_path: str, z_planes, s_range):
+def _open_model(lens, cfg: TrainConfig, out_path: str, z_planes, s_range, configs=None):
     """The model this run writes: new for the lens's planes (z_front, z_rear; mm) and sensor distances, holding
     the maps of a model already at ``out_path`` that were trained with this configuration (a resumed run) and that
-    model's extra records; a file there that does not load as a model of the lens is replaced."""
+    model's extra records; a file there that does not load as a model of the lens is replaced.  ``configs``: a
+    lens with moving groups, whose planes lie in the configurations' frame (the sensor at ``z_sensor``)."""
     from ..errors import ModelError
     from ..neural.model import NeuralLensModel, load_model
     z_front, z_rear = z_planes
+    z_last = float(lens.total_track) if configs is None else float(configs.z_sensor - lens.surfaces[-1].thickness)
     model = NeuralLensModel(lens_name=lens.name, fingerprint=lens.fingerprint(), z_front=z_front, z_rear=z_rear,
-                            z_last_vertex=float(lens.total_track), sensor_distance_range=tuple(s_range))
+                            z_last_vertex=z_last, sensor_distance_range=tuple(s_range))
     if os.path.exists(out_path):
         try:
             old = load_model(out_path, lens)
@@ -197,7 +236,7 @@ def _open_model(lens, cfg: TrainConfig, out_path: str, z_planes, s_range):
     return model
 
 
-def _plan_maps(lens, cfg: TrainConfig, model, groups, z_planes, s_range, workdir: str) -> list:
+def _plan_maps(lens, cfg: TrainConfig, model, groups, z_planes, s_range, workdir: str, configs=None) -> list:
     """(path_id, direction, z_in, z_out, domain) of every map of the (direction, path) ``groups``
     (:func:`select_maps`): a backward map's domain pilot-traced (cached as ``<workdir>/domain.backward.<id>.json``),
     the forward maps' one domain over the configured field and film reach; ``"ghosts"``: the ghosts the flare's
@@ -215,8 +254,11 @@ def _plan_maps(lens, cfg: TrainConfig, model, groups, z_planes, s_range, workdir
             dom_path = os.path.join(workdir, f"domain.backward.{pid}.json")
             if os.path.exists(dom_path):
                 dom = Domain.from_dict(json.load(open(dom_path)))
+                if dom.conditions is not None:
+                    dom.conditions.lens = lens
             else:
-                dom = plan.backward_domain(lens, pid, z_rear, z_front, np.random.default_rng(cfg.seed))
+                dom = plan.backward_domain(lens, pid, z_rear, z_front, np.random.default_rng(cfg.seed),
+                                           conditions=configs)
                 atomic_write_text(dom_path, json.dumps(dom.to_dict()))
             todo.append((pid, "backward", z_rear, z_front, dom))
         elif p == "ghosts":
