@@ -36,6 +36,7 @@ bench: setup
 	done
 	$(PY) benchmarks/bench_flare.py --lens ood-59mm --coatings none,quarter_wave,broadband --out $(OUT)/bench/coatings_ood-59mm.json
 	$(PY) benchmarks/equal_time.py --out $(OUT)/bench/equal_time.json
+	$(PY) benchmarks/bench_zoom.py --out $(OUT)/bench/bench_zoom.json
 	$(PY) benchmarks/bench_baselines.py --out $(OUT)/bench/bench_baselines.json
 	$(PY) -m mi_neurallens accuracy wide-22mm --out $(OUT)/bench
 
