@@ -317,8 +317,9 @@ def test_a_stop_head_trained_on_its_input_box_folds_into_the_same_function():
     np.testing.assert_allclose(head(L2, sk2, sh2, (x - c) / s), head(layers, skip, shift, xb), rtol=1e-10, atol=1e-10)
 
 
-def test_large_networks_are_left_to_adam():
-    """A 5×32 regressor has more weights than the finish handles; the trainer records why it skipped."""
+def test_large_networks_are_left_to_adam(capsys):
+    """A 5×32 regressor has more weights than the finish handles; the trainer records why it skipped, and says
+    so (a recipe's lm_minutes for it buy nothing)."""
     from mi_neurallens.training.levenberg import finish_results
     layers = random_layers([4] + [32] * 5 + [5])
     assert n_params(layers) > MAX_PARAMS
@@ -326,6 +327,7 @@ def test_large_networks_are_left_to_adam():
     nc = types.SimpleNamespace(lm_minutes=1.0)
     finish_results(torch, [object()], res, nc, ["forward.12"])
     assert "skipped" in res[0]["state"]["lm"]
+    assert "forward.12: the Levenberg-Marquardt finish skips this network" in capsys.readouterr().err
 
 
 def test_trainer_finishes_small_networks_and_a_finish_only_run_finishes_a_model(tmp_path):

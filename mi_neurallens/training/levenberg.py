@@ -34,6 +34,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import sys
 import time
 from typing import TYPE_CHECKING
 
@@ -571,6 +572,10 @@ def finish_results(torch, fits, results, nc: NetConfig, keys, ckpt: str | None =
         P = n_params(r["layers"])
         if P > MAX_PARAMS:
             st["lm"] = {"skipped": f"{P} weights > {MAX_PARAMS}"}
+            # said, not only recorded: a recipe that asks minutes of the finish for such a network gets none
+            print(f"{key}: the Levenberg-Marquardt finish skips this network ({P} weights > {MAX_PARAMS}): its "
+                  f"lm_minutes = {nc.lm_minutes:g} do nothing; a network of at most {MAX_PARAMS} weights is finished",
+                  file=sys.stderr, flush=True)
             continue
         path = None if not ckpt else f"{ckpt}.lm.{key}.json"
         if path and os.path.exists(path):
