@@ -254,8 +254,6 @@ def _plan_maps(lens, cfg: TrainConfig, model, groups, z_planes, s_range, workdir
             dom_path = os.path.join(workdir, f"domain.backward.{pid}.json")
             if os.path.exists(dom_path):
                 dom = Domain.from_dict(json.load(open(dom_path)))
-                if dom.conditions is not None:
-                    dom.conditions.lens = lens
             else:
                 dom = plan.backward_domain(lens, pid, z_rear, z_front, np.random.default_rng(cfg.seed),
                                            conditions=configs)

@@ -184,9 +184,7 @@ class Configurations:
 
     def band(self, t: float) -> tuple:
         """(lowest, highest) focus parameter learned at zoom parameter ``t``."""
-        if len(self.band_t) == 1:
-            return float(self.band_lo[0]), float(self.band_hi[0])
-        return float(np.interp(t, self.band_t, self.band_lo)), float(np.interp(t, self.band_t, self.band_hi))
+        return tuple(float(v) for v in self._band_np(t))
 
     def check(self, zoom: float, focus: float) -> None:
         """A :class:`~mi_neurallens.errors.NeuralLensError` when (``zoom``, ``focus``) lies outside what the map
@@ -210,6 +208,7 @@ class Configurations:
 
     # ------------------------------------------------------------------ unit cube ↔ (t, f)
     def _band_np(self, t):
+        """The band's edges at ``t`` (float or array): linear between the tabulated zoom parameters."""
         return np.interp(t, self.band_t, self.band_lo), np.interp(t, self.band_t, self.band_hi)
 
     def u_to_tf(self, u: np.ndarray):
@@ -303,18 +302,19 @@ class Configurations:
         """The tracer's view (:class:`ConfigurationGeometry`) of the configurations ``cond`` (Dr.Jit arrays, one
         value per ray, in :attr:`names` order) of ``lens`` (default :attr:`lens`; the prescription with its moving
         groups): per-ray vertex positions in this frame and stop radius."""
-        if lens is not None and self.lens is None:
-            self.lens = lens
-        if self.lens is None:
-            raise NeuralLensError("Configurations.geometry: no lens attached (Configurations.from_dict(d, lens))")
-        return ConfigurationGeometry(self, float_type, *self.split(cond))
+        lens = lens if lens is not None else self.lens
+        if lens is None:
+            raise NeuralLensError("Configurations.geometry: no lens (pass one, or Configurations.from_dict(d, lens))")
+        return ConfigurationGeometry(self, lens, float_type, *self.split(cond))
 
-    def pieces(self):
-        """Per variable gap ``i``: the (n−1, 4) interval cubics of its infinity gap and the close-focus cubic minus
-        it (:func:`_cubic_pieces`: each gap's own monotone cubic through its infinity and through its close values,
-        as :meth:`~mi_neurallens.optics.moving.MovingGroups.gaps_at`); and the stop radius's, or None."""
-        if not hasattr(self, "_pieces"):
-            mg = self.lens.moving
+    def pieces(self, lens):
+        """The moving groups of ``lens`` as cubics: per variable gap ``i``, the (n−1, 4) interval cubics of its
+        infinity gap and the close-focus cubic minus it (:func:`_cubic_pieces`: each gap's own monotone cubic through
+        its infinity and through its close values, as :meth:`~mi_neurallens.optics.moving.MovingGroups.gaps_at`);
+        and the stop radius's, or None.  Cached per lens."""
+        cache = self.__dict__.setdefault("_pieces", {})
+        if id(lens) not in cache:
+            mg = lens.moving
             x = np.arange(mg.positions, dtype=np.float64)
             gaps = {}
             for i, v in mg.gaps.items():
@@ -322,8 +322,8 @@ class Configurations:
                 inf, close = _cubic_pieces(x, a[:, 0]), _cubic_pieces(x, a[:, 1])
                 gaps[i] = (inf, close - inf)        # the cubics are linear in their coefficients
             stop = None if mg.stop_semi_diameters is None else _cubic_pieces(x, np.asarray(mg.stop_semi_diameters))
-            self._pieces = (gaps, stop)
-        return self._pieces
+            cache[id(lens)] = (lens, (gaps, stop))      # the lens kept: its id stays its own
+        return cache[id(lens)][1]
 
 
 def _eval_pieces(coef: np.ndarray, k, s, F):
@@ -343,10 +343,9 @@ class ConfigurationGeometry:
     z (Dr.Jit, per ray) in the configurations' frame, the sensor plane (:attr:`Configurations.z_sensor`, a
     literal), the stop's radius (per ray where it changes with zoom, else None: the lens's)."""
 
-    def __init__(self, configs: Configurations, F, t, f):
+    def __init__(self, configs: Configurations, lens, F, t, f):
         import drjit as dr
-        lens = configs.lens
-        gaps, stop = configs.pieces()
+        gaps, stop = configs.pieces(lens)
         n = lens.moving.positions
         if not isinstance(t, (int, float)):
             k = dr.minimum(dr.uint32_array_t(F)(dr.clip(dr.floor(t), 0.0, float(max(n - 2, 0)))), max(n - 2, 0))
