@@ -35,6 +35,7 @@ bench: setup
 	    $(PY) benchmarks/bench_flare.py --starburst --lens $$lens --out $(OUT)/bench/starburst_$$lens.json || exit 1; \
 	done
 	$(PY) benchmarks/bench_flare.py --lens ood-59mm --coatings none,quarter_wave,broadband --out $(OUT)/bench/coatings_ood-59mm.json
+	$(PY) benchmarks/bench_flare.py --lens ood-59mm --coatings none,quarter_wave,broadband --scene night --out $(OUT)/bench/coatings_night_ood-59mm.json
 	$(PY) benchmarks/equal_time.py --out $(OUT)/bench/equal_time.json
 	$(PY) benchmarks/bench_zoom.py --out $(OUT)/bench/bench_zoom.json
 	$(PY) benchmarks/bench_baselines.py --out $(OUT)/bench/bench_baselines.json

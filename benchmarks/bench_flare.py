@@ -10,7 +10,8 @@ first render with diffraction, which builds the film kernel, on its own).
 
 With ``--coatings`` it times instead each of the N strongest ghosts traced exactly (pilot bounds) with each
 coating of ``lens_flare`` (best of 5 renders after a compiling one, alternating), and reports each coating's
-time against the first one's.
+time against the first one's: on one point light at 240x160 (``--scene point``: the ghost's trace alone, the
+worst case) or on the bundled night scene at 960x640 with its four lights (``--scene night``).
 
 Prints a table and writes out/bench/bench_flare.json.  MAPE as in `mi-neurallens flare
 --compare` (luminance, mask Y_ref > 1e-2·max, ε = 1e-3·max).
@@ -32,6 +33,8 @@ def main(argv=None):
     p.add_argument("--model", default=None)
     p.add_argument("--coatings", default="", help="comma list of lens_flare coatings to time against the first")
     p.add_argument("--starburst", action="store_true", help="time the night scene's flare with and without diffraction")
+    p.add_argument("--scene", default="point", choices=["point", "night"],
+                   help="--coatings on one point light at 240x160 (point) or on the night scene at 960x640 (night)")
     p.add_argument("--out", default=os.path.join("out", "bench", "bench_flare.json"))
     a = p.parse_args(argv)
     import mitsuba as mi
@@ -54,6 +57,11 @@ def main(argv=None):
     fr0 = FlareRenderer(scene, 0, FlareOptions(mode="exact", diffraction=False))
     ids = fr0.ghost_ids()[:a.ghosts]
     if a.coatings:
+        if a.scene == "night":
+            from mi_neurallens.commands.render import load_scene
+            from mi_neurallens.resources import scene_path
+            scene = load_scene(str(scene_path("night")), lens=a.lens, resolution=(960, 640))
+            ids = FlareRenderer(scene, 0, FlareOptions(mode="exact", diffraction=False)).ghost_ids()[:a.ghosts]
         return coating_cost(a, scene, ids)
     rows = []
     for pid in ids:
@@ -162,7 +170,7 @@ def coating_cost(a, scene, ids, rounds=5):
         print(f"{pid:>8} " + "  ".join(f"{c} {best[c] * 1e3:7.1f} ms ({row['ratio'][c]:.3f}x)" for c in names),
               flush=True)
     out = {"machine": platform.processor() or platform.machine(), "threads": dr.thread_count(), "lens": a.lens,
-           "samples": a.samples, "coatings": names, "rows": rows,
+           "samples": a.samples, "coatings": names, "rows": rows, "scene": a.scene,
            "command": "python benchmarks/bench_flare.py " + " ".join(__import__("sys").argv[1:])}
     atomic_write_json(a.out, out, indent=1)
     print("wrote", a.out)
