@@ -522,6 +522,27 @@ def test_flare_verification_sees_a_shifted_map(tmp_path):
     assert rec["per_light"][0] == rec["paired_mape"] and rec["paired_mape"] < 0.025
 
 
+def test_ghost_maps_without_a_camera_map_verify_as_in_their_model(tmp_path):
+    """Ghost maps trained on their own (``train LENS --paths ghosts``: no camera map for a ``neural_lens``) are verified
+    through ``realistic_lens`` with the model given to the flare: the same paired error as inside the whole model
+    (the flare does not use the camera map)."""
+    import copy
+    m, why = _model_with_ghost()
+    if m is None:
+        pytest.skip(why)
+    from mi_neurallens.flare.verify import paired_flare_error, verification_scene
+    pid, film = 2560, (48, 32)
+    alone = copy.copy(m)
+    alone.maps = {k: v for k, v in m.maps.items() if k == f"forward.{pid}"}
+    path = tmp_path / "ghosts.model.safetensors"
+    alone.save(path)
+    scene = verification_scene("wide-22mm", path, film=film)
+    assert type(scene.sensors()[0]).__name__ == "RealisticLens"
+    got = paired_flare_error(scene, pid, samples=1 << 16, model=str(path))
+    ref = paired_flare_error(verification_scene("wide-22mm", MODEL, film=film), pid, samples=1 << 16)
+    assert got["pixels"] == ref["pixels"] > 100 and got["paired_mape"] == pytest.approx(ref["paired_mape"], rel=1e-4)
+
+
 def test_verification_lights_lie_inside_the_field_the_maps_learned():
     """The verification's lights (10° and 2° off axis) lie outside a long lens's learned field (a 300 mm lens's
     maps learn 4.5°), where the render traces the ghost (``beyond_field``) and a record would compare the tracer

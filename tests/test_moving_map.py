@@ -201,13 +201,102 @@ def test_a_model_is_refused_with_other_moving_groups(zoom, tmp_path):
                       "film": {"type": "hdrfilm", "width": 32, "height": 32}})
 
 
-def test_training_a_moving_lens_trains_its_camera_map(zoom, capsys):
-    """train: the camera map only (forward maps and ghosts with zoom and focus as inputs are not built): left out
-    and said when the recipe lists them, an error when asked for by name."""
+def test_training_a_moving_lens_plans_its_ghosts_over_the_configurations(zoom, configs, tmp_path, capsys):
+    """train: every map of a lens with moving groups takes the zoom and focus as inputs, said once; its forward maps'
+    one domain (``moving_forward_domain``) carries the configurations, and its ghosts come from the ranking over them
+    (read from the work folder's cache here: computing it takes minutes)."""
+    import json
+    from mi_neurallens.neural.model import NeuralLensModel
+    from mi_neurallens.training.config import TrainConfig
+    from mi_neurallens.training.whole_lens import _moving_groups, _plan_maps
+    from mi_neurallens.transport import planes
+    from mi_neurallens.training.config import load_config
+    from mi_neurallens.training.whole_lens import select_maps
+    from mi_neurallens.transport.planes import recipe_path
+    recipe = load_config(recipe_path(ZOOM), ZOOM)
+    assert recipe.forward == [] and select_maps(recipe, None) == [("backward", "transmit")]
+    assert select_maps(recipe, "ghosts") == [("forward", "ghosts")]          # named: though the recipe lists none
+    groups = [("backward", "transmit"), ("forward", "ghosts")]
+    assert _moving_groups(zoom, groups, None) == groups
+    assert "ranked at five zooms" in capsys.readouterr().err
+    ranking = [{"path_id": 201326592, "surfaces": [27, 26], "energy": 0.3}, {"path_id": 48, "surfaces": [5, 4],
+                                                                             "energy": 0.2}]
+    (tmp_path / "ghost_ranking.json").write_text(json.dumps(ranking))
+    cfg = TrainConfig(ship_ghosts=2)
+    model = NeuralLensModel(lens_name=ZOOM, fingerprint=zoom.fingerprint(), z_front=-1.0, z_rear=150.0,
+                            z_last_vertex=140.0, sensor_distance_range=(10.0, 11.0), maps={})
+    todo = _plan_maps(zoom, cfg, model, [("forward", "ghosts")], planes.moving_planes(configs), (10.0, 11.0),
+                      str(tmp_path), configs)
+    assert [t[0] for t in todo] == [201326592, 48] and model.extra["ghosts_trained"] == [201326592, 48]
+    assert all(t[1] == "forward" and t[4].conditions == configs and t[4].reach.z_near_mm == configs.z_sensor
+               for t in todo)
+
+
+def test_a_ghost_traces_every_configuration_as_its_own_lens(zoom, configs):
+    """The forward maps' domain of a zoom lens (``planes.moving_forward_domain``): the field of the widest
+    configuration, a front radius that covers every configuration's front element, the film reach on the one sensor
+    plane; a ghost traced one configuration per ray through it equals each configuration's own lens traced in its
+    own space (as the camera map's test above, on a two-reflection path)."""
+    from mi_neurallens.transport import planes
+    z_front, _ = planes.moving_planes(configs)
+    dom = planes.moving_forward_domain(configs, z_front, 21.63, 1.1, 32.0)
+    assert dom.conditions is configs and dom.dims == 6
+    assert dom.reach.z_near_mm == dom.reach.z_far_mm == configs.z_sensor
+    wide = max(planes.default_field_half_angle(mv.at(zoom, 0.0, f), 21.63, 1.1) for f in configs.band(0.0))
+    assert math.sin(math.radians(wide)) == pytest.approx(dom.s_max, rel=1e-3)
+    pid = 48                        # ghost_id(4, 3): among the strongest over the zoom range
+    free = Domain(dom.r_max, dom.s_max)
+    rng = np.random.default_rng(3)
+    x = free.u_to_x(rng.random((20000, 4)))
+    for t, f in ((0.0, 0.0), (1.3, configs.band(1.3)[1])):
+        L = mv.at(zoom, t, f, check=False)
+        shift = configs.shift_of(L.image_z)
+        own = ExactMap(L, pid, "forward", z_front + shift, configs.z_sensor + shift, domain=free)
+        per_ray = ExactMap(zoom, pid, "forward", z_front, configs.z_sensor,
+                           domain=Domain(dom.r_max, dom.s_max, conditions=configs))
+        v1, y1, _ = own.core_reduced_np(x)
+        v2, y2, _ = per_ray.core_reduced_np(np.c_[x, np.full(len(x), t), np.full(len(x), f)])
+        assert v1.sum() > 50 and (v1 == v2).all()
+        np.testing.assert_allclose(y2[v1], y1[v1], atol=1e-8)
+
+
+def test_the_ghost_ranking_over_the_zoom_keeps_each_ghost_at_its_strongest(zoom, configs):
+    """``flare.energy.moving_ghost_ranking`` traces every configuration in one kernel per ghost; each ghost's energy
+    is the largest of what ``ghost_energy_ranking`` gives each configuration's own lens on the same rays."""
+    from mi_neurallens.flare.energy import ghost_energy_ranking, moving_ghost_ranking
+    from mi_neurallens.trace.paths import ghost_id
+    ids = [ghost_id(12, 9), ghost_id(3, 1), ghost_id(20, 18)]
+    kw = dict(n_rays=1 << 11, n_angles=3, ghosts=ids)
+    got = {d["path_id"]: d["energy"] for d in moving_ghost_ranking(configs, zooms=2, **kw)}
+    best = dict.fromkeys(ids, 0.0)
+    for t in configs.zoom_range:
+        for f in configs.band(t):
+            for d in ghost_energy_ranking(mv.at(zoom, t, f, check=False), **kw):
+                best[d["path_id"]] = max(best[d["path_id"]], d["energy"])
+    assert all(best[g] > 0 for g in ids)
+    for g in ids:
+        assert got[g] == pytest.approx(best[g], rel=1e-3)
+
+
+def test_a_learned_map_at_the_sensors_configuration(configs):
+    """``LensSetup.configured_map``, what ``neural_lens`` and ``lens_flare`` both apply to a map with configuration
+    inputs: the sensor's zoom and focus parameters as its condition inputs, its planes moved by the configured lens's
+    shift from the sensor frame; outside the learned band, an error naming it."""
+    import dataclasses
+    import mitsuba as mi
     from mi_neurallens.errors import NeuralLensError
-    from mi_neurallens.training.whole_lens import _moving_groups
-    groups = [("backward", "transmit"), ("forward", "transmit"), ("forward", "ghosts")]
-    assert _moving_groups(zoom, groups, None) == [("backward", "transmit")]
-    assert "camera map only" in capsys.readouterr().err
-    with pytest.raises(NeuralLensError, match="only its camera map"):
-        _moving_groups(zoom, groups, "ghosts")
+    from mi_neurallens.render_utils import default_variant
+    mi.set_variant(default_variant())
+    import mi_neurallens as nl
+    nl.register()
+    s = mi.load_dict({"type": "neural_lens", "lens": ZOOM, "focal_length": 40.0, "focus_distance": 1.2,
+                      "film": {"type": "hdrfilm", "width": 32, "height": 32}})
+    st = s.setup
+    tm = s.model.map("transmit", "backward")
+    got = st.configured_map(tm)
+    assert got.condition_values == configs.values(st.zoom, st.focus_parameter)
+    assert got.z_in - tm.z_in == pytest.approx(st.lens.image_z - configs.z_sensor, abs=1e-12)
+    assert (got.z_in, got.z_out) == (s.tmap.z_in, s.tmap.z_out)
+    far = dataclasses.replace(st, focus_parameter=configs.band(st.zoom)[1] + 0.1)
+    with pytest.raises(NeuralLensError, match="focus parameter"):
+        far.configured_map(tm)

@@ -89,7 +89,7 @@ def _focus_text(lens, setting) -> str:
         zoom = (f"{mg.zoom_efl_mm[0]:g}–{mg.zoom_efl_mm[-1]:g} mm, " if mg.is_zoom and mg.zoom_efl_mm else "")
         close = setting if isinstance(setting, (int, float)) and setting > 0 else mg.close_focus_mm
         focus = f"infinity to {close / 1000:.3g} m from the sensor" if mg.focuses and close else "infinity"
-        return f"{zoom}{focus} by the lens's moving groups, zoom and focus as inputs of the camera map"
+        return f"{zoom}{focus} by the lens's moving groups, zoom and focus as inputs of every map"
     s0, s1 = plan.sensor_distance_range(lens, setting)
     d = plan.close_focus_mm(lens, setting)
     if not d:

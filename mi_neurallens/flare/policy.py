@@ -130,7 +130,7 @@ class FlarePolicy:
     def learned(self, tm, mlp: str, strict: bool):
         """The learned map ``tm`` evaluated with ``mlp`` (:meth:`learned_mlp`), with this flare's iris (None, or an
         error when ``strict``, if it cannot apply it: no stop head, or an iris outside the trained one)."""
-        key = (tm.key, mlp)
+        key = (tm.key, mlp, tm.condition_values, tm.z_in)
         if key in self._learned_maps:      # the same object at every render: its packed networks and kernel
             return self._learned_maps[key]  # inputs are built once
         if tm.mlp != mlp:

@@ -47,6 +47,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 import math
+import os
 import time
 import zlib
 
@@ -137,8 +138,8 @@ def sensor_model(sensor, opts: FlareOptions):
         m = getattr(sensor, "model", None)
     if m is None or isinstance(m, NeuralLensModel):
         return m
-    if isinstance(m, str) and m:
-        return NeuralLensModel.load(resolve_model_path(m, "lens_flare"), None)
+    if isinstance(m, (str, os.PathLike)) and os.fspath(m):
+        return NeuralLensModel.load(resolve_model_path(os.fspath(m), "lens_flare"), None)
     return None
 
 
@@ -200,7 +201,7 @@ class FlareRenderer:
         #: the flare changes the lens beyond its iris (coatings): the learned maps do not apply
         self.lens_modified = self.lens.with_surface(self.lens.stop_index, **_stop_fields(setup.lens)) != setup.lens
         #: the iris the learned ghost maps must test: None when it is the one they were trained with
-        trained, iris = Iris.of_lens(setup.base_lens), Iris.of_lens(self.lens)
+        trained, iris = setup.trained_iris, Iris.of_lens(self.lens)
         self.iris = None if iris.same_as(trained) else iris
         self._iris_ok = not trained.blades and iris.within(trained)
         self.fresnel = bool(setup.fresnel)
@@ -330,9 +331,19 @@ class FlareRenderer:
 
     def _learned(self, tm, strict: bool):
         """The learned map ``tm`` as this render evaluates it (:meth:`FlarePolicy.learned
-        <mi_neurallens.flare.policy.FlarePolicy.learned>`), with the render's :meth:`learned_mlp`."""
+        <mi_neurallens.flare.policy.FlarePolicy.learned>`), with the render's :meth:`learned_mlp`; a map of a lens
+        with moving groups at the sensor's zoom and focus (:meth:`~mi_neurallens.sensors.common.LensSetup.
+        configured_map`), or, outside the configurations it learned, an error when ``strict``, else None (traced)."""
+        from ..errors import NeuralLensError
         if self._mlp is None:
             self._mlp = self.learned_mlp()
+        try:
+            tm = self.setup.configured_map(tm)
+        except NeuralLensError as e:
+            if strict:
+                raise FlareError(f"lens_flare: mode='neural': the learned map of ghost {tm.path_id}: {e}; use "
+                                 "mode='auto' (exact where a map cannot)") from e
+            return None
         return self.policy.learned(tm, self._mlp, strict)
 
     # -------------------------------------------------------------- mode auto's choice (flare/policy.py)

@@ -28,6 +28,8 @@ from __future__ import annotations
 import math
 import time
 
+import numpy as np
+
 #: light positions (m; x, y at z = 5 m in front of the lens): the night scene's (10° / 5° off axis) and one
 #: near the axis, where the ghosts overlap most and the maps' errors showed most
 LIGHTS = ((0.9, 0.45), (0.15, 0.1))
@@ -147,7 +149,7 @@ def learned_cost_ratio(metrics, band: float):
     return float(lu) / float(c["exact_us"])
 
 
-def measure_flare_cost(scene, pid, bands=(0.0,), samples_log2=COST_SAMPLES_LOG2) -> dict:
+def measure_flare_cost(scene, pid, bands=(0.0,), samples_log2=COST_SAMPLES_LOG2, model=None) -> dict:
     """What ghost ``pid`` of ``scene`` (:func:`verification_scene`) costs per sample, traced and with its learned map
     at each of ``bands`` (``boundary_band``, the samples it leaves to the tracer included): µs per sample of the main
     pass, the fastest of :data:`COST_RENDERS` renders of 2^``samples_log2`` samples that replay their recorded
@@ -160,7 +162,8 @@ def measure_flare_cost(scene, pid, bands=(0.0,), samples_log2=COST_SAMPLES_LOG2)
     from .render import FlareRenderer
 
     def us_per_sample(**kw):
-        r = FlareRenderer(scene, 0, FlareOptions(ghosts=[pid], pilot_with="exact", diffraction=False, **kw))
+        r = FlareRenderer(scene, 0, FlareOptions(ghosts=[pid], pilot_with="exact", diffraction=False, model=model,
+                                                 **kw))
         for k in range(2):                # traces and compiles, then records: the kernels a later render replays
             r.render(seed=k, samples=1 << 16)
         best = float("inf")
@@ -209,10 +212,12 @@ def record_flare_costs(model_path, lens=None, *, ghosts=None, samples_log2=COST_
         log(f"measuring the cost of {len(plan)} ghost map(s) against tracing them ({variant_backend()}, 2^{samples_log2} "
             f"samples a render, {COST_RENDERS} renders each)" + (f"; {len(ids) - len(plan)} skipped (traced by auto: "
                                                                   "no record within the gate)" if len(plan) < len(ids) else ""))
-    scene = verification_scene(lens or model.lens_name, model_path, verification_lights(model)[0], FILM)
+    configs = verification_configurations(model, lens)
+    camera = configs[len(configs) // 2]          # a zoom lens: the middle of its zoom
+    scene = verification_scene(lens or model.lens_name, model_path, verification_lights(model)[0], FILM, camera)
     out, t0 = {}, time.perf_counter()
     for k, (pid, bands) in enumerate(plan.items()):
-        out[pid] = c = measure_flare_cost(scene, pid, bands, samples_log2)
+        out[pid] = c = measure_flare_cost(scene, pid, bands, samples_log2, model=model_path)
         if log:
             ratios = ", ".join(f"band {b}: {v / c['exact_us']:.2f}×" for b, v in c["learned_us"].items()
                                if v is not None and c["exact_us"])
@@ -276,41 +281,77 @@ def verification_lights(model, lights=LIGHTS) -> tuple:
     return tuple(lights) if s_max is None else lights_within_field(lights, s_max)
 
 
-def verification_scene(lens, model, light=LIGHTS[0], film=FILM):
+def verification_configurations(model, lens=None) -> list:
+    """The camera settings a model's ghost maps are verified at: ``[{}]`` (the lens as loaded) for a lens of one
+    configuration; for a zoom lens whose maps take the zoom as an input, :data:`VERIFY_ZOOMS` focal lengths (its
+    ends and the zoom parameter's middle) at infinity focus, each ``{"focal_length": mm}``; for a lens that only
+    focuses by moving groups, infinity and the prescription's close focus (``{"focus_distance": m}``, from the
+    sensor).  ``lens``: the lens object, a bundled name or file (default: the model's)."""
+    from ..transport.planning import Domain
+    conds = [Domain.from_dict(model.map(pid, "forward").domain).conditions for pid in model.ghost_ids]
+    cond = next((c for c in conds if c is not None), None)
+    if cond is None:
+        return [{}]
+    from ..optics import moving as mv
+    from ..sensors.common import load_lens
+    lens = load_lens(lens or model.lens_name) if not hasattr(lens, "moving") else lens
+    if "zoom" in cond.names:
+        t0, t1 = cond.zoom_range
+        return [{"focal_length": round(mv.focal_length(lens, float(t)), 4)}
+                for t in np.linspace(t0, t1, VERIFY_ZOOMS)]
+    close = float(lens.moving.close_focus_mm)
+    return [{}] + ([{"focus_distance": close / 1e3}] if math.isfinite(close) and close > 0 else [])
+
+
+#: the zoom positions a zoom lens's ghost maps are verified at (:func:`verification_configurations`): the ends and
+#: the middle of the zoom range
+VERIFY_ZOOMS = 3
+
+
+def verification_scene(lens, model, light=LIGHTS[0], film=FILM, camera=None):
     """The night_point scene as a dict: ``neural_lens`` with ``model`` (a file or bundled name) through
-    ``lens``, one point light at ``(x, y, 5)`` m.  The current Mitsuba variant."""
+    ``lens``, one point light at ``(x, y, 5)`` m; ``camera``: more properties of the sensor (a zoom lens's
+    ``focal_length``, :func:`verification_configurations`).  A model without a camera map (ghost maps trained on
+    their own) gets ``realistic_lens`` instead: the flare does not use the camera map, and the renders here take
+    the model as ``lens_flare``'s (``model`` of :func:`paired_renders`).  The current Mitsuba variant."""
     import mitsuba as mi
     import mi_neurallens
+    from ..neural.model import NeuralLensModel
+    from ..sensors.neural_lens import resolve_model_path
     mi_neurallens.register()
+    m = model if isinstance(model, NeuralLensModel) else NeuralLensModel.load(resolve_model_path(str(model), "lens_flare"))
+    sensor = {"type": "neural_lens", "model": str(model)} if m.has("transmit", "backward") else {"type": "realistic_lens"}
     return mi.load_dict({
         "type": "scene",
-        "camera": {"type": "neural_lens", "lens": lens, "model": str(model),
+        "camera": {**sensor, "lens": lens,
                    "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 0], target=[0, 0, 1], up=[0, 1, 0]),
                    "film": {"type": "hdrfilm", "width": int(film[0]), "height": int(film[1]),
-                            "pixel_format": "rgb"}},
+                            "pixel_format": "rgb"}, **(camera or {})},
         "light": {"type": "point", "position": [float(light[0]), float(light[1]), 5.0],
                   "intensity": {"type": "rgb", "value": 100.0}},
     })
 
 
-def paired_renders(scene, ghosts, samples, seed=1, sensor=0, boundary_band=0.0, iris_band=None):
+def paired_renders(scene, ghosts, samples, seed=1, sensor=0, boundary_band=0.0, iris_band=None, model=None):
     """(exact, learned) flare images (H×W×3 numpy) of ``ghosts`` alone (no diffraction) on the same samples;
-    ``boundary_band``, ``iris_band``: the learned render's (:class:`~mi_neurallens.flare.options.FlareOptions`)."""
+    ``boundary_band``, ``iris_band``, ``model``: the learned render's (:class:`~mi_neurallens.flare.options.
+    FlareOptions`; ``model`` None: the sensor's)."""
     from .render import render_flare
     ex = render_flare(scene, sensor, seed=seed, ghosts=list(ghosts), samples=samples, mode="exact",
                       diffraction=False).total
     ne = render_flare(scene, sensor, seed=seed, ghosts=list(ghosts), samples=samples, mode="neural",
-                      pilot_with="exact", boundary_band=boundary_band, iris_band=iris_band, diffraction=False).total
+                      pilot_with="exact", boundary_band=boundary_band, iris_band=iris_band, diffraction=False,
+                      model=model).total
     return ex, ne
 
 
-def paired_flare_error(scene, pid, samples=1 << SAMPLES_LOG2, seed=1, boundary_band=0.0) -> dict:
+def paired_flare_error(scene, pid, samples=1 << SAMPLES_LOG2, seed=1, boundary_band=0.0, model=None) -> dict:
     """The learned map of ghost ``pid`` against the tracer on the same samples: ``paired_mape`` (None when
     the exact ghost leaves no pixel above the mask threshold: nothing to compare), ``pixels`` in the
     mask, ``flux_ratio`` (learned / exact luminance)."""
     import numpy as np
     from ..metrics import LUMINANCE, flare_error_map
-    ex, ne = paired_renders(scene, [pid], samples, seed, boundary_band=boundary_band)
+    ex, ne = paired_renders(scene, [pid], samples, seed, boundary_band=boundary_band, model=model)
     rel, mask = flare_error_map(ne, ex)
     ye, yn = float(np.sum(ex[..., :3] @ LUMINANCE)), float(np.sum(ne[..., :3] @ LUMINANCE))
     return {"paired_mape": float(rel[mask].mean()) if mask.any() else None, "pixels": int(mask.sum()),
@@ -342,18 +383,22 @@ def verify_model(model_path, lens=None, *, ghosts=None, lights=None, samples_log
         raise ModelError(f"{model_path} has no forward map for {missing} to verify; its ghost maps are "
                          f"{model.ghost_ids}")
     per = {pid: [] for pid in ids}
-    t0, done, total = time.perf_counter(), 0, len(lights) * len(ids)
-    for light in lights:
-        scene = verification_scene(lens, model_path, light, film)
+    configs = verification_configurations(model, lens)
+    runs = [(c, light) for c in configs for light in lights]
+    t0, done, total = time.perf_counter(), 0, len(runs) * len(ids)
+    for camera, light in runs:
+        scene = verification_scene(lens, model_path, light, film, camera)
+        where = "".join(f"{k} {v:g}, " for k, v in camera.items())
         for k, pid in enumerate(ids):
-            r = refine_paired(lambda l2: paired_flare_error(scene, pid, 1 << l2, boundary_band=boundary_band),
+            r = refine_paired(lambda l2: paired_flare_error(scene, pid, 1 << l2, boundary_band=boundary_band,
+                                                            model=model_path),
                               samples_log2, max_log2, refine_above)
             per[pid].append(r)
             done += 1
             if log:
                 m = " → ".join("no pixel" if v is None else f"{v:.4f} (2^{l2})" for l2, v in r["sequence"])
                 left = (time.perf_counter() - t0) * (total - done) / done
-                log(f"light {light}: ghost {pid} ({k + 1}/{len(ids)}) paired MAPE {m}"
+                log(f"{where}light {light}: ghost {pid} ({k + 1}/{len(ids)}) paired MAPE {m}"
                     + ("" if r["converged"] or r["paired_mape"] is None else ", still falling")
                     + (f"; about {_duration(left)} left" if done < total else ""))
     out = {}
@@ -362,7 +407,8 @@ def verify_model(model_path, lens=None, *, ghosts=None, lights=None, samples_log
         out[pid] = {"paired_mape": max(vals) if vals else None,
                     "per_light": [r["paired_mape"] for r in rs],
                     "flux_ratio": [r["flux_ratio"] for r in rs],
-                    "lights_m": [[float(x), float(y), 5.0] for x, y in lights],
+                    "lights_m": [[float(x), float(y), 5.0] for _, (x, y) in runs],
+                    **({"configurations": [c for c, _ in runs]} if configs != [{}] else {}),
                     "log2_samples": max(r["log2_samples"] for r in rs),
                     "per_light_log2_samples": [r["log2_samples"] for r in rs],
                     "converged": [r["converged"] for r in rs],

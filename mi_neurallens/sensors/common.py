@@ -227,6 +227,32 @@ class LensSetup:
     focus_parameter: float | None = None
 
     @property
+    def trained_iris(self):
+        """The iris a learned map of :attr:`base_lens` was trained with, at this configuration
+        (:class:`~mi_neurallens.trace.iris.Iris`): the lens file's stop, for a zoom lens at the stop diameter its
+        moving groups give at :attr:`zoom`."""
+        from ..trace.iris import Iris
+        trained = Iris.of_lens(self.base_lens)
+        moving = getattr(self.base_lens, "moving", None)
+        if moving is not None and moving.stop_at(self.zoom) is not None:
+            trained = dataclasses.replace(trained, radius_mm=moving.stop_at(self.zoom))
+        return trained
+
+    def configured_map(self, tm):
+        """The learned map ``tm`` of a lens with moving groups (its domain's ``conditions``) at this configuration:
+        its zoom and focus parameters as its condition inputs, its planes moved from the configurations' frame (the
+        sensor fixed) into the configured lens's space; a configuration outside the learned range is a
+        :class:`~mi_neurallens.errors.NeuralLensError` (its message starts with "zoom" or "focus").  A map without
+        conditions is returned as is."""
+        cond = getattr(tm.domain, "conditions", None)
+        if cond is None:
+            return tm
+        cond.check(self.zoom, self.focus_parameter)
+        shift = cond.shift_of(self.lens.image_z)
+        return dataclasses.replace(tm, z_in=tm.z_in + shift, z_out=tm.z_out + shift,
+                                   condition_values=cond.values(self.zoom, self.focus_parameter))
+
+    @property
     def na_image(self) -> float:
         """Paraxial image-space numerical aperture of the on-axis image at the focus distance:
         NA' = 1 / (2 N_w), N_w the working f-number (N at infinity focus)."""

@@ -242,10 +242,7 @@ class NeuralLens(LensSensorBase):
     def _iris(self, tm):
         """The iris the learned map must test (None: the one it was trained with)."""
         st = self.setup
-        trained, want = Iris.of_lens(st.base_lens), Iris.of_lens(st.lens)
-        moving = st.base_lens.moving
-        if moving is not None and moving.stop_at(st.zoom) is not None:    # the stop the map learned at this zoom
-            trained = dataclasses.replace(trained, radius_mm=moving.stop_at(st.zoom))
+        trained, want = st.trained_iris, Iris.of_lens(st.lens)
         if want.same_as(trained):
             return None
         prop = "fstop" if want.blades == trained.blades else "blades"
@@ -297,20 +294,15 @@ class NeuralLens(LensSensorBase):
                         **({"fresnel": st.fresnel} if self.method == "exact" else {}))
 
     def _configured(self, tm):
-        """The camera map of a lens with moving groups at the sensor's configuration: its zoom and focus parameters
-        as the map's condition inputs, its planes moved from the configurations' frame (the sensor fixed) into the
-        configured lens's space (:class:`~mi_neurallens.transport.configurations.Configurations`); a configuration
-        outside the learned range is a clear error."""
+        """The camera map of a lens with moving groups at the sensor's configuration
+        (:meth:`~mi_neurallens.sensors.common.LensSetup.configured_map`); a configuration outside the learned range
+        is a clear error naming the property."""
         from ..errors import NeuralLensError
-        st, cond = self.setup, tm.domain.conditions
         try:
-            cond.check(st.zoom, st.focus_parameter)
+            return self.setup.configured_map(tm)
         except NeuralLensError as e:
             which = "focal_length" if str(e).startswith("zoom") else "focus_distance"
             raise SensorPropertyError(PLUGIN, which, f"model {self.model_path}: {e}") from e
-        shift = cond.shift_of(st.lens.image_z)
-        return dataclasses.replace(tm, z_in=tm.z_in + shift, z_out=tm.z_out + shift,
-                                   condition_values=cond.values(st.zoom, st.focus_parameter))
 
     def _margin_scale(self) -> float | None:
         """Logit units per aperture margin of the map's classifier when it was trained on the tracer's margin

@@ -64,9 +64,10 @@ def _spent_text(direction: str, spent: dict, since_start: float) -> str:
 
 # ----------------------------------------------------------------------------- which maps
 def select_maps(cfg: TrainConfig, paths: str | None):
-    """Which (direction, path) groups to train: ``paths`` is a comma list of ``transmit`` (the configured
-    transmit maps of both directions), ``backward``, ``forward``, ``ghosts`` or integer path ids
-    (forward); None: everything configured."""
+    """Which (direction, path) groups to train: ``paths`` is a comma list of ``transmit`` (the configured transmit
+    maps of both directions), ``backward``, ``forward`` (the configured maps of that direction), ``ghosts``,
+    ``backward-transmit``, ``forward-transmit`` or integer path ids (forward); the last four are trained though the
+    configuration does not list them; None: everything configured."""
     want = None if not paths else [p.strip() for p in paths.split(",") if p.strip()]
     groups = []
     for d in ("backward", "forward"):
@@ -74,10 +75,14 @@ def select_maps(cfg: TrainConfig, paths: str | None):
             if want is None or p in want or d in want or (p == "transmit" and f"{d}-transmit" in want):
                 groups.append((d, p))
     if want:
+        named = {"ghosts": [("forward", "ghosts")], "backward-transmit": [("backward", "transmit")],
+                 "forward-transmit": [("forward", "transmit")]}
         for w in want:
             if w.isdigit():
                 groups.append(("forward", int(w)))
-            elif w not in ("transmit", "backward", "forward", "ghosts", "backward-transmit", "forward-transmit"):
+            elif w in named:            # named outright: trained though the recipe does not list it
+                groups += [g for g in named[w] if g not in groups]
+            elif w not in ("transmit", "backward", "forward"):
                 raise NeuralLensError(f"--paths: unknown item {w!r}; use transmit, ghosts, backward, forward, "
                                       "backward-transmit, forward-transmit or integer path ids")
     return groups
@@ -172,18 +177,12 @@ def _moving_sensor_distances(configs) -> tuple:
 
 
 def _moving_groups(lens, groups, paths):
-    """The (direction, path) groups a lens with moving groups trains: its camera map (the backward maps); the
-    forward maps and ghosts with zoom and focus as inputs are not built, so asked for by name they are refused and
-    otherwise left out, said once."""
-    fwd = [g for g in groups if g[0] == "forward"]
-    if fwd and paths:
-        raise NeuralLensError(f"lens '{lens.name}' zooms or focuses by moving groups: only its camera map "
-                              "(--paths backward-transmit) is learned with zoom and focus as inputs; lens_flare traces "
-                              "its forward rays and ghosts exactly")
-    if fwd:
-        print(f"{lens.name}: moving groups: training the camera map only (zoom and focus as inputs); lens_flare "
-              "traces this lens's ghosts exactly", file=sys.stderr, flush=True)
-    return [g for g in groups if g[0] == "backward"]
+    """The (direction, path) groups a lens with moving groups trains: every map, zoom and focus as inputs beside
+    the ray; said once, since its ghosts are ranked over the configurations (the strongest at any zoom)."""
+    if any(g[0] == "forward" for g in groups):
+        print(f"{lens.name}: moving groups: every map takes the zoom and focus parameters as inputs; the ghosts are "
+              "ranked at five zooms, each at both ends of its focus band", file=sys.stderr, flush=True)
+    return groups
 
 
 def _base_model(lens, keep, finish_only, base_path):
@@ -244,9 +243,13 @@ def _plan_maps(lens, cfg: TrainConfig, model, groups, z_planes, s_range, workdir
     ``model.extra``)."""
     from ..transport.planning import select_ghosts
     z_front, z_rear = z_planes
-    reach = plan.film_reach(lens, s_range, cfg.film_reach * cfg.film_half_diagonal_mm) if cfg.film_reach else None
-    fwd_domain = plan.forward_domain(lens, z_front, plan.default_field_half_angle(
-        lens, cfg.film_half_diagonal_mm, cfg.field_margin), reach=reach)
+    if configs is None:
+        reach = plan.film_reach(lens, s_range, cfg.film_reach * cfg.film_half_diagonal_mm) if cfg.film_reach else None
+        fwd_domain = plan.forward_domain(lens, z_front, plan.default_field_half_angle(
+            lens, cfg.film_half_diagonal_mm, cfg.field_margin), reach=reach)
+    else:
+        fwd_domain = plan.moving_forward_domain(configs, z_front, cfg.film_half_diagonal_mm, cfg.field_margin,
+                                                cfg.film_reach * cfg.film_half_diagonal_mm or None)
     todo = []
     for d, p in groups:
         if d == "backward":
@@ -266,8 +269,9 @@ def _plan_maps(lens, cfg: TrainConfig, model, groups, z_planes, s_range, workdir
             else:
                 # the render-time ranking (flare/energy.py), so the ghosts trained are the ones a flare
                 # render selects, and a neural flare selects the same ghosts as an exact one
-                from ..flare.energy import ghost_energy_ranking
-                ranking = ghost_energy_ranking(lens, fresnel=cfg.fresnel)
+                from ..flare.energy import ghost_energy_ranking, moving_ghost_ranking
+                ranking = (ghost_energy_ranking(lens, fresnel=cfg.fresnel) if configs is None
+                           else moving_ghost_ranking(configs, fresnel=cfg.fresnel))
                 atomic_write_text(rk_path, json.dumps(ranking))
             selected = select_ghosts(ranking, cfg.ghost_energy_fraction, cfg.max_ghosts)
             model.extra["ghost_ranking"] = ranking

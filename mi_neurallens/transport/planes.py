@@ -175,6 +175,23 @@ def forward_domain(lens, z_front: float, field_half_angle_deg: float, margin: fl
     return Domain(r_max=r, s_max=min(math.sin(math.radians(field_half_angle_deg)), 0.999), reach=reach)
 
 
+def moving_forward_domain(configs, z_front: float, film_half_diagonal_mm: float, field_margin: float,
+                          reach_radius_mm: float | None, margin: float = 1.02) -> Domain:
+    """The forward maps' domain of a lens with moving groups (:class:`~mi_neurallens.transport.configurations.
+    Configurations`; ``z_front`` in their frame, the sensor fixed at ``z_sensor``): the field of its widest
+    configuration (:func:`default_field_half_angle` at the shortest focal length), r covering every configuration's
+    front element from ``z_front`` (:func:`forward_domain` of each, its plane moved into that lens's space), the
+    film reach on the one sensor plane (``reach_radius_mm``; None: every ray that passes), the configurations as
+    inputs."""
+    from ..optics import moving as mv
+    lenses = [mv.at(configs.lens, t, f, check=False) for t, f in configs.corner_configurations(per_interval=1)]
+    field = max(default_field_half_angle(ln, film_half_diagonal_mm, field_margin) for ln in lenses)
+    r = max(forward_domain(ln, z_front + configs.shift_of(ln.image_z), field, margin).r_max for ln in lenses)
+    reach = (Reach(float(configs.z_sensor), float(configs.z_sensor), float(reach_radius_mm))
+             if reach_radius_mm else None)
+    return Domain(r_max=r, s_max=min(math.sin(math.radians(field)), 0.999), reach=reach, conditions=configs)
+
+
 def film_reach(lens, s_range, radius_mm: float) -> Reach:
     """The film reach of forward maps (:class:`~mi_neurallens.transport.planning.Reach`): the sensor planes
     at both ends of the supported sensor distances ``s_range`` (mm behind the last vertex) and ``radius_mm``
