@@ -217,7 +217,7 @@ def test_training_a_moving_lens_plans_its_ghosts_over_the_configurations(zoom, c
     assert recipe.forward == [] and select_maps(recipe, None) == [("backward", "transmit")]
     assert select_maps(recipe, "ghosts") == [("forward", "ghosts")]          # named: though the recipe lists none
     groups = [("backward", "transmit"), ("forward", "ghosts")]
-    assert _moving_groups(zoom, groups, None) == groups
+    assert _moving_groups(zoom, groups) == groups
     assert "ranked at five zooms" in capsys.readouterr().err
     ranking = [{"path_id": 201326592, "surfaces": [27, 26], "energy": 0.3}, {"path_id": 48, "surfaces": [5, 4],
                                                                              "energy": 0.2}]

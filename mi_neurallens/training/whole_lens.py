@@ -128,7 +128,7 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
     record_run(model, provenance)
     groups = select_maps(cfg, paths)
     if configs is not None:
-        groups = _moving_groups(lens, groups, paths)
+        groups = _moving_groups(lens, groups)
     todo = _plan_maps(lens, cfg, model, groups, z_planes, s_range, workdir, configs)
     if base_model is not None:
         _carry_base(model, base_model, todo)
@@ -176,7 +176,7 @@ def _moving_sensor_distances(configs) -> tuple:
     return float(min(s)), float(max(s))
 
 
-def _moving_groups(lens, groups, paths):
+def _moving_groups(lens, groups):
     """The (direction, path) groups a lens with moving groups trains: every map, zoom and focus as inputs beside
     the ray; said once, since its ghosts are ranked over the configurations (the strongest at any zoom)."""
     if any(g[0] == "forward" for g in groups):
