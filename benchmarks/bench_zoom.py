@@ -2,7 +2,7 @@
 focal length and focus distance, the map against the tracer on the same rays, and ``neural_lens`` against
 ``realistic_lens`` on the still life, at equal samples and in time.
 
-    python benchmarks/bench_zoom.py [--lens canon-ef-24-70mm-f2.8l] [--focal 24.9,35,45,60,68.14]
+    python benchmarks/bench_zoom.py [--lens canon-ef-24-70mm-f2.8l] [--model FILE] [--focal 24.9,35,45,60,68.14]
                                     [--focus inf,0.5] [--res 160x106] [--spp 64] [--reference-spp 1024]
                                     [--rays 400000] [--repeats 5] [--out out/bench/bench_zoom.json]
 
@@ -57,10 +57,10 @@ def map_accuracy(lens, tm, zoom: float, focus: float, n: int, seed: int) -> dict
             "throughput_rel_median": r["throughput_rel_median"]}
 
 
-def load(mi, kind, lens, focal, focus, res, spp, variant):
+def load(mi, kind, lens, focal, focus, res, spp, variant, model=None):
     from mi_neurallens.commands.render import load_scene
     from mi_neurallens.resources import scene_path
-    sets = [f"focal_length={focal}", f"focus_distance={focus}"] + ([f"model={lens}"] if kind == "neural_lens" else [])
+    sets = [f"focal_length={focal}", f"focus_distance={focus}"] + ([f"model={model or lens}"] if kind == "neural_lens" else [])
     return load_scene(str(scene_path("still_life")), variant=variant, lens=lens, resolution=res, spp=spp, sets=sets,
                       sensor_type=kind)
 
@@ -87,6 +87,7 @@ def timed(mi, scene, spp, repeats):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--lens", default="canon-ef-24-70mm-f2.8l")
+    ap.add_argument("--model", help="the model file to measure (default: the lens's bundled model)")
     ap.add_argument("--focal", default="24.9,35,45,60,68.14", help="focal lengths, mm")
     ap.add_argument("--focus", default="inf,0.5", help="focus distances, m from the sensor")
     ap.add_argument("--res", default="160x106")
@@ -107,7 +108,7 @@ def main(argv=None):
     from mi_neurallens.neural.model import bundled_model_path, load_model
     from mi_neurallens.optics import moving as mv
     lens = nl.Lens.load(a.lens)
-    tm = load_model(bundled_model_path(a.lens), lens).map("transmit", "backward")
+    tm = load_model(a.model or bundled_model_path(a.lens), lens).map("transmit", "backward")
     res = tuple(int(v) for v in a.res.split("x"))
     rows, spp = [], {}
     for i, f in enumerate(float(v) for v in a.focal.split(",")):
@@ -119,7 +120,7 @@ def main(argv=None):
                 rs = load(mi, "realistic_lens", a.lens, f, d, res, a.reference_spp, variant)
                 spp["reference"] = rs.sensors()[0].sampler().sample_count()      # as the scene's sampler took it
                 ref = render(mi, rs, spp["reference"], seed=7)
-                sc = {k: load(mi, k, a.lens, f, d, res, a.spp, variant) for k in ("realistic_lens", "neural_lens")}
+                sc = {k: load(mi, k, a.lens, f, d, res, a.spp, variant, a.model) for k in ("realistic_lens", "neural_lens")}
                 spp["render"] = sc["neural_lens"].sensors()[0].sampler().sample_count()
                 m = {k: mape(render(mi, s, spp["render"], seed=1), ref) for k, s in sc.items()}
                 t = {k: timed(mi, s, spp["render"], a.repeats) for k, s in sc.items()}

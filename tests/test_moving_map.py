@@ -300,3 +300,44 @@ def test_a_learned_map_at_the_sensors_configuration(configs):
     far = dataclasses.replace(st, focus_parameter=configs.band(st.zoom)[1] + 0.1)
     with pytest.raises(NeuralLensError, match="focus parameter"):
         far.configured_map(tm)
+
+
+def test_a_configured_map_folds_its_configuration_into_the_first_layers(configs):
+    """:class:`~mi_neurallens.neural.model.ConditionFold`: at a fixed configuration the 27 inputs of the EF 24-70's
+    camera map are affine in the ray's four, so the folded networks (4 inputs) compute what the trained ones do —
+    to float64 rounding in float64, to float32's in float32 — and another configuration changes only kernel
+    parameters (the same kernel source, no recompilation)."""
+    import dataclasses
+    import drjit as dr
+    import mitsuba as mi
+    from mi_neurallens.render_utils import default_variant
+    from mi_neurallens.trace.api import float_type
+    mi.set_variant(default_variant())
+    import mi_neurallens as nl
+    nl.register()
+    s = mi.load_dict({"type": "neural_lens", "lens": ZOOM, "focal_length": 52.0, "focus_distance": 0.9,
+                      "film": {"type": "hdrfilm", "width": 32, "height": 32}})
+    tm = s.setup.configured_map(s.model.map("transmit", "backward"))
+    assert tm.condition_fold() is not None and tm.condition_fold().first["regressor"][0].shape == (22, 4)
+    full = dataclasses.replace(tm, fold_conditions=False)
+    rng = np.random.default_rng(3)
+    u = rng.random((4000, 4))
+    x = tm.domain.u_to_x(np.hstack([u, np.full((len(u), tm.domain.conditions.dims), 0.5)]))[:, :4]
+    for name, tol in (("float64", 1e-9), ("float32", 2e-4)):
+        F = float_type(name)
+        xs = [F(x[:, i]) for i in range(4)]
+        (la, ya), (lb, yb) = tm.eval_reduced_dr(xs), full.eval_reduced_dr(xs)
+        a, b = np.array([la] + list(ya)), np.array([lb] + list(yb))
+        assert a.shape == (1 + 5 + 2 * tm.stop_crossings, len(x))
+        scale = np.maximum(np.abs(b).max(1, keepdims=True), 1e-3)       # per output
+        assert np.all(np.abs(a - b) <= tol * scale), (name, (np.abs(a - b) / scale).max())
+    # another configuration: new kernel parameters, not a new kernel
+    other = dataclasses.replace(tm, condition_values=tuple(v + 0.01 for v in tm.condition_values))
+    F = float_type("float32")
+    xs = [F(x[:, i]) for i in range(4)]
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        dr.kernel_history_clear() if hasattr(dr, "kernel_history_clear") else dr.kernel_history()
+        dr.eval(tm.eval_reduced_dr(xs))
+        dr.eval(other.eval_reduced_dr(xs))
+        hist = [h for h in dr.kernel_history() if h["type"] == dr.KernelType.JIT]
+    assert len(hist) >= 2 and hist[-1]["hash"] == hist[-2]["hash"]

@@ -178,11 +178,13 @@ def number(params, key, value, like):
     return float(value) if params is None else params(key, value, like)
 
 
-def mlp_dr(xs, layers, activation: str = "tanh", params: KernelParams | None = None, tag="mlp"):
+def mlp_dr(xs, layers, activation: str = "tanh", params: KernelParams | None = None, tag="mlp",
+           first_params: KernelParams | None = None):
     """Fused Dr.Jit evaluation: ``xs`` a list of Dr.Jit floats (one per input) → list of outputs.
     Weights become kernel literals (a kernel per weight set, cached by Dr.Jit), or with ``params`` kernel
     parameters named ``(tag, layer, row, column)`` (one kernel per architecture; zero weights then stay in,
-    so that the source does not depend on the values).  Each neuron's dot
+    so that the source does not depend on the values); ``first_params``: the first layer's from these instead
+    (a configured map's folded first layer, :meth:`~mi_neurallens.neural.model.NeuralMap.condition_fold`).  Each neuron's dot
     product is split into the style's interleaved partial sums added pairwise at the end (on the CPU, so
     the multiply-adds do not form one long dependency chain), and tanh is the style's (:func:`mlp_style`:
     per backend)."""
@@ -191,7 +193,9 @@ def mlp_dr(xs, layers, activation: str = "tanh", params: KernelParams | None = N
     like = h[0]
     style = mlp_style(like)
     accumulators = MLP_STYLES[style][0]
+    outer = params
     for li, (W, b) in enumerate(layers):
+        params = first_params if (li == 0 and first_params is not None) else outer
         W = np.asarray(W, dtype=np.float64).tolist()
         b = np.asarray(b, dtype=np.float64).tolist()
         out = []

@@ -47,6 +47,7 @@ crosses the aperture-stop plane — ``k`` crossings ``(sx, sy)`` in the reduced 
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 import json
 import math
@@ -106,10 +107,12 @@ def packed_networks(mlp: str, like) -> bool:
     return dr.backend_v(like) == dr.JitBackend.LLVM and dr.type_v(like) == dr.VarType.Float32
 
 
-def _network(owner, name: str, layers, activation: str, xn, params, use_packed: bool) -> list:
+def _network(owner, name: str, layers, activation: str, xn, params, use_packed: bool, fold=None) -> list:
     """One network of ``owner`` (a map or stop head) on the normalised inputs ``xn``: through its packed
     cooperative-vector buffer (:func:`~mi_neurallens.neural.coopvec.packed`) or unrolled (literals, or
-    ``params``' scalars tagged ``name``)."""
+    ``params``' scalars tagged ``name``).  ``fold``: a :class:`ConditionFold` (then ``xn`` are the ray's four)."""
+    if fold is not None:
+        return mlp_dr(xn, [fold.first[name]] + list(layers[1:]), activation, params, name + ".configured", fold.pool)
     if use_packed:
         return packed(owner, name, layers, activation, xn[0])(xn)
     return mlp_dr(xn, layers, activation, params, name)
@@ -124,16 +127,40 @@ def _fold(layers, out_scale, out_shift):
     return layers
 
 
-def _add_skip(y, xn, skip, params=None, tag="skip"):
+def _add_skip(y, xn, skip, params=None, tag="skip", fold=None):
     """``y + skip·xn`` on lists of Dr.Jit floats: the linear skip term (zero coefficients skipped, except
-    with kernel ``params``, where the source must not depend on the values)."""
+    with kernel ``params``, where the source must not depend on the values).  ``fold``: a :class:`ConditionFold`
+    (``xn`` the ray's four; the folded skip and its constant, ``tag`` naming which, from its pool)."""
     import drjit as dr
+    if fold is not None:
+        A, c = fold.skip[tag]
+        for j in range(len(y)):
+            y[j] = y[j] + fold.pool(("fold", tag, "c", j), c[j], xn[0])
+            for i in range(len(xn)):
+                y[j] = dr.fma(xn[i], fold.pool(("fold", tag, j, i), A[j, i], xn[i]), y[j])
+        return y
     A = np.asarray(skip, np.float64)
     for j in range(len(y)):
         for i in range(len(xn)):
             if A[j, i] != 0.0 or params is not None:
                 y[j] = dr.fma(xn[i], number(params, (tag, j, i), A[j, i], xn[i]), y[j])
     return y
+
+
+@dataclass(frozen=True)
+class ConditionFold:
+    """A configured map's networks on the ray's four inputs alone.
+
+    With its configuration fixed (:attr:`NeuralMap.condition_values`), a map's condition inputs are constants and its
+    product inputs (:attr:`~mi_neurallens.transport.configurations.Configurations.monomials`) are linear in the
+    ray's r, ωx, ωy, so every normalised input is an affine function of the ray's four normalised ones,
+    ``xn = A·xn₄ + c``: each network's first layer (W, b) becomes (W·A, W·c + b), each linear skip S becomes S·A
+    plus the constant S·c — the same function, in float64, before rounding to the kernel's float type.  The EF
+    24-70's 27 inputs become 4 (its three first layers and two skips: 2 000 of its ~6 300 multiply-adds a ray).  The
+    folded numbers are kernel parameters (``pool``), so another zoom or focus compiles nothing."""
+    first: dict         # network name ("classifier", "regressor", "stop") → its first layer (W (H, 4), b (H,))
+    skip: dict          # skip tag ("regressor.skip", "stop.skip") → (S·A (k, 4), S·c (k,))
+    pool: KernelParams
 
 
 @dataclass
@@ -158,12 +185,13 @@ class StopHead:
             self._fold = _fold(self.layers, self.out_scale, self.out_shift)
         return self._fold
 
-    def eval_dr(self, x, xn, s_max: float, params: KernelParams | None = None, coopvec: bool = False):
+    def eval_dr(self, x, xn, s_max: float, params: KernelParams | None = None, coopvec: bool = False, fold=None):
         """Reduced inputs ``x`` and their normalised ``xn`` (Dr.Jit) → the 2k outputs (Dr.Jit list);
         ``params``: the map's kernel parameters (None: literals); ``coopvec``: the network through Dr.Jit's
-        cooperative vectors (weights in a packed buffer), the rest with ``params``."""
-        net = _network(self, "stop", self._folded(), self.activation, xn, params, coopvec)
-        y = _add_skip(net, xn, self.skip, params, "stop.skip")
+        cooperative vectors (weights in a packed buffer), the rest with ``params``; ``fold``: the map's
+        :class:`ConditionFold` (``xn`` then the ray's four)."""
+        net = _network(self, "stop", self._folded(), self.activation, xn, params, coopvec, fold)
+        y = _add_skip(net, xn, self.skip, params, "stop.skip", fold)
         if self.odd_y:
             m = x[2] * number(params, "stop.1/s_max", 1.0 / float(s_max), x[2])
             for j in range(1, len(y), 2):
@@ -244,6 +272,9 @@ class NeuralMap(TransportMap):
     #: inputs in the domain's order (zoom parameter, focus parameter), kernel inputs beside the ray's four; None
     #: where the map has none, or where every ray brings its own (training, evaluation)
     condition_values: tuple | None = field(default=None, compare=False)
+    #: evaluate a configured map (:attr:`condition_values`) through its :class:`ConditionFold` (False: the networks'
+    #: full inputs, as trained; the two agree to the float type's rounding)
+    fold_conditions: bool = field(default=True, compare=False)
 
     method = "neural"
     reduced = True
@@ -276,12 +307,18 @@ class NeuralMap(TransportMap):
 
     def flops(self) -> int:
         """Per ray: the multiply-adds of both networks, 24 per tanh (the CPU's rational tanh), 40 for the
-        symmetry reduction, domain test and undo, 40 for the skip connection."""
+        symmetry reduction, domain test and undo, 40 for the skip connection (a configured map: its
+        :class:`ConditionFold`'s first layers)."""
+        fold = self.condition_fold()
         f = 0
-        for layers in (self.classifier, self.regressor):
-            fma, act = mlp_cost(layers)
+        for name, layers in (("classifier", self.classifier), ("regressor", self.regressor)):
+            fma, act = mlp_cost([fold.first[name]] + list(layers[1:]) if fold is not None else layers)
             f += 2 * fma + 24 * act
-        f += self.stop_head.flops() if (self.stop_head is not None and self.iris is not None) else 0
+        if self.stop_head is not None and self.iris is not None:
+            sh = self.stop_head
+            if fold is not None:
+                sh = dataclasses.replace(sh, layers=[fold.first["stop"]] + list(sh.layers[1:]))
+            f += sh.flops()
         return f + 40 + 2 * 5 * 4
 
     # ------------------------------------------------------------------ reduced-frame core
@@ -295,18 +332,23 @@ class NeuralMap(TransportMap):
         import drjit as dr
         mlp = self.mlp if mlp is None else mlp
         P = self.params_pool if mlp in PARAM_MODES else None
-        x = self._inputs(x, P)
-        xn = [dr.fma(v, number(P, ("norm.a", i), 1.0 / float(s), v), number(P, ("norm.b", i), -float(c) / float(s), v))
-              for i, (v, c, s) in enumerate(zip(x, self.input_center, self.input_scale))]
         if mlp not in MLP_MODES:
             raise ModelError(f"unknown MLP evaluation {mlp!r}: use one of {MLP_MODES}")
         use_packed = packed_networks(mlp, x[0])
-        logit = _network(self, "classifier", self.classifier, self.classifier_activation, xn, P, use_packed)[0]
-        if self.live_regressor is not None and dr.type_v(x[0]) == dr.VarType.Float32:
+        live = self.live_regressor is not None and dr.type_v(x[0]) == dr.VarType.Float32
+        fold = self.condition_fold() if (len(x) == 4 and not use_packed and not live) else None
+        if fold is not None:                        # the ray's four inputs only (zip stops at them)
+            x = tuple(x)
+        else:
+            x = self._inputs(x, P)
+        xn = [dr.fma(v, number(P, ("norm.a", i), 1.0 / float(s), v), number(P, ("norm.b", i), -float(c) / float(s), v))
+              for i, (v, c, s) in enumerate(zip(x, self.input_center, self.input_scale))]
+        logit = _network(self, "classifier", self.classifier, self.classifier_activation, xn, P, use_packed, fold)[0]
+        if live:
             y = self.live_regressor(xn)
         else:
-            y = _network(self, "regressor", self._folded(), self.regressor_activation, xn, P, use_packed)
-        y = _add_skip(y, xn, self.skip, P, "regressor.skip")
+            y = _network(self, "regressor", self._folded(), self.regressor_activation, xn, P, use_packed, fold)
+        y = _add_skip(y, xn, self.skip, P, "regressor.skip", fold)
         if self.odd_y:
             m = x[2] * number(P, "1/s_max", 1.0 / float(self.domain.s_max), x[2])
             y[1], y[3] = y[1] * m, y[3] * m
@@ -314,8 +356,40 @@ class NeuralMap(TransportMap):
             inv = dr.rsqrt(dr.maximum(1.0 - dr.fma(y[2], y[2], y[3] * y[3]), POSITION_COS_MIN ** 2))
             y[0], y[1] = y[0] * inv, y[1] * inv
         if self.stop_head is not None:
-            y = list(y) + self.stop_head.eval_dr(x, xn, self.domain.s_max, P, coopvec=use_packed)
+            y = list(y) + self.stop_head.eval_dr(x, xn, self.domain.s_max, P, coopvec=use_packed, fold=fold)
         return logit, y
+
+    def condition_fold(self) -> ConditionFold | None:
+        """This map's :class:`ConditionFold` at :attr:`condition_values` (cached per configuration), or None: a map
+        without conditions, none set, or :attr:`fold_conditions` off."""
+        cond = self.domain.conditions
+        if (cond is None or self.condition_values is None or not self.fold_conditions
+                or len(self.condition_values) != cond.dims):
+            return None
+        key = tuple(float(v) for v in self.condition_values)
+        hit = self.__dict__.get("_condition_fold")
+        if hit is not None and hit[0] == key:
+            return hit[1]
+        center, scale = np.asarray(self.input_center, np.float64), np.asarray(self.input_scale, np.float64)
+        X = np.vstack([np.zeros(4), np.eye(4)]) * scale[:4] + center[:4]      # xn₄ = 0 and the unit vectors
+        X = np.hstack([X, np.tile(np.array(key), (5, 1))])
+        if cond.n_products:
+            X = np.hstack([X, cond.products_np(X)])
+        XN = (X - center) / scale
+        c, A = XN[0], (XN[1:] - XN[0]).T                                     # xn = A·xn₄ + c, A (n_in, 4)
+        nets = [("classifier", self.classifier), ("regressor", self._folded())]
+        skips = [("regressor.skip", self.skip)]
+        if self.stop_head is not None:
+            nets.append(("stop", self.stop_head._folded()))
+            skips.append(("stop.skip", self.stop_head.skip))
+        first = {}
+        for name, layers in nets:
+            W, b = (np.asarray(v, np.float64) for v in layers[0])
+            first[name] = (W @ A, W @ c + b)
+        skip = {tag: (np.asarray(S, np.float64) @ A, np.asarray(S, np.float64) @ c) for tag, S in skips}
+        fold = ConditionFold(first, skip, self.params_pool)
+        self.__dict__["_condition_fold"] = (key, fold)
+        return fold
 
     def _inputs(self, x, P) -> tuple:
         """The networks' inputs from the reduced inputs ``x``: the four of the ray, and for a lens with moving groups

@@ -12,8 +12,10 @@ ray**, so that one kernel traces training rays of many configurations at once.
   d line: :func:`mi_neurallens.optics.moving.focus_parameter`), widened by :data:`FOCUS_MARGIN` of its width on
   each side, since the renderer focuses where the real rays focus best, a little off the paraxial solution.
   Tabulated at :data:`BAND_GRID` zoom parameters, linear between them.
-* **Sampling.**  A training sample's two extra unit-cube coordinates ``(u4, u5)`` give ``t = t0 + u4 (t1 − t0)``
-  and ``f = f_lo(t) + u5 (f_hi(t) − f_lo(t))``.
+* **Sampling.**  A training sample's two extra unit-cube coordinates ``(u4, u5)`` give ``t = t0 + w(u4) (t1 − t0)``
+  and ``f = f_lo(t) + u5 (f_hi(t) − f_lo(t))``, where ``w(u) = u − a sin(2πu) / 2π`` (a = :data:`ZOOM_END_WEIGHT`)
+  draws the ends of the zoom range 1/(1 − a) times as densely as its middle, 1/(1 + a): a network's error grows
+  toward the edges of what it learned, and the listed positions are the ends.
 * **Frame.**  The configurations differ in their gaps, so their vertices move relative to each other: the map's
   planes are fixed relative to the **sensor**, which does not move.  The map works in the lens space of the
   configuration whose image plane lies farthest behind its first vertex, every other configuration shifted along
@@ -55,6 +57,32 @@ MONOMIALS = {("zoom", "focus"): ((1, 0), (0, 1), (2, 0), (1, 1), (0, 2), (3, 0),
              ("zoom",): ((1, 0), (2, 0), (3, 0)), ("focus",): ((0, 1), (0, 2))}
 #: the ray's inputs that the monomials multiply: r, ωx, ωy (not λ)
 PRODUCT_RAY_COLUMNS = (0, 1, 2)
+#: a in the zoom sampling's warp w(u) = u − a sin(2πu) / 2π (module docstring, "Sampling"): 0 is uniform; 0.5 draws
+#: the zoom range's ends twice, its middle 2/3 times as densely as uniform
+ZOOM_END_WEIGHT = 0.5
+
+
+def zoom_warp(u):
+    """w(u) = u − a sin(2πu) / 2π (a = :data:`ZOOM_END_WEIGHT`): [0, 1] onto itself, monotone, ends fixed, density
+    1 / w'(u) = 1 / (1 − a cos 2πu).  numpy arrays or Dr.Jit floats."""
+    a = ZOOM_END_WEIGHT
+    if isinstance(u, np.ndarray) or np.isscalar(u):
+        return u - a / (2 * math.pi) * np.sin(2 * math.pi * np.asarray(u, np.float64))
+    import drjit as dr
+    return u - (a / (2 * math.pi)) * dr.sin((2 * math.pi) * u)
+
+
+def zoom_unwarp(w) -> np.ndarray:
+    """:func:`zoom_warp`'s inverse (numpy, float64; Newton from w, converged to 1e-15: w' ≥ 1 − a > 0)."""
+    w = np.asarray(w, np.float64)
+    u = w.copy()
+    a = ZOOM_END_WEIGHT
+    for _ in range(50):
+        step = (zoom_warp(u) - w) / (1.0 - a * np.cos(2 * math.pi * u))
+        u -= step
+        if np.all(np.abs(step) < 1e-15):
+            break
+    return u
 
 
 def _cubic_pieces(x, y) -> np.ndarray:
@@ -218,7 +246,7 @@ class Configurations:
         j = 0
         t = np.full(len(u), t0)
         if "zoom" in self.names:
-            t = t0 + u[:, j] * (t1 - t0)
+            t = t0 + zoom_warp(u[:, j]) * (t1 - t0)
             j += 1
         lo, hi = self._band_np(t)
         f = lo + u[:, j] * (hi - lo) if "focus" in self.names else np.zeros(len(u))
@@ -228,7 +256,7 @@ class Configurations:
         t0, t1 = self.zoom_range
         cols = []
         if "zoom" in self.names:
-            cols.append((np.asarray(t, np.float64) - t0) / max(t1 - t0, 1e-30))
+            cols.append(zoom_unwarp((np.asarray(t, np.float64) - t0) / max(t1 - t0, 1e-30)))
         if "focus" in self.names:
             lo, hi = self._band_np(t)
             cols.append((np.asarray(f, np.float64) - lo) / np.maximum(hi - lo, 1e-30))
@@ -242,7 +270,7 @@ class Configurations:
         out, j = [], 0
         t = u[0] * 0.0 + t0
         if "zoom" in self.names:
-            t = dr.fma(u[j], t1 - t0, t0)
+            t = dr.fma(zoom_warp(u[j]), t1 - t0, t0)
             out.append(t)
             j += 1
         if "focus" in self.names:
