@@ -304,9 +304,9 @@ def test_a_learned_map_at_the_sensors_configuration(configs):
 
 def test_a_configured_map_folds_its_configuration_into_the_first_layers(configs):
     """:class:`~mi_neurallens.neural.model.ConditionFold`: at a fixed configuration the 27 inputs of the EF 24-70's
-    camera map are affine in the ray's four, so the folded networks (4 inputs) compute what the trained ones do —
-    to float64 rounding in float64, to float32's in float32 — and another configuration changes only kernel
-    parameters (the same kernel source, no recompilation)."""
+    camera map are affine in the ray's four, so the folded networks (4 inputs, folded in float64) compute what the
+    trained ones do, to float32 rounding (float32 only: a float64 kernel of these networks compiles for 10 s), and
+    another configuration changes only kernel parameters (the same kernel source, no recompilation)."""
     import dataclasses
     import drjit as dr
     import mitsuba as mi
@@ -323,18 +323,16 @@ def test_a_configured_map_folds_its_configuration_into_the_first_layers(configs)
     rng = np.random.default_rng(3)
     u = rng.random((4000, 4))
     x = tm.domain.u_to_x(np.hstack([u, np.full((len(u), tm.domain.conditions.dims), 0.5)]))[:, :4]
-    for name, tol in (("float64", 1e-9), ("float32", 2e-4)):
-        F = float_type(name)
-        xs = [F(x[:, i]) for i in range(4)]
-        (la, ya), (lb, yb) = tm.eval_reduced_dr(xs), full.eval_reduced_dr(xs)
-        a, b = np.array([la] + list(ya)), np.array([lb] + list(yb))
-        assert a.shape == (1 + 5 + 2 * tm.stop_crossings, len(x))
-        scale = np.maximum(np.abs(b).max(1, keepdims=True), 1e-3)       # per output
-        assert np.all(np.abs(a - b) <= tol * scale), (name, (np.abs(a - b) / scale).max())
-    # another configuration: new kernel parameters, not a new kernel
-    other = dataclasses.replace(tm, condition_values=tuple(v + 0.01 for v in tm.condition_values))
     F = float_type("float32")
     xs = [F(x[:, i]) for i in range(4)]
+    (la, ya), (lb, yb) = tm.eval_reduced_dr(xs), full.eval_reduced_dr(xs)
+    a, b = np.array([la] + list(ya)), np.array([lb] + list(yb))
+    assert a.shape == (1 + 5 + 2 * tm.stop_crossings, len(x))
+    scale = np.maximum(np.abs(b).max(1, keepdims=True), 1e-3)           # per output
+    assert np.all(np.abs(a - b) <= 2e-4 * scale), (np.abs(a - b) / scale).max()
+    assert np.abs(a - b).max() > 0.0                                    # two evaluations, not one twice
+    # another configuration: new kernel parameters, not a new kernel
+    other = dataclasses.replace(tm, condition_values=tuple(v + 0.01 for v in tm.condition_values))
     with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
         dr.kernel_history_clear() if hasattr(dr, "kernel_history_clear") else dr.kernel_history()
         dr.eval(tm.eval_reduced_dr(xs))
