@@ -398,10 +398,10 @@ def test_tiny_training_run_learns(tmp_path):
     small = dict(hidden=3, width=16, batch=1024, pool=40000, refresh_every=200, eval_every=100,
                  max_minutes=1.0, warmup_steps=20, residual="none", patience=100, loss_weights="uniform",
                  lm_minutes=0.0)                 # Adam alone (tests/test_levenberg.py tests the finish)
-    cfg = load_config(overrides={"regressor": dict(small, max_steps=600, lr=1e-2),
+    cfg = load_config(overrides={"regressor": dict(small, max_steps=400, lr=1e-2),
                                  "classifier": dict(small, hidden=2, width=32, max_steps=600, lr=1e-2,
                                                     target="label"),
-                                 "stop": dict(small, hidden=2, width=16, max_steps=300, lr=1e-2, residual="linear"),
+                                 "stop": dict(small, hidden=2, width=16, max_steps=200, lr=1e-2, residual="linear"),
                                  "heldout": 10000, "threads": 1})
     tm = train_map(lens, 0, "backward", z_rear, z_front, dom, cfg, str(tmp_path), progress=False, eval_n=10000)
     m = tm.metrics
@@ -421,8 +421,8 @@ def test_tiny_training_run_learns(tmp_path):
     assert m["classifier"]["misclassification"] < 0.06
     assert m["classifier"]["misclassification"] < 0.3 * min(m["classifier"]["valid_fraction"], 1 - m["classifier"]["valid_fraction"])
     # the default margin target (interval regression of the aperture margin) learns a classifier too
-    cfgm = load_config(overrides={"regressor": dict(small, max_steps=600, lr=1e-2),
-                                  "classifier": dict(small, hidden=2, width=32, max_steps=600, lr=1e-2,
+    cfgm = load_config(overrides={"regressor": dict(small, max_steps=400, lr=1e-2),
+                                  "classifier": dict(small, hidden=2, width=32, max_steps=400, lr=1e-2,
                                                      target="margin"),
                                   "stop": dict(small, max_minutes=0.0),      # no stop head: none is needed here
                                   "heldout": 10000, "threads": 1})
@@ -431,7 +431,7 @@ def test_tiny_training_run_learns(tmp_path):
     mm = tmm.metrics["classifier"]
     # a stop head trains with the map (here a tiny one), unless its time budget is 0
     assert tm.stop_head is not None and tmm.stop_head is None and "stop" not in tmm.metrics
-    assert tm.metrics["stop"]["stop_um_median"] < 300.0       # < 5 % of the 7 mm stop radius after 300 steps
+    assert tm.metrics["stop"]["stop_um_median"] < 300.0       # < 5 % of the 7 mm stop radius after 200 steps
     assert tmm.training["classifier"]["target"] == "margin"
     assert mm["misclassification"] < 0.3 * min(mm["valid_fraction"], 1 - mm["valid_fraction"])
     # checkpoints exist and a rerun resumes (finished networks are not retrained)
