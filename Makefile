@@ -1,6 +1,6 @@
 # mi-neurallens — two commands for a fresh machine (see README.md):
 #   make demo   set up, then run the main job on bundled defaults (side-by-side render in out/demo/)
-#   make test   set up, then run the default test suite (about 5 min on 2 cores); `make test-slow` for the long ones
+#   make test   set up, then run the default test suite (about 5.5 min on 2 cores, two pytest-xdist workers); `make test-slow` for the long ones
 PY ?= python3
 OUT ?= out
 
