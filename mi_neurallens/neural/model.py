@@ -157,7 +157,8 @@ class ConditionFold:
     ``xn = A·xn₄ + c``: each network's first layer (W, b) becomes (W·A, W·c + b), each linear skip S becomes S·A
     plus the constant S·c — the same function, in float64, before rounding to the kernel's float type.  The EF
     24-70's 27 inputs become 4 (its three first layers and two skips: 1 800 fewer of its ~6 000 multiply-adds a ray).  The
-    folded numbers are kernel parameters (``pool``), so another zoom or focus compiles nothing."""
+    folded numbers are kernel parameters (``pool``), so another zoom or focus compiles nothing.  Applied where the
+    networks are literals (``mlp = "fused"``, what ``neural_lens`` renders with)."""
     first: dict         # network name ("classifier", "regressor", "stop") → its first layer (W (H, 4), b (H,))
     skip: dict          # skip tag ("regressor.skip", "stop.skip") → (S·A (k, 4), S·c (k,))
     pool: KernelParams
@@ -308,8 +309,8 @@ class NeuralMap(TransportMap):
     def flops(self) -> int:
         """Per ray: the multiply-adds of both networks, 24 per tanh (the CPU's rational tanh), 40 for the
         symmetry reduction, domain test and undo, 40 for the skip connection (a configured map: its
-        :class:`ConditionFold`'s first layers)."""
-        fold = self.condition_fold()
+        :class:`ConditionFold`'s first layers, with literal networks)."""
+        fold = self.condition_fold() if self.mlp not in PARAM_MODES else None
         f = 0
         for name, layers in (("classifier", self.classifier), ("regressor", self.regressor)):
             fma, act = mlp_cost([fold.first[name]] + list(layers[1:]) if fold is not None else layers)
@@ -336,7 +337,9 @@ class NeuralMap(TransportMap):
             raise ModelError(f"unknown MLP evaluation {mlp!r}: use one of {MLP_MODES}")
         use_packed = packed_networks(mlp, x[0])
         live = self.live_regressor is not None and dr.type_v(x[0]) == dr.VarType.Float32
-        fold = self.condition_fold() if (len(x) == 4 and not use_packed and not live) else None
+        # folded with literal networks only: the shared kernels (``params``) keep one variable list per architecture,
+        # recorded once by frozen functions (:meth:`kernel_inputs`)
+        fold = self.condition_fold() if (len(x) == 4 and P is None and not live) else None
         if fold is not None:                        # the ray's four inputs only (zip stops at them)
             x = tuple(x)
         else:
