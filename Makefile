@@ -15,7 +15,7 @@ demo: setup
 	$(PY) -m mi_neurallens demo --out $(OUT)/demo
 
 # Two workers (pytest-xdist), a test file each at a time: most tests wait on one thread (LLVM compiling a kernel,
-# Python), so two of them keep both cores busy (8.7 -> 6 min on 2 cores).
+# Python), so two of them keep both cores busy (with cheaper training tests: 8.7 -> 5.4 min on 2 cores).
 test: setup
 	$(PY) -m pytest -q -ra -n 2 --dist loadfile
 
