@@ -374,12 +374,13 @@ def test_auto_reads_the_verified_flare_error_where_the_model_records_one():
 def test_boundary_band_traces_the_learned_edges_exactly():
     """``boundary_band``: a learned ghost's samples within ±band of its classifier's decision are traced in a
     second pass, at the same lattice points.  With every sample in the band the neural render *is* the exact
-    one (same samples, same weights); with a band of 1 the RF 24 mm's ghost 18432, whose flare error is its
-    classifier's edge (0.06 paired at 2^24), comes within a third of it while tracing ~5 % of its samples.  A
+    one (same samples, same weights); with a band of 1 the EF 24 mm's ghost 1056768, whose flare error is its
+    classifier's edge (0.064 paired at 2^24, 0.0035 with the band), comes within a third of it while tracing a few %
+    of its samples.  A
     record verified with a band gates ``auto`` only in renders with at least that band."""
     from mi_neurallens.flare.verify import paired_renders, verification_scene
     from mi_neurallens.metrics import flare_error_map
-    lens, pid = "canon-rf-24mm-f1.4l-vcm", 18432
+    lens, pid = "canon-ef-24mm-f1.4l", 1056768
     scene = verification_scene(lens, lens, film=(120, 80))
     ex, off = paired_renders(scene, [pid], 1 << 20)
     _, every = paired_renders(scene, [pid], 1 << 20, boundary_band=1e9)
@@ -448,7 +449,7 @@ def test_auto_renders_a_ghost_with_the_band_its_record_needs():
     share, and ``evaluate``'s table gets a column per band."""
     from mi_neurallens.flare.verify import flare_records, store_flare_record
     from mi_neurallens.training.evaluate import markdown_table
-    lens, pid = "canon-rf-24mm-f1.4l-vcm", 18432
+    lens, pid = "canon-ef-24mm-f1.4l", 1056768
     m = nl.neural.model.load_model(bundled_model_path(lens))
     base = {k: v for k, v in m.map(pid, "forward").metrics.items() if k not in ("flare", "flare_bands", "flare_cost")}
 

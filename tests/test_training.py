@@ -376,10 +376,10 @@ def test_bundled_recipes_load():
     for r in recipes:
         c = load_config(r)
         assert os.path.basename(r)[:-len(".toml")] in bundled_lenses()
-        # the 22 mm and 59 mm lenses' ghost stop heads shipped as 2×32 Adam heads, the Canon's were trained
-        # again as the defaults' 3×16 heads with the finish: each recipe reproduces what its model holds
+        # the 22 mm and 59 mm lenses' ghost stop heads shipped as 2×32 Adam heads, the Canons' were trained
+        # (again) as the defaults' 3×16 heads with the finish: each recipe reproduces what its model holds
         fs = c.net("stop", "forward")
-        shipped = (3, 16, 0.5) if "canon-ef" in r else (2, 32, 0.0)
+        shipped = (3, 16, 0.5) if "canon-" in r else (2, 32, 0.0)
         assert (fs.hidden, fs.width, fs.lm_minutes) == shipped, r
 
 

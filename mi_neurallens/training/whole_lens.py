@@ -180,8 +180,14 @@ def _moving_groups(lens, groups):
     """The (direction, path) groups a lens with moving groups trains: every map, zoom and focus as inputs beside
     the ray; said once, since its ghosts are ranked over the configurations (the strongest at any zoom)."""
     if any(g[0] == "forward" for g in groups):
-        print(f"{lens.name}: moving groups: every map takes the zoom and focus parameters as inputs; the ghosts are "
-              "ranked at five zooms, each at both ends of its focus band", file=sys.stderr, flush=True)
+        from ..flare.energy import RANK_ZOOMS
+        mg = lens.moving
+        inputs = {(True, True): "zoom and focus parameters as inputs", (True, False): "zoom parameter as an input",
+                  (False, True): "focus parameter as an input"}[(mg.is_zoom, mg.focuses)]
+        where = f"at {RANK_ZOOMS} zooms, each at both ends of its focus band" if mg.is_zoom else \
+            "at both ends of the focus range"
+        print(f"{lens.name}: moving groups: every map takes the {inputs}; the ghosts are ranked {where}",
+              file=sys.stderr, flush=True)
     return groups
 
 

@@ -260,10 +260,9 @@ BUNDLED: dict[str, dict] = {
         file="other/CanonRF24mmF14LVCM.json", repository="ronbuening/LensVisualizer",
         path="src/lens-data/canon/CanonRF24mmF14LVCM.data.ts", commit="bf55b14f5ebdf8234ffb11cbace476fddb39b236",
         description="Canon RF 24mm F1.4 L VCM (JP 2025-15010 A, Numerical Example 3): a modern many-element "
-                    "lens, 15 elements in 27 surfaces, two aspheres",
-        reference="JP 2025-15010 A, Numerical Example 3, Canon / K. Shinohara, Y. Matsuba",
-        # its internal focusing (four variable gaps) is left out while its bundled model is one of unit focusing
-        read=dict(moving=False)),
+                    "lens, 15 elements in 27 surfaces, two aspheres; internal focusing by two groups to 0.24 m (moving "
+                    "groups)",
+        reference="JP 2025-15010 A, Numerical Example 3, Canon / K. Shinohara, Y. Matsuba"),
     "canon-ef-24-70mm-f2.8l": dict(
         file="other/CanonEF2470mmf28L.json", repository="ronbuening/LensVisualizer",
         path="src/lens-data/canon/CanonEF2470mmf28L.data.ts", commit="bf55b14f5ebdf8234ffb11cbace476fddb39b236",
