@@ -40,6 +40,7 @@ bench: setup
 	$(PY) benchmarks/bench_flare.py --lens ood-59mm --coatings none,quarter_wave,broadband --scene night --out $(OUT)/bench/coatings_night_ood-59mm.json
 	$(PY) benchmarks/equal_time.py --out $(OUT)/bench/equal_time.json
 	$(PY) benchmarks/bench_zoom.py --out $(OUT)/bench/bench_zoom.json
+	$(PY) benchmarks/bench_zoom.py --lens canon-rf-24mm-f1.4l-vcm --focal none --focus inf,2,1,0.5,0.3,0.24 --out $(OUT)/bench/bench_focus.json
 	$(PY) benchmarks/bench_baselines.py --out $(OUT)/bench/bench_baselines.json
 	$(PY) -m mi_neurallens accuracy wide-22mm --out $(OUT)/bench
 

@@ -2,7 +2,7 @@
 literal weights (the default, in the backend's evaluation style and in the other one: neural/mlp.py
 ``MLP_STYLES``) vs Dr.Jit cooperative vectors (``drjit.nn``), beside the exact tracer on the same rays, in
 one run; each neural path's outputs against the CPU style's.  Also the kernel compile time of each (cold,
-in-process).
+in-process).  A lens with moving groups: its first position, focused at infinity (the map's folded configuration).
 
     python benchmarks/bench_mlp.py [--lens wide-22mm] [--model FILE] [--rays 22] [--repeats 5]
 
@@ -45,6 +45,14 @@ def main(argv=None):
     lens = Lens.load(a.lens)
     model = load_model(a.model or bundled_model_path(a.lens), lens)
     tm = model.map("transmit", "backward")
+    cond = getattr(tm.domain, "conditions", None)
+    if cond is not None:        # moving groups: the map and the tracer at the first position, focused at infinity
+        import dataclasses
+        import math
+        from mi_neurallens.optics import moving as mv
+        lens, t, f = mv.configure(lens, None, math.inf)
+        shift = cond.shift_of(lens.image_z)
+        tm = dataclasses.replace(tm, z_in=tm.z_in + shift, z_out=tm.z_out + shift, condition_values=cond.values(t, f))
     if a.without_stop_head:
         tm.stop_head = None
     n = 1 << a.rays

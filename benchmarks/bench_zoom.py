@@ -1,10 +1,12 @@
-"""One learned camera map for a zoom lens's whole range, measured at configurations the training never drew: per
-focal length and focus distance, the map against the tracer on the same rays, and ``neural_lens`` against
+"""One learned camera map for a lens's whole zoom and focus range, measured at configurations the training never
+drew: per focal length and focus distance, the map against the tracer on the same rays, and ``neural_lens`` against
 ``realistic_lens`` on the still life, at equal samples and in time.
 
     python benchmarks/bench_zoom.py [--lens canon-ef-24-70mm-f2.8l] [--model FILE] [--focal 24.9,35,45,60,68.14]
                                     [--focus inf,0.5] [--res 160x106] [--spp 64] [--reference-spp 1024]
                                     [--rays 400000] [--repeats 5] [--out out/bench/bench_zoom.json]
+    python benchmarks/bench_zoom.py --lens canon-rf-24mm-f1.4l-vcm --focal none --focus inf,2,1,0.5,0.3,0.24 \
+                                    --out out/bench/bench_focus.json        # a prime that focuses internally
 
 Per configuration (the focal length, mm, solved to the zoom parameter; the focus distance, m, to the focus
 parameter at the real rays' best focus, as the sensors do):
@@ -60,7 +62,8 @@ def map_accuracy(lens, tm, zoom: float, focus: float, n: int, seed: int) -> dict
 def load(mi, kind, lens, focal, focus, res, spp, variant, model=None):
     from mi_neurallens.commands.render import load_scene
     from mi_neurallens.resources import scene_path
-    sets = [f"focal_length={focal}", f"focus_distance={focus}"] + ([f"model={model or lens}"] if kind == "neural_lens" else [])
+    sets = ([] if focal is None else [f"focal_length={focal}"]) + [f"focus_distance={focus}"] + \
+        ([f"model={model or lens}"] if kind == "neural_lens" else [])
     return load_scene(str(scene_path("still_life")), variant=variant, lens=lens, resolution=res, spp=spp, sets=sets,
                       sensor_type=kind)
 
@@ -88,7 +91,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--lens", default="canon-ef-24-70mm-f2.8l")
     ap.add_argument("--model", help="the model file to measure (default: the lens's bundled model)")
-    ap.add_argument("--focal", default="24.9,35,45,60,68.14", help="focal lengths, mm")
+    ap.add_argument("--focal", default="24.9,35,45,60,68.14",
+                    help="focal lengths, mm (a zoom lens), or none (a prime that focuses by moving groups)")
     ap.add_argument("--focus", default="inf,0.5", help="focus distances, m from the sensor")
     ap.add_argument("--res", default="160x106")
     ap.add_argument("--spp", type=int, default=64, help="a power of 4: the still life's ldsampler rounds up to one")
@@ -111,7 +115,8 @@ def main(argv=None):
     tm = load_model(a.model or bundled_model_path(a.lens), lens).map("transmit", "backward")
     res = tuple(int(v) for v in a.res.split("x"))
     rows, spp = [], {}
-    for i, f in enumerate(float(v) for v in a.focal.split(",")):
+    focals = [None] if a.focal.lower() == "none" else [float(v) for v in a.focal.split(",")]
+    for i, f in enumerate(focals):
         for j, d in enumerate(float(v) for v in a.focus.split(",")):
             _, zoom, fpar = mv.configure(lens, f, d * 1000.0)
             row = {"focal_length_mm": f, "focus_m": d, "zoom": zoom, "focus_parameter": fpar,
@@ -130,7 +135,8 @@ def main(argv=None):
                                  "time_ratio": t["neural_lens"] / t["realistic_lens"]}
             rows.append(row)
             mm, rr = row["map"], row.get("render", {})
-            print(f"{f:6.2f} mm, {d:g} m: pos {mm['position_um_median']:.3g}/{mm['position_um_p99']:.3g} µm, "
+            at = "" if f is None else f"{f:6.2f} mm, "
+            print(f"{at}{d:g} m: pos {mm['position_um_median']:.3g}/{mm['position_um_p99']:.3g} µm, "
                   f"dir {mm['direction_arcsec_median']:.3g}/{mm['direction_arcsec_p99']:.3g}\", misclass "
                   f"{100 * mm['misclassification']:.3g}%"
                   + (f"; MAPE ratio {rr['mape_ratio']:.3f}, time ratio {rr['time_ratio']:.3f}" if rr else ""),

@@ -41,7 +41,8 @@ PERF = os.path.join(ROOT, "docs", "performance")
 MODELS = os.path.join(ROOT, "mi_neurallens", "data", "lenses", "models")
 #: the CPU benchmark files docs/performance/ takes from a run (``make bench`` writes them, and ``mlp_<lens>.json`` /
 #: ``render_<lens>.json`` per lens)
-CPU_FILES = ("bench_tracer.json", "bench_flare.json", "equal_time.json", "bench_baselines.json", "bench_zoom.json")
+CPU_FILES = ("bench_tracer.json", "bench_flare.json", "equal_time.json", "bench_baselines.json", "bench_zoom.json",
+             "bench_focus.json")
 #: how each file is made when its run did not record its own command (the Makefile's ``bench`` target)
 DEFAULT_COMMANDS = {f: f"python benchmarks/{f[:-5]}.py" for f in CPU_FILES}
 PERF_PAGE, README = "docs/performance.md", "README.md"
@@ -293,26 +294,29 @@ def ghost_counts(ev: dict, backend: str = "llvm") -> dict:
     return out
 
 
-def zoom_table(r: Results) -> str:
-    """The zoom lens's one camera map at configurations the training never drew (bench_zoom.json): the map against
-    the tracer on the same rays, neural_lens against realistic_lens on the still life."""
-    d = r.cpu.get("bench_zoom.json")
+def zoom_table(r: Results, name: str = "bench_zoom.json") -> str:
+    """A lens's one camera map over its moving groups at configurations the training never drew (``bench_zoom.json``:
+    the zoom lens; ``bench_focus.json``: an internally focused prime, no focal-length column): the map against the
+    tracer on the same rays, neural_lens against realistic_lens on the still life."""
+    d = r.cpu.get(name)
     if not d:
-        return "*No zoom run stored.*\n"
+        return "*No run stored.*\n"
+    zoom = any(x.get("focal_length_mm") is not None for x in d.get("rows", []))
     rows = []
     for x in d.get("rows", []):
         m, rr = x.get("map", {}), x.get("render", {})
         focus = "∞" if math.isinf(float(x.get("focus_m", math.inf))) else f"{num(x.get('focus_m'))} m"
-        rows.append([f"{num(x.get('focal_length_mm'), 4)} mm", focus,
-                     f"{num(m.get('position_um_median'))} / {num(m.get('position_um_p99'))}",
-                     f"{num(m.get('direction_arcsec_median'))} / {num(m.get('direction_arcsec_p99'))}",
-                     pct(m.get("misclassification")), ratio(rr.get("mape_ratio")), ratio(rr.get("time_ratio"))])
+        rows.append(([f"{num(x.get('focal_length_mm'), 4)} mm"] if zoom else []) + [
+            focus, f"{num(m.get('position_um_median'))} / {num(m.get('position_um_p99'))}",
+            f"{num(m.get('direction_arcsec_median'))} / {num(m.get('direction_arcsec_p99'))}",
+            pct(m.get("misclassification")), ratio(rr.get("mape_ratio")), ratio(rr.get("time_ratio"))])
     res = "x".join(str(v) for v in d.get("resolution", []))
     note = (f"*`{d.get('lens')}`; render columns: the still life at {res}, {d.get('spp')} spp, MAPE against "
             f"realistic_lens at {d.get('reference_spp')} spp (neural ÷ realistic: 1 means the map adds nothing to "
             "the noise), render time neural ÷ realistic at equal spp.*\n")
-    return table(["focal length", "focus", "exit position µm, median / p99", "direction ″, median / p99",
-                  "misclassified", "MAPE ratio", "time ratio"], rows) + "\n" + note + r.source("bench_zoom.json")
+    return table((["focal length"] if zoom else []) + [
+        "focus", "exit position µm, median / p99", "direction ″, median / p99", "misclassified", "MAPE ratio",
+        "time ratio"], rows) + "\n" + note + r.source(name)
 
 
 def maps_table(r: Results) -> str:
@@ -598,7 +602,8 @@ def pages(r: Results | None = None) -> dict:
     return {PERF_PAGE: {"verdicts": verdicts(r), "tracer": tracer_table(r), "camera-rays": mlp_table(r),
                         "render": render_table(r), "equal-time": equal_time_table(r), "flare": flare_table(r), "starburst": starburst_table(r),
                         "coatings": coatings_table(r),
-                        "maps": maps_table(r), "zoom": zoom_table(r), "baselines-speed": baselines_speed_table(r),
+                        "maps": maps_table(r), "zoom": zoom_table(r),
+                        "focus": zoom_table(r, "bench_focus.json"), "baselines-speed": baselines_speed_table(r),
                         "baselines-accuracy": baselines_accuracy_table(r), "gpu-render": gpu_render_table(r),
                         "gpu-camera-rays": gpu_mlp_table(r)},
             README: {"headline": headline(r)}}
