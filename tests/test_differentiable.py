@@ -8,6 +8,7 @@ kind of parameter on three lenses, with fixed samples (no integrator noise), rim
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 
 import numpy as np
@@ -125,18 +126,24 @@ def _contributions(sensor, samples):
 
 #: (lens, parameter, coefficient index for asphere, relative step of the central differences); the sensor of
 #: "dgauss-50mm sensor_distance" is focused by sensor_distance (the others by focus_distance)
-def _fixed_configuration(name: str) -> str:
-    """A lens with moving groups refuses gradients (its groups' motion is solved, not differentiated): its first
-    configuration (infinity focus) as a fixed lens file, which takes them (the RF 24 mm's old unit-focusing file)."""
+#: a lens with moving groups refuses gradients (its groups' motion is solved, not differentiated): this name stands
+#: for the RF 24 mm's first configuration (infinity focus) as a fixed lens file, an asphere the suite checks
+RF24_AT_INFINITY = "canon-rf-24mm-f1.4l-vcm@infinity"
+
+
+@functools.lru_cache(maxsize=None)
+def _lens_file(name: str) -> str:
+    """``name``, or for ``LENS@infinity`` that lens's first configuration written as a fixed lens file (the same
+    name on every xdist worker, so that their test ids agree; the file is made on first use)."""
+    if not name.endswith("@infinity"):
+        return name
     import tempfile
     from mi_neurallens.optics import moving as mv
-    path = os.path.join(tempfile.mkdtemp(prefix="mi-neurallens-test-"), f"{name}-infinity.json")
-    mv.at(Lens.load(name), 0.0, 0.0).save(path)
+    base = name.split("@")[0]
+    path = os.path.join(tempfile.mkdtemp(prefix="mi-neurallens-test-"), f"{base}-infinity.json")
+    mv.at(Lens.load(base), 0.0, 0.0).save(path)
     return path
 
-
-#: the RF 24 mm at infinity focus: an asphere whose render gradient the suite checks
-RF24_AT_INFINITY = _fixed_configuration("canon-rf-24mm-f1.4l-vcm")
 
 SENSOR_CASES = [
     ("wide-22mm", "focus_distance", 0, 3e-2, 1),
@@ -219,7 +226,7 @@ def _loss(sc, p, key, value, seed, weight):
 def test_render_gradient_matches_finite_differences(lens, key, j, rel, plugin):
     """The whole render through lens_ad: |g − g_FD| ≤ 0.01 |g_FD| + 3 σ(g_FD) over K = 3 seeds, the loss the
     mean of the image times a fixed random weight image; ``j`` the entry of an array parameter (flattened)."""
-    sc = scene(lens=lens, plugin=plugin)
+    sc = scene(lens=_lens_file(lens), plugin=plugin)
     p = mi.traverse(sc)
     k = "sensor." + key
     v0 = np.array(p[k].numpy(), np.float64)
