@@ -12,7 +12,15 @@ from mi_neurallens.flare.render import FlareRenderer
 from ghosts_only import FlareOptions
 from mi_neurallens.neural.model import NeuralMap, bundled_model_path, load_model
 
+from mi_neurallens.render_utils import default_variant
 from test_flare import make_scene, point
+
+
+@pytest.fixture(autouse=True)
+def _rgb_variant():
+    """Frozen kernels are for RGB variants (a spectral one runs traced): set the default variant, whatever a test
+    file run before this one on the same xdist worker left set."""
+    mi.set_variant(default_variant())
 
 
 def _renderers(scene, model, ids, mode="neural"):
