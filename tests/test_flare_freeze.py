@@ -19,8 +19,16 @@ from test_flare import make_scene, point
 @pytest.fixture(autouse=True)
 def _rgb_variant():
     """Frozen kernels are for RGB variants (a spectral one runs traced): set the default variant, whatever a test
-    file run before this one on the same xdist worker left set."""
-    mi.set_variant(default_variant())
+    file run before this one on the same xdist worker left set (its plugins registered), and put it back after."""
+    import mi_neurallens as nl
+    before = mi.variant()
+    if before != default_variant():
+        mi.set_variant(default_variant())
+        nl.register()
+    yield
+    if mi.variant() != before:
+        mi.set_variant(before)
+        nl.register()
 
 
 def _renderers(scene, model, ids, mode="neural"):
