@@ -47,12 +47,10 @@ def main(argv=None):
     tm = model.map("transmit", "backward")
     cond = getattr(tm.domain, "conditions", None)
     if cond is not None:        # moving groups: the map and the tracer at the first position, focused at infinity
-        import dataclasses
         import math
         from mi_neurallens.optics import moving as mv
         lens, t, f = mv.configure(lens, None, math.inf)
-        shift = cond.shift_of(lens.image_z)
-        tm = dataclasses.replace(tm, z_in=tm.z_in + shift, z_out=tm.z_out + shift, condition_values=cond.values(t, f))
+        tm = cond.configure_map(tm, lens.image_z, t, f)
     if a.without_stop_head:
         tm.stop_head = None
     n = 1 << a.rays

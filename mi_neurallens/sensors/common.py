@@ -247,10 +247,7 @@ class LensSetup:
         cond = getattr(tm.domain, "conditions", None)
         if cond is None:
             return tm
-        cond.check(self.zoom, self.focus_parameter)
-        shift = cond.shift_of(self.lens.image_z)
-        return dataclasses.replace(tm, z_in=tm.z_in + shift, z_out=tm.z_out + shift,
-                                   condition_values=cond.values(self.zoom, self.focus_parameter))
+        return cond.configure_map(tm, self.lens.image_z, self.zoom, self.focus_parameter)
 
     @property
     def na_image(self) -> float:

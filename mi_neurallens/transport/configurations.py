@@ -229,6 +229,15 @@ class Configurations:
         """The map's condition inputs of a configuration, in :attr:`names` order."""
         return tuple(float(zoom) if n == "zoom" else float(focus) for n in self.names)
 
+    def configure_map(self, tm, image_z: float, zoom: float, focus: float):
+        """The learned map ``tm`` (over these configurations) at one configuration: its condition inputs set, its
+        planes moved from the configurations' frame into the space of the configured lens whose sensor lies at
+        ``image_z`` (mm); outside the learned range a :class:`~mi_neurallens.errors.NeuralLensError`."""
+        import dataclasses as dc
+        self.check(zoom, focus)
+        shift = self.shift_of(image_z)
+        return dc.replace(tm, z_in=tm.z_in + shift, z_out=tm.z_out + shift, condition_values=self.values(zoom, focus))
+
     def shift_of(self, image_z: float) -> float:
         """How far a configured lens's lens space (first vertex at 0, sensor at ``image_z``) lies along +z from
         this frame: a plane at ``z`` here is at ``z + shift_of(image_z)`` there."""
