@@ -82,9 +82,10 @@ def test_frozen_exact_flare_equals_the_traced_one():
         a, b = traced.render(seed=seed, samples=n).total, frozen.render(seed=seed, samples=n).total
         assert _same(a, b)
         counts.append(frozen.kernels.frozen["splat"].n_recordings if "splat" in frozen.kernels.frozen else 0)
-    # one recording per ghost (two within a whole test run, where Dr.Jit records each once more — after the
-    # second or the third render, depending on what ran before), then replays
-    assert 2 <= counts[-1] <= 4 and counts[-1] == counts[-2] == counts[-3], counts
+    # one recording per ghost, then replays; within a whole test run Dr.Jit records each once more at a render
+    # that depends on what ran before on the worker (seen after the 2nd, the 3rd and the 7th): at most two
+    # recordings per ghost in 7 renders, so at least 10 of the 14 kernel launches were replays
+    assert 2 <= counts[-1] <= 4 and counts == sorted(counts), counts
 
 
 def test_a_kernel_that_cannot_be_frozen_runs_traced(monkeypatch):
