@@ -311,8 +311,38 @@ def test_merge_command(tmp_path):
     assert out.extra["ghosts_trained"] == [2560, 10240]          # ranking order, not argument order
     with pytest.raises(ModelError, match="no map"):
         mm.merge(src, dst_path, ["forward.7"])
+    # the source's training runs join the destination's, marked with what was merged, once
+    refined = load_model(src)
+    run = {"command": "mi-neurallens train wide-22mm --finish-only maps", "started": "2026-12-03 00:40 UTC"}
+    refined.extra["runs"] = [run]
+    refined_path = str(tmp_path / "refined.model.safetensors")
+    refined.save(refined_path)
+    before = len(load_model(dst_path).extra.get("runs", []))
+    for _ in range(2):
+        mm.merge(refined_path, dst_path, ["backward.0"])
+    runs = load_model(dst_path).extra["runs"]
+    assert len(runs) == before + 1 and runs[-1] == {**run, "merged_maps": ["backward.0"]}
+    from mi_neurallens.commands.evaluate import provenance_text
+    assert "--finish-only maps` — 2026-12-03 00:40 UTC" in provenance_text(load_model(dst_path))
+    assert "merged into this file: backward.0" in provenance_text(load_model(dst_path))
     with pytest.raises(ModelError, match="lens"):
         mm.merge(bundled_model_path("ood-59mm"), dst_path)
+
+
+def test_a_run_on_a_base_model_keeps_the_base_runs():
+    """A finish-only or keep run's file lists the runs of the model it built on, then its own (a rerun of the
+    same command updates its entry)."""
+    from mi_neurallens.neural.model import bundled_model_path, load_model
+    from mi_neurallens.training.whole_lens import record_run
+    base = load_model(bundled_model_path("wide-22mm"))
+    first = {"command": "mi-neurallens train wide-22mm", "config_digest": "a", "started": "t0"}
+    base.extra["runs"] = [first]
+    out = load_model(bundled_model_path("wide-22mm"))
+    out.extra.pop("runs", None)
+    finish = {"command": "mi-neurallens train wide-22mm --finish-only maps", "config_digest": "b", "started": "t1"}
+    record_run(out, finish, base)
+    record_run(out, {**finish, "started": "t2"}, base)           # resumed
+    assert [r["started"] for r in out.extra["runs"]] == ["t0", "t1"] and out.extra["runs"][-1]["resumed"]
 
 
 def test_merge_keeps_the_stop_head_of_the_map_a_retrained_one_replaces(tmp_path):

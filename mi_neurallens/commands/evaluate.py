@@ -133,7 +133,8 @@ def provenance_text(model) -> str:
         recipe = (r.get("recipe") or {}).get("file") or "the defaults (no recipe)"
         lines.append(f"* run {i}: `{r.get('command', '?')}` — {r.get('started', '?')}{' (resumed)' if r.get('resumed') else ''}; "
                      f"recipe {recipe}, configuration {r.get('config_digest', '?')}; mi-neurallens "
-                     f"{r.get('mi_neurallens', '?')}; {r.get('machine', '?')}")
+                     f"{r.get('mi_neurallens', '?')}; {r.get('machine', '?')}"
+                     + (f"; merged into this file: {', '.join(r['merged_maps'])}" if r.get("merged_maps") else ""))
     if not runs:
         digests = {m.training.get("config_digest") for m in model.maps.values() if m.training}
         lines.append(f"* the runs are not recorded (the file was written before `mi-neurallens train` recorded its "

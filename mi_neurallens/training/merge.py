@@ -3,13 +3,15 @@ distributed training into the lens's model)."""
 from __future__ import annotations
 
 from ..errors import ModelError
+from .whole_lens import has_run
 
 
 def merge_models(src, dst, keys=None) -> list:
     """Copy the maps ``keys`` (default: all) of the model ``src`` into the model ``dst`` (both
     :class:`~mi_neurallens.neural.model.NeuralLensModel` of the same lens and planes; ``dst`` changes in
     place).  ``dst`` keeps its ghost ranking; its ``ghosts_trained`` becomes the ghost maps it now holds,
-    in ranking order.  A copied map without a stop head keeps the stop head of the map it replaces when
+    in ranking order, and its training runs gain ``src``'s (each marked with the maps merged from it:
+``merged_maps``), so the file still says how every map it holds was made.  A copied map without a stop head keeps the stop head of the map it replaces when
     both have the same path, planes and domain (:func:`keep_stop_head`), so retraining a map's classifier
     and regressor does not take away its render-time aperture.  Returns the keys copied."""
     if src.fingerprint != dst.fingerprint:
@@ -22,8 +24,14 @@ def merge_models(src, dst, keys=None) -> list:
         if k not in src.maps:
             raise ModelError(f"the source model has no map {k!r}; it has {sorted(src.maps)}")
         dst.maps[k] = keep_stop_head(src.maps[k], dst.maps.get(k))
+    runs = [r for r in dst.extra.get("runs", []) if isinstance(r, dict)]
+    for r in src.extra.get("runs", []):
+        if isinstance(r, dict) and not has_run(runs, r):
+            runs.append({**r, "merged_maps": keys})
     for k, v in src.extra.items():
         dst.extra.setdefault(k, v)
+    if runs:
+        dst.extra["runs"] = runs
     order = [int(d["path_id"]) for d in dst.extra.get("ghost_ranking", [])]
     have = set(dst.ghost_ids)
     dst.extra["ghosts_trained"] = [p for p in order if p in have] + sorted(have - set(order))

@@ -125,7 +125,7 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
     workdir = workdir or (out_path + ".work")
     os.makedirs(workdir, exist_ok=True)
     model = _open_model(lens, cfg, out_path, z_planes, s_range, configs)
-    record_run(model, provenance)
+    record_run(model, provenance, base_model)
     groups = select_maps(cfg, paths)
     if configs is not None:
         groups = _moving_groups(lens, groups)
@@ -202,18 +202,27 @@ def _base_model(lens, keep, finish_only, base_path):
     return load_model(base_path, lens)
 
 
-def record_run(model, provenance: dict | None) -> None:
+def record_run(model, provenance: dict | None, base=None) -> None:
     """Append a run's ``provenance`` to ``model.extra["runs"]``; a rerun of the same command with the same
-    configuration (resuming an interrupted run) updates the last entry instead of adding one."""
-    if not provenance:
-        return
+    configuration (resuming an interrupted run) updates the last entry instead of adding one.  A run built on a
+    ``base`` model (``keep``, ``finish_only``) first takes the base's runs it lacks: the file still says how the
+    networks it finished were made."""
     runs = [r for r in model.extra.get("runs", []) if isinstance(r, dict)]
-    same = ("command", "config_digest")
-    if runs and all(runs[-1].get(k) == provenance.get(k) for k in same):
-        runs[-1] = {**provenance, "started": runs[-1].get("started", provenance.get("started")), "resumed": True}
-    else:
-        runs.append(dict(provenance))
-    model.extra["runs"] = runs
+    if base is not None:
+        runs = [r for r in base.extra.get("runs", []) if isinstance(r, dict) and not has_run(runs, r)] + runs
+    if provenance:
+        same = ("command", "config_digest")
+        if runs and all(runs[-1].get(k) == provenance.get(k) for k in same):
+            runs[-1] = {**provenance, "started": runs[-1].get("started", provenance.get("started")), "resumed": True}
+        else:
+            runs.append(dict(provenance))
+    if runs:
+        model.extra["runs"] = runs
+
+
+def has_run(runs, run) -> bool:
+    """Whether ``runs`` holds ``run`` (the same command started at the same time)."""
+    return any(r.get("command") == run.get("command") and r.get("started") == run.get("started") for r in runs)
 
 
 def _open_model(lens, cfg: TrainConfig, out_path: str, z_planes, s_range, configs=None):
