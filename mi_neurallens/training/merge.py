@@ -11,9 +11,10 @@ def merge_models(src, dst, keys=None) -> list:
     :class:`~mi_neurallens.neural.model.NeuralLensModel` of the same lens and planes; ``dst`` changes in
     place).  ``dst`` keeps its ghost ranking; its ``ghosts_trained`` becomes the ghost maps it now holds,
     in ranking order, and its training runs gain ``src``'s (each marked with the maps merged from it:
-``merged_maps``), so the file still says how every map it holds was made.  A copied map without a stop head keeps the stop head of the map it replaces when
-    both have the same path, planes and domain (:func:`keep_stop_head`), so retraining a map's classifier
-    and regressor does not take away its render-time aperture.  Returns the keys copied."""
+    ``merged_maps``), so the file still says how every map it holds was made.  A copied map without a stop
+    head keeps the stop head of the map it replaces when both have the same path, planes and domain
+    (:func:`keep_stop_head`), so retraining a map's classifier and regressor does not take away its
+    render-time aperture.  Returns the keys copied."""
     if src.fingerprint != dst.fingerprint:
         raise ModelError(f"a model of lens {src.lens_name} ({src.fingerprint}) cannot be merged into one of "
                          f"{dst.lens_name} ({dst.fingerprint})")
