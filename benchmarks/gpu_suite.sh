@@ -18,6 +18,9 @@
 #           style (neural/mlp.py MLP_STYLES), each frame's kernels timed (Dr.Jit's kernel history)
 #   equal   equal render time, neural vs exact (equal_time.py), on every bundled lens with a model
 #   flare   the 22 mm lens's flare benchmark (bench_flare.py: samples/s and equal-time MAPE, exact vs neural)
+#   coatings  what a coating and the starburst cost a flare on this backend (bench_flare.py --coatings on the night
+#           scene and on one point light, --starburst; ood-59mm, 2^24 samples a light: issue 57's cost goals, which
+#           an exact per-ray stack misses on the 2-core CPU)
 #   tests   the sensor, flare and aperture tests under cuda_ad_rgb ($MI_NEURALLENS_VARIANT)
 #   train   a whole new lens with the defaults on the GPU: dgauss-50mm, transmit maps and the ghosts of the
 #           default selection, then its held-out evaluation
@@ -60,10 +63,12 @@ if [ -n "${GPU_SUITE_QUICK:-}" ]; then
     TRAIN="--paths backward-transmit --set regressor.max_steps=200 --set classifier.max_steps=200 --set stop.max_steps=200 --set regressor.lm_iterations=5 --set classifier.lm_iterations=5 --set stop.lm_iterations=5"
     GHOST_LENSES="${GHOST_LENSES:-wide-22mm}"
     GHOST_ARGS="--set max_ghosts=1 --set forward_regressor.max_steps=200 --set forward_classifier.max_steps=200 --set forward_stop.max_steps=200 --set forward_regressor.lm_iterations=5 --set forward_classifier.lm_iterations=5 --set forward_stop.lm_iterations=5"
+    COAT="--ghosts 1 --samples 65536"
     EVAL_N=2000; COST=14; COST_LENSES="${COST_LENSES:-wide-22mm}"
 else
     RAYS=24; FILM=1280x960; SPP=64; FLARE="--ghosts 8 --samples $((1 << 24)) --ref-samples $((1 << 27))"
     EQUAL="--res 640x480 --spp 4,16,64 --reference-spp 1024 --repeats 2"
+    COAT="--ghosts 4 --samples $((1 << 24))"
     TRAIN="--paths transmit,ghosts"; EVAL_N=100000
     COST=22; COST_LENSES="${COST_LENSES:-$(echo $ALL_LENSES | tr , ' ')}"
 fi
@@ -152,6 +157,16 @@ stage_equal() {
 
 stage_flare() {
     py 90 benchmarks/bench_flare.py --lens wide-22mm $FLARE --out "$RES/flare_wide-22mm.json"
+}
+
+stage_coatings() {
+    local rc=0
+    py 150 benchmarks/bench_flare.py --lens ood-59mm $COAT --coatings none,quarter_wave,broadband --scene night \
+        --out "$RES/coatings_night_ood-59mm.json" || rc=1
+    py 90 benchmarks/bench_flare.py --lens ood-59mm $COAT --coatings none,quarter_wave,broadband \
+        --out "$RES/coatings_point_ood-59mm.json" || rc=1
+    py 90 benchmarks/bench_flare.py --lens ood-59mm $COAT --starburst --out "$RES/starburst_ood-59mm.json" || rc=1
+    return $rc
 }
 
 stage_tests() {
