@@ -123,7 +123,7 @@ def run(args):
 
 def provenance_text(model) -> str:
     """How the model file was made, from its own metadata: each training run's command, recipe, package version,
-    date and machine (``extra["runs"]``, written by ``mi-neurallens train``), and the training time it records;
+    date and machine (``extra["runs"]``, written by ``mi-neurallens train``), and how long the last run took;
     a file written before runs were recorded says so, with the number of distinct configurations its maps were
     trained with (each map's ``training["config_digest"]``)."""
     extra = model.extra or {}
@@ -142,7 +142,8 @@ def provenance_text(model) -> str:
                      f"(each map's `training` record holds its settings, seed and times)")
     seconds = (extra.get("training_time") or {}).get("seconds")
     if seconds:
-        lines.append(f"* training time recorded by the last run: {seconds / 60:.1f} min")
+        lines.append(f"* the last training run took {seconds / 60:.1f} min (a map kept, finished or merged from "
+                     f"another run records its own times in its `training` record)")
     return "\n".join(lines)
 
 
