@@ -321,9 +321,11 @@ def test_merge_command(tmp_path):
     for _ in range(2):
         mm.merge(refined_path, dst_path, ["backward.0"])
     runs = load_model(dst_path).extra["runs"]
-    assert len(runs) == before + 1 and runs[-1] == {**run, "merged_maps": ["backward.0"]}
+    # ... with the time the source's file records for the run that wrote it (the destination's own is another)
+    took = refined.extra["training_time"]["seconds"]
+    assert len(runs) == before + 1 and runs[-1] == {**run, "merged_maps": ["backward.0"], "seconds": took}
     from mi_neurallens.commands.evaluate import provenance_text
-    assert "--finish-only maps` — 2026-12-03 00:40 UTC" in provenance_text(load_model(dst_path))
+    assert f"--finish-only maps` — 2026-12-03 00:40 UTC, {took / 60:.1f} min;" in provenance_text(load_model(dst_path))
     assert "merged into this file: backward.0" in provenance_text(load_model(dst_path))
     with pytest.raises(ModelError, match="lens"):
         mm.merge(bundled_model_path("ood-59mm"), dst_path)

@@ -123,15 +123,21 @@ def run(args):
 
 def provenance_text(model) -> str:
     """How the model file was made, from its own metadata: each training run's command, recipe, package version,
-    date and machine (``extra["runs"]``, written by ``mi-neurallens train``), and how long the last run took;
+    date, machine and time (``extra["runs"]``, written by ``mi-neurallens train``; the run that wrote the file
+    took ``extra["training_time"]``, a merged one what its own file recorded);
     a file written before runs were recorded says so, with the number of distinct configurations its maps were
     trained with (each map's ``training["config_digest"]``)."""
+    from ..training.whole_lens import own_run
     extra = model.extra or {}
     lines = ["How this model was made:"]
     runs = [r for r in extra.get("runs", []) if isinstance(r, dict)]
+    seconds = (extra.get("training_time") or {}).get("seconds")
+    own = own_run(runs)
     for i, r in enumerate(runs, 1):
         recipe = (r.get("recipe") or {}).get("file") or "the defaults (no recipe)"
-        lines.append(f"* run {i}: `{r.get('command', '?')}` — {r.get('started', '?')}{' (resumed)' if r.get('resumed') else ''}; "
+        took = r.get("seconds") or (seconds if i - 1 == own else None)
+        lines.append(f"* run {i}: `{r.get('command', '?')}` — {r.get('started', '?')}{' (resumed)' if r.get('resumed') else ''}"
+                     + (f", {took / 60:.1f} min" if took else "") + "; "
                      f"recipe {recipe}, configuration {r.get('config_digest', '?')}; mi-neurallens "
                      f"{r.get('mi_neurallens', '?')}; {r.get('machine', '?')}"
                      + (f"; merged into this file: {', '.join(r['merged_maps'])}" if r.get("merged_maps") else ""))
@@ -140,10 +146,8 @@ def provenance_text(model) -> str:
         lines.append(f"* the runs are not recorded (the file was written before `mi-neurallens train` recorded its "
                      f"command); its {len(model.maps)} maps were trained with {len(digests)} configuration(s) "
                      f"(each map's `training` record holds its settings, seed and times)")
-    seconds = (extra.get("training_time") or {}).get("seconds")
-    if seconds:
-        lines.append(f"* the last training run took {seconds / 60:.1f} min (a map kept, finished or merged from "
-                     f"another run records its own times in its `training` record)")
+    if seconds and own is None:
+        lines.append(f"* the run that wrote this file took {seconds / 60:.1f} min")
     return "\n".join(lines)
 
 

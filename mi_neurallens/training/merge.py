@@ -3,7 +3,7 @@ distributed training into the lens's model)."""
 from __future__ import annotations
 
 from ..errors import ModelError
-from .whole_lens import has_run
+from .whole_lens import has_run, own_run
 
 
 def merge_models(src, dst, keys=None) -> list:
@@ -11,7 +11,8 @@ def merge_models(src, dst, keys=None) -> list:
     :class:`~mi_neurallens.neural.model.NeuralLensModel` of the same lens and planes; ``dst`` changes in
     place).  ``dst`` keeps its ghost ranking; its ``ghosts_trained`` becomes the ghost maps it now holds,
     in ranking order, and its training runs gain ``src``'s (each marked with the maps merged from it:
-    ``merged_maps``), so the file still says how every map it holds was made.  A copied map without a stop
+    ``merged_maps``; the run that wrote ``src`` also with the time ``src`` records, ``seconds``), so the file
+    still says how every map it holds was made.  A copied map without a stop
     head keeps the stop head of the map it replaces when both have the same path, planes and domain
     (:func:`keep_stop_head`), so retraining a map's classifier and regressor does not take away its
     render-time aperture.  Returns the keys copied."""
@@ -26,9 +27,15 @@ def merge_models(src, dst, keys=None) -> list:
             raise ModelError(f"the source model has no map {k!r}; it has {sorted(src.maps)}")
         dst.maps[k] = keep_stop_head(src.maps[k], dst.maps.get(k))
     runs = [r for r in dst.extra.get("runs", []) if isinstance(r, dict)]
-    for r in src.extra.get("runs", []):
-        if isinstance(r, dict) and not has_run(runs, r):
-            runs.append({**r, "merged_maps": keys})
+    src_runs = [r for r in src.extra.get("runs", []) if isinstance(r, dict)]
+    src_own, src_seconds = own_run(src_runs), (src.extra.get("training_time") or {}).get("seconds")
+    for i, r in enumerate(src_runs):
+        took = {"seconds": src_seconds} if i == src_own and src_seconds and "seconds" not in r else {}
+        same = [j for j, q in enumerate(runs) if has_run([q], r)]
+        if not same:
+            runs.append({**r, "merged_maps": keys, **took})     # the time src's file records is its own run's
+        elif took and runs[same[0]].get("merged_maps") and "seconds" not in runs[same[0]]:
+            runs[same[0]] = {**runs[same[0]], **took}          # merged before runs kept their times
     for k, v in src.extra.items():
         dst.extra.setdefault(k, v)
     if runs:

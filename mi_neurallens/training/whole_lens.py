@@ -220,6 +220,13 @@ def record_run(model, provenance: dict | None, base=None) -> None:
         model.extra["runs"] = runs
 
 
+def own_run(runs) -> int | None:
+    """Index in ``runs`` (a model file's ``extra["runs"]``) of the run that wrote the file, whose time is its
+    ``extra["training_time"]``: the last one not merged in from another file (a base's runs come first)."""
+    own = [i for i, r in enumerate(runs) if not r.get("merged_maps")]
+    return own[-1] if own else None
+
+
 def has_run(runs, run) -> bool:
     """Whether ``runs`` holds ``run`` (the same command started at the same time)."""
     return any(r.get("command") == run.get("command") and r.get("started") == run.get("started") for r in runs)
