@@ -76,6 +76,15 @@ def progress(iterable, total=None, desc=None, enable=True):
         return iterable
 
 
+def progress_bar(total: int, desc: str, unit: str = "step"):
+    """A tqdm bar on standard error to ``update(k)`` by hand (gone when closed), or None where tqdm is missing."""
+    try:
+        from tqdm import tqdm
+    except ImportError:  # pragma: no cover
+        return None
+    return tqdm(total=total, desc=desc, unit=unit, leave=False)
+
+
 # ----------------------------------------------------------------------------- XML overrides
 def parse_value(text: str):
     """'4' -> ('integer', '4'), '2.5' -> ('float', ...), 'true' -> ('boolean', ...), else string."""

@@ -219,6 +219,39 @@ def test_pilot_bounds_raise_pass_fraction():
         assert s.fraction_after > 2 * s.fraction_before > 0
 
 
+def test_a_flare_render_reports_its_progress(monkeypatch, capsys):
+    """``render(progress=True)`` (the flare command's bar, on standard error) steps once per (light, path) pilot and
+    once per main pass, and ends at its total whether or not every pilot reached the film; the image is the same."""
+    from mi_neurallens import render_utils
+    from mi_neurallens.flare.render import FlareOptions, FlareRenderer
+    scene = make_scene(point([0.3, 0.2, 4.0], 100.0))
+    fr = FlareRenderer(scene, 0, FlareOptions(ghosts=[2560, 4608], samples=1 << 14, diffraction=False))
+    quiet = fr.render(seed=1).total
+    assert capsys.readouterr().err == ""
+    loud = fr.render(seed=1, progress=True).total
+    assert "flare (auto)" in capsys.readouterr().err
+    assert np.allclose(quiet, loud, rtol=1e-4, atol=1e-7)      # the same samples (atomic sums: not bit-equal)
+    bars = []
+
+    class Bar:
+        def __init__(self, total, desc):
+            self.total, self.n, self.closed = total, 0, False
+            bars.append(self)
+
+        def update(self, k):
+            self.n += k
+
+        def close(self):
+            self.closed = True
+
+    monkeypatch.setattr(render_utils, "progress_bar", Bar)
+    far = FlareRenderer(make_scene(point([0.3, 0.2, 4.0], 100.0)), 0,
+                        FlareOptions(ghosts=[2560, 4608], samples=1 << 14, diffraction=False))
+    far.render(seed=1, progress=True)
+    (bar,) = bars
+    assert bar.total == 4 and bar.n == 4 and bar.closed
+
+
 def test_later_renders_run_the_same_kernels():
     """Numpy inputs used to be wrapped in place, so their alignment (numpy's is 16 bytes, by chance 32 or
     64) became part of the kernel source, and each of a flare's first renders compiled some kernels again

@@ -81,6 +81,7 @@ def add_parser(subparsers):
     p.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops")
     p.add_argument("--compare", action="store_true", help="exact vs neural side by side with error maps and MAPE")
     p.add_argument("--per-ghost", action="store_true", help="also write one PNG per ghost")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", help="write the statistics (pass fractions, timings, MAPE) to this JSON file")
     p.set_defaults(func=run)
     return p
@@ -160,7 +161,7 @@ def _render(args, scene, sensor, mode: str, kw: dict):
     if not fr.lights:
         raise NeuralLensError(f"{args.scene}: no point, spot or directional emitter to flare")
     t0 = time.perf_counter()
-    r = fr.render(seed=args.seed, per_ghost=args.per_ghost or args.compare)
+    r = fr.render(seed=args.seed, per_ghost=args.per_ghost or args.compare, progress=not args.no_progress)
     secs = time.perf_counter() - t0
     print(f"{mode}: {len(set(s.path_id for s in r.stats))} path(s) x {len(fr.lights)} light(s) in {secs:.2f} s",
           file=sys.stderr)

@@ -500,8 +500,9 @@ class FlareRenderer:
         return mi.ImageBlock(mi.ScalarVector2u(*self.crop_size), mi.ScalarPoint2i(*self.crop_offset), 3,
                              rfilter=self._box, border=False, normalize=True)
 
-    def render(self, seed=0, per_ghost=False, samples=None):
-        """Render the flare; returns a :class:`FlareResult` (numpy images)."""
+    def render(self, seed=0, per_ghost=False, samples=None, progress=False):
+        """Render the flare; returns a :class:`FlareResult` (numpy images).  ``progress``: a progress bar on
+        standard error (tqdm), one step per (light, path) pilot and one per main pass, for a long render."""
         N = int(samples or self.opts.samples)
         self._refresh()
         ids = self.ghost_ids()
@@ -513,8 +514,14 @@ class FlareRenderer:
         blocks, direct, offframe = {}, {}, []
         stats = []
         self._light_sines = {}
+        bar = None
+        if progress:
+            from ..render_utils import progress_bar
+            bar = progress_bar(2 * len(self.lights) * len(paths), f"flare ({self.opts.mode})")
         for li, light in enumerate(self.lights):
-            plan = self._plan(light, paths, seed * 1000 + li, stats)
+            plan = self._plan(light, paths, seed * 1000 + li, stats, bar)
+            if bar is not None:
+                bar.update(len(paths) - len(plan))      # paths whose pilot missed the film have no main pass
             if diffract and light.kind != "area" and not any(p[0] == 0 for p in plan):
                 offframe.append(light)                  # its own image misses the film; its spikes may not
             for (pid, ev, pl, st), n in zip(plan, self._budget(plan, N)):
@@ -524,6 +531,10 @@ class FlareRenderer:
                 elif per_ghost:
                     blk = blocks.setdefault(pid, self.new_block())
                 self._splat_ghost(light, ev, pl, st, n, blk, seed * 7919 + li)
+                if bar is not None:
+                    bar.update(1)
+        if bar is not None:
+            bar.close()
         img, ghosts = self._images(total, blocks, per_ghost)
         star = None
         if diffract:
@@ -539,10 +550,11 @@ class FlareRenderer:
         from .starburst import film_kernel_of
         return film_kernel_of(self)
 
-    def _plan(self, light, ids, seed, stats):
+    def _plan(self, light, ids, seed, stats, bar=None):
         """Each path of ``ids`` for ``light``: its evaluator (the tracer where the light lies beyond the field its
-        map learned) and its pilot (seed ``seed``), its :class:`GhostStats` appended to ``stats``.  Returns the
-        ``(path id, evaluator, pilot, stats)`` of the paths whose pilot reached the film."""
+        map learned) and its pilot (seed ``seed``), its :class:`GhostStats` appended to ``stats`` (and a step of
+        the progress ``bar``, if any).  Returns the ``(path id, evaluator, pilot, stats)`` of the paths whose pilot
+        reached the film."""
         from ..trace.paths import ghost_surfaces
         plan = []
         for pid in ids:
@@ -558,6 +570,8 @@ class FlareRenderer:
                             cells_total=int(round(math.pi * pl.radius ** 2 / pl.cell_size ** 2)),
                             energy=pl.energy, seconds=time.perf_counter() - t0, band=ev.band, why_traced=why)
             stats.append(st)
+            if bar is not None:
+                bar.update(1)
             if pl.hits > 0:
                 plan.append((pid, ev, pl, st))
         return plan
