@@ -30,12 +30,9 @@ def merge_models(src, dst, keys=None) -> list:
     src_runs = [r for r in src.extra.get("runs", []) if isinstance(r, dict)]
     src_own, src_seconds = own_run(src_runs), (src.extra.get("training_time") or {}).get("seconds")
     for i, r in enumerate(src_runs):
-        took = {"seconds": src_seconds} if i == src_own and src_seconds and "seconds" not in r else {}
-        same = [j for j, q in enumerate(runs) if has_run([q], r)]
-        if not same:
+        if not has_run(runs, r):
+            took = {"seconds": src_seconds} if i == src_own and src_seconds and "seconds" not in r else {}
             runs.append({**r, "merged_maps": keys, **took})     # the time src's file records is its own run's
-        elif took and runs[same[0]].get("merged_maps") and "seconds" not in runs[same[0]]:
-            runs[same[0]] = {**runs[same[0]], **took}          # merged before runs kept their times
     for k, v in src.extra.items():
         dst.extra.setdefault(k, v)
     if runs:
