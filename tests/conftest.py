@@ -57,3 +57,31 @@ def bundled_names():
         return list(bundled_lenses())
     except Exception:
         return []
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _default_mitsuba_variant():
+    """Start the tests in the default variant with the plugins registered, whichever module was imported last."""
+    try:
+        import mitsuba as mi
+        import mi_neurallens as nl
+        from mi_neurallens.render_utils import default_variant
+    except ImportError:
+        return
+    mi.set_variant(default_variant())
+    nl.register()
+
+
+@pytest.fixture(autouse=True)
+def _restore_mitsuba_variant():
+    """Give each test back the Mitsuba variant it started with.
+
+    Test modules choose their variant when they are imported (and register the plugins there); a test that switches
+    variant (to compare RGB with spectral, say) would otherwise leave the next test, on the same xdist worker, in a
+    variant where `realistic_lens` was never registered -- a failure that depends on how tests are distributed."""
+    mi = sys.modules.get("mitsuba")
+    before = mi.variant() if mi is not None else None
+    yield
+    mi = sys.modules.get("mitsuba")
+    if before is not None and mi is not None and mi.variant() != before:
+        mi.set_variant(before)
