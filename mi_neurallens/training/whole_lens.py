@@ -28,6 +28,7 @@ from ..transport.planning import Domain
 from .keep import mode_text, run_mode, stop_heads_only
 from .maps import train_maps
 from .stacked import STEP_CHOICE, TANH_CHOICE
+from .workdir import claim as claim_workdir, run_identity
 
 #: how a phase of :func:`~mi_neurallens.training.maps.train_maps` is named in the time reports
 PHASE_NAMES = {"regressor": "regressors", "classifier": "classifiers", "stop": "stop heads",
@@ -123,7 +124,7 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
         z_planes = plan.moving_planes(configs)
         s_range = _moving_sensor_distances(configs)
     workdir = workdir or (out_path + ".work")
-    os.makedirs(workdir, exist_ok=True)
+    claim_workdir(workdir, run_identity(cfg, keep, finish_only, base_path if based else None, out_path))
     model = _open_model(lens, cfg, out_path, z_planes, s_range, configs)
     record_run(model, provenance, base_model)
     groups = select_maps(cfg, paths)
