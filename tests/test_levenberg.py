@@ -203,8 +203,8 @@ def test_trainer_finishes_in_stacks_of_one_shape(monkeypatch):
     network ends as it would alone; a network that met its goals under Adam is left as it is."""
     assert levenberg.lm_stack_size("cpu", 8192, 5, 709) == 1
     assert levenberg.lm_stack_size("cuda:0", 8192, 5, 709) >= 32        # a lens's ghost regressors in one stack
-    nc = types.SimpleNamespace(lm_minutes=1e6, lm_iterations=12, lm_rows=512, lm_eval_every=4, stop_at_goals=True,
-                               patience=100)
+    nc = types.SimpleNamespace(lm_minutes=1e6, lm_max_weights=MAX_PARAMS, lm_iterations=12, lm_rows=512,
+                               lm_eval_every=4, stop_at_goals=True, patience=100)
     dims = [[4, 16, 16, 2], [4, 8, 8, 2], [4, 16, 16, 2], [4, 16, 16, 2]]
     starts = [random_layers(d, seed=20 + j) for j, d in enumerate(dims)]
 
@@ -324,9 +324,9 @@ def test_large_networks_are_left_to_adam(capsys):
     layers = random_layers([4] + [32] * 5 + [5])
     assert n_params(layers) > MAX_PARAMS
     res = [{"layers": layers, "state": {"history": [], "stop_reason": "time_budget"}}]
-    nc = types.SimpleNamespace(lm_minutes=1.0)
+    nc = types.SimpleNamespace(lm_minutes=1.0, lm_max_weights=MAX_PARAMS)
     finish_results(torch, [object()], res, nc, ["forward.12"])
-    assert "skipped" in res[0]["state"]["lm"]
+    assert res[0]["state"]["lm"] == {"skipped": f"{n_params(layers)} weights > {MAX_PARAMS}"}
     assert "forward.12: the Levenberg-Marquardt finish skips this network" in capsys.readouterr().err
 
 
@@ -468,8 +468,12 @@ def test_finishing_a_network_larger_than_the_finish_takes_is_a_clear_error():
                                               r"--set forward_regressor\.hidden=3"):
         check_finish_only([base([32] * 5)], nets(32), "forward")
     check_finish_only([base([16] * 3)], nets(32), "forward")           # 2 437 weights widened: the finish takes it
-    with pytest.raises(NeuralLensError, match="larger than the Levenberg-Marquardt finish takes"):
+    with pytest.raises(NeuralLensError, match=r"larger than the Levenberg-Marquardt finish takes \(2500 weights, "
+                                              r"forward_regressor\.lm_max_weights\)"):
         check_finish_only([base([16] * 3)], nets(48), "forward")
+    # a recipe may raise the limit for one network (the EF 24-70's 4×25 camera regressor)
+    raised = (("regressor", NetConfig(hidden=3, width=48, lm_minutes=1.0, lm_max_weights=5500)), nets(48)[1])
+    check_finish_only([base([16] * 3)], raised, "forward")
     with pytest.raises(NeuralLensError, match=r"the classifier's lm_minutes is 0: .*--set classifier\.lm_minutes"):
         check_finish_only([base([16] * 3)], nets(16, lm=0.0), "backward")
     # the stop heads' finish-only run (``finish_only = "stop-heads"``) refuses the same, before it samples anything

@@ -64,6 +64,7 @@ class NetConfig:
     lm_iterations: int = 0              # at most this many finish iterations (0: lm_minutes alone; a count: any machine)
     lm_rows: int = 8192                 # fresh samples per Levenberg–Marquardt iteration
     lm_eval_every: int = 10             # Levenberg–Marquardt iterations between validations
+    lm_max_weights: int = 2500          # larger networks are left to Adam (levenberg.MAX_PARAMS, the same)
     sizes: tuple = ()                   # "HxW" to try, smallest first; a map keeps the first at its goals (maps.py)
 
 

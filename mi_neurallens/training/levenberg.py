@@ -27,7 +27,8 @@ What a problem provides (:class:`~.stacked.Problem`): ``fresh_rows(n)``, ``lm_re
 (r, s) with r the residuals (n, outputs) whose mean square is the loss and ``s = ∂r/∂z`` (the losses are
 separable per output, so the chain rule is a column scale), and ``validate`` / ``goals_met`` /
 ``state`` as for Adam.  Cost: O(rows · outputs · P²) per iteration, so networks above
-:data:`MAX_PARAMS` weights (a 5×32 regressor has 4 549) are left to Adam.
+:data:`MAX_PARAMS` weights (a 5×32 regressor has 4 549) are left to Adam, unless a network's configuration raises
+its ``lm_max_weights``.
 """
 from __future__ import annotations
 
@@ -45,7 +46,9 @@ from ..fileio import atomic_write_text
 if TYPE_CHECKING:
     from .config import NetConfig
 
-#: networks with more weights than this are not finished (JᵀJ would cost seconds per iteration on a CPU)
+#: networks with more weights than this are not finished (JᵀJ would cost seconds per iteration on a CPU): the
+#: default of :attr:`NetConfig.lm_max_weights <mi_neurallens.training.config.NetConfig.lm_max_weights>`, which a
+#: recipe raises for one network (the EF 24-70's 4×25 camera regressor: 2 727 weights, 3 s an iteration)
 MAX_PARAMS = 2500
 
 #: iterations' worth of rows one call of a problem's ``fresh_rows`` draws: a call costs a tracer launch (and a
@@ -107,15 +110,15 @@ def widen_as_configured(layers, hidden: int, width: int, seed) -> tuple:
     return widen(layers, width, np.random.default_rng(seed)), before
 
 
-def too_large_to_finish(named_layers, hidden: int, width: int) -> list:
+def too_large_to_finish(named_layers, hidden: int, width: int, max_weights: int = MAX_PARAMS) -> list:
     """What a finish-only run (regressors, classifiers, stop heads alike) cannot do: ``"key (P weights)"`` for each
     ``(key, layers)`` whose network, widened as configured (:func:`widen_as_configured`), has more than
-    :data:`MAX_PARAMS` weights, so the finish would hand it back unchanged.  Empty where every one can be finished."""
+    ``max_weights`` weights, so the finish would hand it back unchanged.  Empty where every one can be finished."""
     out = []
     for key, layers in named_layers:
         layers = [(np.asarray(W), np.asarray(b)) for W, b in layers]
         P = n_params(widen_as_configured(layers, hidden, width, 0)[0])
-        if P > MAX_PARAMS:
+        if P > max_weights:
             out.append(f"{key} ({P} weights)")
     return out
 
@@ -131,11 +134,11 @@ def check_finishable(named_layers, nc, owner: str, table: str, way_out: str, wha
     if nc.lm_minutes <= 0:
         raise NeuralLensError(f"a finish-only run runs only the Levenberg–Marquardt finish, and {owner} lm_minutes "
                               f"is 0: give it time, e.g. --set {table}.lm_minutes=1.5")
-    big = too_large_to_finish(named_layers, nc.hidden, nc.width)
+    big = too_large_to_finish(named_layers, nc.hidden, nc.width, nc.lm_max_weights)
     if big:
         raise NeuralLensError(f"{what}{', '.join(big)} is larger than the Levenberg-Marquardt finish takes "
-                              f"({MAX_PARAMS} weights), so the finish would leave it as it is; train it anew as a "
-                              f"network the finish takes, e.g. {way_out}")
+                              f"({nc.lm_max_weights} weights, {table}.lm_max_weights), so the finish would leave it "
+                              f"as it is; train it anew as a network the finish takes, e.g. {way_out}")
 
 
 def n_params(layers) -> int:
@@ -556,7 +559,7 @@ def finish_results(torch, fits, results, nc: NetConfig, keys, ckpt: str | None =
     """The Levenberg–Marquardt finish of each network in
     ``results`` (what :func:`~mi_neurallens.training.stacked.train_stack` returned for ``fits``), in place,
     for ``nc.lm_minutes`` per network (and at most ``nc.lm_iterations``): skipped for networks that met their
-    goals already, for networks of more than :data:`MAX_PARAMS` weights and
+    goals already, for networks of more than ``nc.lm_max_weights`` weights (:data:`MAX_PARAMS` by default) and
     when ``lm_minutes`` is 0.  The networks finish in stacks of :func:`lm_stack_size` (on a GPU all of a
     shape at once, :func:`finish_stack`; on a CPU one by one).
     A network that meets its goals here gets ``stop_reason = "goals"`` (Adam's is kept as
@@ -570,12 +573,11 @@ def finish_results(torch, fits, results, nc: NetConfig, keys, ckpt: str | None =
         if st.get("stop_reason") == "goals" or "lm" in st:
             continue
         P = n_params(r["layers"])
-        if P > MAX_PARAMS:
-            st["lm"] = {"skipped": f"{P} weights > {MAX_PARAMS}"}
+        if P > nc.lm_max_weights:
+            st["lm"] = {"skipped": f"{P} weights > {nc.lm_max_weights}"}
             # said, not only recorded: a recipe that asks minutes of the finish for such a network gets none
-            print(f"{key}: the Levenberg-Marquardt finish skips this network ({P} weights > {MAX_PARAMS}): its "
-                  f"lm_minutes = {nc.lm_minutes:g} do nothing; a network of at most {MAX_PARAMS} weights is finished",
-                  file=sys.stderr, flush=True)
+            print(f"{key}: the Levenberg-Marquardt finish skips this network ({P} weights > lm_max_weights = "
+                  f"{nc.lm_max_weights}): its lm_minutes = {nc.lm_minutes:g} do nothing", file=sys.stderr, flush=True)
             continue
         path = None if not ckpt else f"{ckpt}.lm.{key}.json"
         if path and os.path.exists(path):
