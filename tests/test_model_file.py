@@ -333,7 +333,8 @@ def test_merge_command(tmp_path):
 
 def test_a_run_on_a_base_model_keeps_the_base_runs():
     """A finish-only or keep run's file lists the runs of the model it built on, then its own (a rerun of the
-    same command updates its entry)."""
+    same command updates its entry); the base's own run keeps the time the base's file recorded for it, which the
+    new file's ``training_time`` (its own run's) no longer holds."""
     from mi_neurallens.neural.model import bundled_model_path, load_model
     from mi_neurallens.training.whole_lens import record_run
     base = load_model(bundled_model_path("wide-22mm"))
@@ -345,6 +346,10 @@ def test_a_run_on_a_base_model_keeps_the_base_runs():
     record_run(out, finish, base)
     record_run(out, {**finish, "started": "t2"}, base)           # resumed
     assert [r["started"] for r in out.extra["runs"]] == ["t0", "t1"] and out.extra["runs"][-1]["resumed"]
+    took = base.extra["training_time"]["seconds"]
+    assert out.extra["runs"][0]["seconds"] == took and "seconds" not in out.extra["runs"][1]
+    from mi_neurallens.commands.evaluate import provenance_text
+    assert f"`mi-neurallens train wide-22mm` — t0, {took / 60:.1f} min;" in provenance_text(out)
 
 
 def test_merge_keeps_the_stop_head_of_the_map_a_retrained_one_replaces(tmp_path):

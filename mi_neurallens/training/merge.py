@@ -3,7 +3,7 @@ distributed training into the lens's model)."""
 from __future__ import annotations
 
 from ..errors import ModelError
-from .whole_lens import has_run, own_run
+from .whole_lens import has_run, runs_with_times
 
 
 def merge_models(src, dst, keys=None) -> list:
@@ -27,12 +27,9 @@ def merge_models(src, dst, keys=None) -> list:
             raise ModelError(f"the source model has no map {k!r}; it has {sorted(src.maps)}")
         dst.maps[k] = keep_stop_head(src.maps[k], dst.maps.get(k))
     runs = [r for r in dst.extra.get("runs", []) if isinstance(r, dict)]
-    src_runs = [r for r in src.extra.get("runs", []) if isinstance(r, dict)]
-    src_own, src_seconds = own_run(src_runs), (src.extra.get("training_time") or {}).get("seconds")
-    for i, r in enumerate(src_runs):
+    for r in runs_with_times(src):          # the time src's file records is its own run's
         if not has_run(runs, r):
-            took = {"seconds": src_seconds} if i == src_own and src_seconds and "seconds" not in r else {}
-            runs.append({**r, "merged_maps": keys, **took})     # the time src's file records is its own run's
+            runs.append({**r, "merged_maps": keys})
     for k, v in src.extra.items():
         dst.extra.setdefault(k, v)
     if runs:

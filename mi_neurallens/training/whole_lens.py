@@ -210,7 +210,7 @@ def record_run(model, provenance: dict | None, base=None) -> None:
     networks it finished were made."""
     runs = [r for r in model.extra.get("runs", []) if isinstance(r, dict)]
     if base is not None:
-        runs = [r for r in base.extra.get("runs", []) if isinstance(r, dict) and not has_run(runs, r)] + runs
+        runs = [r for r in runs_with_times(base) if not has_run(runs, r)] + runs
     if provenance:
         same = ("command", "config_digest")
         if runs and all(runs[-1].get(k) == provenance.get(k) for k in same):
@@ -226,6 +226,17 @@ def own_run(runs) -> int | None:
     ``extra["training_time"]``: the last one not merged in from another file (a base's runs come first)."""
     own = [i for i, r in enumerate(runs) if not r.get("merged_maps")]
     return own[-1] if own else None
+
+
+def runs_with_times(model) -> list:
+    """``model.extra["runs"]``, the run that wrote the file given the time its file records
+    (``extra["training_time"]["seconds"]``) where the run lacks one: what another file that takes these runs
+    (a finish built on this one, a merge of its maps) keeps, since that file's own time is another run's."""
+    runs = [dict(r) for r in model.extra.get("runs", []) if isinstance(r, dict)]
+    own, seconds = own_run(runs), (model.extra.get("training_time") or {}).get("seconds")
+    if own is not None and seconds and "seconds" not in runs[own]:
+        runs[own]["seconds"] = seconds
+    return runs
 
 
 def has_run(runs, run) -> bool:
