@@ -16,7 +16,8 @@ parameter at the real rays' best focus, as the sensors do):
   valid (median, p99), and the misclassified fraction;
 * **render accuracy**: MAPE of ``neural_lens`` and of ``realistic_lens`` at ``--spp`` against a ``realistic_lens``
   reference at ``--reference-spp``, and their ratio (1: the learned map adds nothing to the noise);
-* **render time**: each sensor at ``--spp``, best of ``--repeats`` (warm-up excluded, ``dr.sync_thread()``).
+* **render time**: each sensor at ``--spp``, best of ``--repeats``, the two sensors' renders taking turns (warm-up
+  excluded, ``dr.sync_thread()``).
 
 Run it on an idle machine; it writes the JSON and prints a table.
 """
@@ -75,15 +76,19 @@ def render(mi, scene, spp, seed=0):
     return np.array(img)
 
 
-def timed(mi, scene, spp, repeats):
+def timed(mi, scenes: dict, spp, repeats) -> dict:
+    """Best render time (s) of each scene of ``scenes`` over ``repeats``, the scenes taking turns (one render each
+    per round) so that a slow spell of a shared machine slows both sensors' renders, not one sensor's block."""
     import drjit as dr
-    render(mi, scene, spp, seed=99)                        # warm-up: compile
-    best = math.inf
+    for scene in scenes.values():
+        render(mi, scene, spp, seed=99)                    # warm-up: compile
+    best = {k: math.inf for k in scenes}
     for k in range(repeats):
-        dr.sync_thread()
-        t0 = time.perf_counter()
-        render(mi, scene, spp, seed=100 + k)
-        best = min(best, time.perf_counter() - t0)
+        for name, scene in scenes.items():
+            dr.sync_thread()
+            t0 = time.perf_counter()
+            render(mi, scene, spp, seed=100 + k)
+            best[name] = min(best[name], time.perf_counter() - t0)
     return best
 
 
@@ -99,8 +104,8 @@ def main(argv=None):
     ap.add_argument("--reference-spp", type=int, default=1024)
     ap.add_argument("--rays", type=int, default=400_000)
     ap.add_argument("--repeats", type=int, default=15,
-                    help="renders timed per sensor, the best kept (5 left the time ratio spread over 0.94-1.31 on a "
-                         "shared 2-core machine, 15 over 1.15-1.22)")
+                    help="renders timed per sensor, taking turns, the best kept (5, one sensor's after the other's, "
+                         "left the time ratio spread over 0.94-1.31 on a shared 2-core machine)")
     ap.add_argument("--no-render", action="store_true", help="only the map's accuracy")
     ap.add_argument("--out", default=os.path.join(ROOT, "out", "bench", "bench_zoom.json"))
     add_variant_argument(ap)
@@ -130,7 +135,7 @@ def main(argv=None):
                 sc = {k: load(mi, k, a.lens, f, d, res, a.spp, variant, a.model) for k in ("realistic_lens", "neural_lens")}
                 spp["render"] = sc["neural_lens"].sensors()[0].sampler().sample_count()
                 m = {k: mape(render(mi, s, spp["render"], seed=1), ref) for k, s in sc.items()}
-                t = {k: timed(mi, s, spp["render"], a.repeats) for k, s in sc.items()}
+                t = timed(mi, sc, spp["render"], a.repeats)
                 row["render"] = {"mape_realistic": m["realistic_lens"], "mape_neural": m["neural_lens"],
                                  "mape_ratio": m["neural_lens"] / m["realistic_lens"],
                                  "seconds_realistic": t["realistic_lens"], "seconds_neural": t["neural_lens"],
