@@ -471,7 +471,7 @@ def test_finishing_a_network_larger_than_the_finish_takes_is_a_clear_error():
     with pytest.raises(NeuralLensError, match=r"larger than the Levenberg-Marquardt finish takes \(2500 weights, "
                                               r"forward_regressor\.lm_max_weights\)"):
         check_finish_only([base([16] * 3)], nets(48), "forward")
-    # a recipe may raise the limit for one network (the EF 24-70's 4×25 camera regressor)
+    # a recipe may raise the limit for one network (the EF 24-70's 4×27 camera regressor)
     raised = (("regressor", NetConfig(hidden=3, width=48, lm_minutes=1.0, lm_max_weights=5500)), nets(48)[1])
     check_finish_only([base([16] * 3)], raised, "forward")
     with pytest.raises(NeuralLensError, match=r"the classifier's lm_minutes is 0: .*--set classifier\.lm_minutes"):
