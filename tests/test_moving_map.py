@@ -55,6 +55,25 @@ def test_the_inputs_range_and_frame(zoom, configs):
     tt, _ = configs.u_to_tf(np.column_stack([np.linspace(0.0, 1.0, 100001), np.full(100001, 0.5)]))
     ends, middle = np.mean(tt < 0.02), np.mean(np.abs(tt - 1.0) < 0.02)
     assert ends == pytest.approx(2 * 0.01, rel=0.02) and middle == pytest.approx(2 / 3 * 0.02, rel=0.02)
+    # and the focus band's (FOCUS_END_WEIGHT 0.5), at every zoom: the band's lowest and highest 1 %, its middle 2 %
+    for tz in (0.0, 1.3):
+        u5 = np.linspace(0.0, 1.0, 100001)
+        u4 = configs.tf_to_u([tz], [configs.band(tz)[0]])[0, 0]
+        _, ff = configs.u_to_tf(np.column_stack([np.full(len(u5), u4), u5]))
+        lo, hi = configs.band(tz)
+        s = (ff - lo) / (hi - lo)
+        assert np.mean(s < 0.01) == pytest.approx(2 * 0.01, rel=0.02)
+        assert np.mean(s > 0.99) == pytest.approx(2 * 0.01, rel=0.02)
+        assert np.mean(np.abs(s - 0.5) < 0.01) == pytest.approx(2 / 3 * 0.02, rel=0.02)
+    # the warps' weights go with the file; one that records none drew its focus uniformly (LEGACY_END_WEIGHTS)
+    d = configs.to_dict()
+    assert d["end_weights"] == [0.5, 0.5]
+    del d["end_weights"]
+    legacy = Configurations.from_dict(d)
+    assert legacy.end_weights == (0.5, 0.0) and legacy != configs
+    _, fl = legacy.u_to_tf(np.array([[0.5, 0.25]]))
+    lo, hi = legacy.band(float(legacy.u_to_tf(np.array([[0.5, 0.25]]))[0][0]))
+    assert fl[0] == pytest.approx(lo + 0.25 * (hi - lo), rel=1e-12)
     F = float_type("float64")
     td, fd = configs.u_to_tf_dr([F(u[:, 0]), F(u[:, 1])])
     np.testing.assert_allclose(td.numpy(), t, atol=1e-12)
@@ -71,6 +90,25 @@ def test_the_inputs_range_and_frame(zoom, configs):
         assert c[k] @ [1, s, s * s, s ** 3] == pytest.approx(float(mv.pchip(x, y, tq)), abs=1e-12)
     back = Configurations.from_dict(configs.to_dict())
     assert back == configs and back.lens is None
+
+
+def test_a_run_on_a_base_keeps_its_domain_and_draws_as_this_version_does(configs):
+    """A finish on a base map trains on the base's domain (bounds, band, frame: what its kept networks' inputs are
+    normalised by) but draws its rays with this version's end weights, which the new model file then records."""
+    import dataclasses
+    from mi_neurallens.training.whole_lens import _base_domain
+    legacy = configs.to_dict()
+    legacy.pop("end_weights")
+    legacy["z_sensor_mm"] += 0.25                       # the base's own frame, not this run's
+    base = {"r_max_mm": 11.0, "s_max": 0.4, "lambda_min_nm": 400.0, "lambda_max_nm": 700.0, "conditions": legacy}
+    planned = Domain(12.0, 0.5, conditions=configs)
+    dom = _base_domain(base, planned)
+    assert (dom.r_max, dom.s_max) == (11.0, 0.4) and dom.conditions.z_sensor == configs.z_sensor + 0.25
+    assert dom.conditions.end_weights == configs.end_weights == (0.5, 0.5)
+    assert dom.to_dict()["conditions"]["end_weights"] == [0.5, 0.5]
+    assert Domain.from_dict(base).conditions.end_weights == (0.5, 0.0)     # the base's own record is untouched
+    fixed = Domain(11.0, 0.4)
+    assert _base_domain(fixed.to_dict(), dataclasses.replace(planned, conditions=None)) == fixed
 
 
 def test_one_kernel_traces_every_configuration_as_its_own_lens(zoom, configs):

@@ -169,6 +169,18 @@ def _configurations(lens, cfg: TrainConfig):
     return Configurations.of_lens(lens, close)
 
 
+def _base_domain(base_domain, planned: Domain) -> Domain:
+    """The domain a run on a base map trains on: the base's (its bounds, film reach and configurations, which its
+    kept networks' inputs are normalised by), its rays drawn as ``planned`` (this run's own domain) draws them:
+    the configurations' end weights (:func:`~mi_neurallens.transport.configurations.end_warp`) normalise nothing, so
+    a finish takes the sampling of the version that runs it, and the model file records it."""
+    dom = Domain.from_dict(base_domain)
+    if dom.conditions is None or getattr(planned, "conditions", None) is None:
+        return dom
+    return dataclasses.replace(dom, conditions=dataclasses.replace(dom.conditions,
+                                                                   end_weights=planned.conditions.end_weights))
+
+
 def _moving_sensor_distances(configs) -> tuple:
     """(least, greatest) sensor distance behind the last vertex (mm) over the configurations a map learns: what a
     model file records as its sensor-distance range (the sensor itself does not move)."""
@@ -349,7 +361,7 @@ def _train_directions(lens, cfg: TrainConfig, model, pending: dict, out_path: st
                                  f"it has {sorted(base_model.maps)}")
             bases = [base_model.maps[f"{direction}.{t[0]}"] for t in group]
             # a kept network was trained on its map's domain: the new ones learn the same (film reach included)
-            group = [(*t[:4], Domain.from_dict(b.domain)) for t, b in zip(group, bases)]
+            group = [(*t[:4], _base_domain(b.domain, t[4])) for t, b in zip(group, bases)]
         if progress:
             print(f"{lens.name}: training {len(group)} {direction} map(s) together: "
                   f"{', '.join(str(t[0]) for t in group)}", file=sys.stderr, flush=True)

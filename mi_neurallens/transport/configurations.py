@@ -12,10 +12,13 @@ ray**, so that one kernel traces training rays of many configurations at once.
   d line: :func:`mi_neurallens.optics.moving.focus_parameter`), widened by :data:`FOCUS_MARGIN` of its width on
   each side, since the renderer focuses where the real rays focus best, a little off the paraxial solution.
   Tabulated at :data:`BAND_GRID` zoom parameters, linear between them.
-* **Sampling.**  A training sample's two extra unit-cube coordinates ``(u4, u5)`` give ``t = t0 + w(u4) (t1 − t0)``
-  and ``f = f_lo(t) + u5 (f_hi(t) − f_lo(t))``, where ``w(u) = u − a sin(2πu) / 2π`` (a = :data:`ZOOM_END_WEIGHT`)
-  draws the ends of the zoom range 1/(1 − a) times as densely as its middle, 1/(1 + a): a network's error grows
-  toward the edges of what it learned, and the listed positions are the ends.
+* **Sampling.**  A training sample's two extra unit-cube coordinates ``(u4, u5)`` give
+  ``t = t0 + w_a(u4) (t1 − t0)`` and ``f = f_lo(t) + w_b(u5) (f_hi(t) − f_lo(t))``, where the warp
+  ``w_a(u) = u − a sin(2πu) / 2π`` (:func:`end_warp`) draws a range's ends 1/(1 − a) times as densely as uniform
+  and its middle 1/(1 + a) times: a network's error grows toward the edges of what it learned, and the ends are
+  what users ask for most — the listed zoom positions, infinity focus — and the close focus.  ``a`` is
+  :data:`ZOOM_END_WEIGHT` for the zoom, ``b`` :data:`FOCUS_END_WEIGHT` for the focus (:attr:`Configurations.end_weights`,
+  kept in the model file so that its held-out rays are drawn as its training rays were).
 * **Frame.**  The configurations differ in their gaps, so their vertices move relative to each other: the map's
   planes are fixed relative to the **sensor**, which does not move.  The map works in the lens space of the
   configuration whose image plane lies farthest behind its first vertex, every other configuration shifted along
@@ -57,28 +60,32 @@ MONOMIALS = {("zoom", "focus"): ((1, 0), (0, 1), (2, 0), (1, 1), (0, 2), (3, 0),
              ("zoom",): ((1, 0), (2, 0), (3, 0)), ("focus",): ((0, 1), (0, 2))}
 #: the ray's inputs that the monomials multiply: r, ωx, ωy (not λ)
 PRODUCT_RAY_COLUMNS = (0, 1, 2)
-#: a in the zoom sampling's warp w(u) = u − a sin(2πu) / 2π (module docstring, "Sampling"): 0 is uniform; 0.5 draws
-#: the zoom range's ends twice, its middle 2/3 times as densely as uniform
+#: a in the zoom sampling's warp (:func:`end_warp`; module docstring, "Sampling"): 0 is uniform; 0.5 draws the zoom
+#: range's ends twice, its middle 2/3 times as densely as uniform
 ZOOM_END_WEIGHT = 0.5
+#: the same for the focus band: its ends are infinity (the focus most renders use) and the close focus, where the
+#: 24-70's map erred 1.5-2x as much as in the band's middle (bench_zoom at 45 mm: 5.6" at infinity, 2.7" at 0.5 m)
+FOCUS_END_WEIGHT = 0.5
+#: the end weights of a model file that records none: the zoom's warp, a uniform focus (as models were trained
+#: before the focus warp)
+LEGACY_END_WEIGHTS = (ZOOM_END_WEIGHT, 0.0)
 
 
-def zoom_warp(u):
-    """w(u) = u − a sin(2πu) / 2π (a = :data:`ZOOM_END_WEIGHT`): [0, 1] onto itself, monotone, ends fixed, density
+def end_warp(u, a: float):
+    """w(u) = u − a sin(2πu) / 2π, ``0 ≤ a < 1``: [0, 1] onto itself, monotone, ends fixed, sample density
     1 / w'(u) = 1 / (1 − a cos 2πu).  numpy arrays or Dr.Jit floats."""
-    a = ZOOM_END_WEIGHT
     if isinstance(u, np.ndarray) or np.isscalar(u):
         return u - a / (2 * math.pi) * np.sin(2 * math.pi * np.asarray(u, np.float64))
     import drjit as dr
     return u - (a / (2 * math.pi)) * dr.sin((2 * math.pi) * u)
 
 
-def zoom_unwarp(w) -> np.ndarray:
-    """:func:`zoom_warp`'s inverse (numpy, float64; Newton from w, converged to 1e-15: w' ≥ 1 − a > 0)."""
+def end_unwarp(w, a: float) -> np.ndarray:
+    """:func:`end_warp`'s inverse (numpy, float64; Newton from w, converged to 1e-15: w' ≥ 1 − a > 0)."""
     w = np.asarray(w, np.float64)
     u = w.copy()
-    a = ZOOM_END_WEIGHT
     for _ in range(50):
-        step = (zoom_warp(u) - w) / (1.0 - a * np.cos(2 * math.pi * u))
+        step = (end_warp(u, a) - w) / (1.0 - a * np.cos(2 * math.pi * u))
         u -= step
         if np.all(np.abs(step) < 1e-15):
             break
@@ -118,6 +125,8 @@ class Configurations:
     lens: object = dataclasses.field(default=None, compare=False, repr=False)
     #: the (a, b) of the monomials t^a f^b whose products with r, ωx, ωy are inputs (:data:`MONOMIALS`; () none)
     monomials: tuple = ()
+    #: the sampling warps' end weights (zoom, focus) (:func:`end_warp`; module docstring, "Sampling")
+    end_weights: tuple = (ZOOM_END_WEIGHT, FOCUS_END_WEIGHT)
 
     def __eq__(self, other) -> bool:
         return isinstance(other, Configurations) and self.to_dict() == other.to_dict()
@@ -255,20 +264,21 @@ class Configurations:
         j = 0
         t = np.full(len(u), t0)
         if "zoom" in self.names:
-            t = t0 + zoom_warp(u[:, j]) * (t1 - t0)
+            t = t0 + end_warp(u[:, j], self.end_weights[0]) * (t1 - t0)
             j += 1
         lo, hi = self._band_np(t)
-        f = lo + u[:, j] * (hi - lo) if "focus" in self.names else np.zeros(len(u))
+        f = lo + end_warp(u[:, j], self.end_weights[1]) * (hi - lo) if "focus" in self.names else np.zeros(len(u))
         return t, f
 
     def tf_to_u(self, t, f) -> np.ndarray:
         t0, t1 = self.zoom_range
         cols = []
         if "zoom" in self.names:
-            cols.append(zoom_unwarp((np.asarray(t, np.float64) - t0) / max(t1 - t0, 1e-30)))
+            cols.append(end_unwarp((np.asarray(t, np.float64) - t0) / max(t1 - t0, 1e-30), self.end_weights[0]))
         if "focus" in self.names:
             lo, hi = self._band_np(t)
-            cols.append((np.asarray(f, np.float64) - lo) / np.maximum(hi - lo, 1e-30))
+            cols.append(end_unwarp((np.asarray(f, np.float64) - lo) / np.maximum(hi - lo, 1e-30),
+                                   self.end_weights[1]))
         return np.stack(cols, 1)
 
     def u_to_tf_dr(self, u):
@@ -279,12 +289,12 @@ class Configurations:
         out, j = [], 0
         t = u[0] * 0.0 + t0
         if "zoom" in self.names:
-            t = dr.fma(zoom_warp(u[j]), t1 - t0, t0)
+            t = dr.fma(end_warp(u[j], self.end_weights[0]), t1 - t0, t0)
             out.append(t)
             j += 1
         if "focus" in self.names:
             lo, hi = self._band_dr(t)
-            out.append(dr.fma(u[j], hi - lo, lo))
+            out.append(dr.fma(end_warp(u[j], self.end_weights[1]), hi - lo, lo))
         return out
 
     def _band_dr(self, t):
@@ -323,7 +333,8 @@ class Configurations:
         return {"names": list(self.names), "zoom_range": list(self.zoom_range),
                 "band": {"zoom": [float(v) for v in self.band_t], "focus_lo": [float(v) for v in self.band_lo],
                          "focus_hi": [float(v) for v in self.band_hi]},
-                "z_sensor_mm": float(self.z_sensor), "product_monomials": [list(m) for m in self.monomials]}
+                "z_sensor_mm": float(self.z_sensor), "product_monomials": [list(m) for m in self.monomials],
+                "end_weights": [float(v) for v in self.end_weights]}
 
     @classmethod
     def from_dict(cls, d, lens=None) -> "Configurations":
@@ -332,7 +343,8 @@ class Configurations:
         b = d["band"]
         return cls(tuple(d["names"]), tuple(float(v) for v in d["zoom_range"]), np.asarray(b["zoom"], np.float64),
                    np.asarray(b["focus_lo"], np.float64), np.asarray(b["focus_hi"], np.float64),
-                   float(d["z_sensor_mm"]), lens, tuple(tuple(int(v) for v in m) for m in d.get("product_monomials", ())))
+                   float(d["z_sensor_mm"]), lens, tuple(tuple(int(v) for v in m) for m in d.get("product_monomials", ())),
+                   tuple(float(v) for v in d.get("end_weights", LEGACY_END_WEIGHTS)))
 
     # ------------------------------------------------------------------ the tracer's geometry, per ray
     def geometry(self, float_type, cond, lens=None):
