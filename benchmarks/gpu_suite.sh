@@ -29,7 +29,12 @@
 #           model's metrics["flare_cost"]["cuda"] into the bundled one (the llvm records stay)
 #   ghosts  every ghost of the default selection for $GHOST_LENSES (default: the three paper lenses; one
 #           lens per call if they do not fit), with each lens's bundled recipe; each model comes back in
-#           results.tar.gz, to be merged into the bundled one with `mi-neurallens merge`
+#           results.tar.gz, to be merged into the bundled one with `mi-neurallens merge`.  A zoom lens's ghosts
+#           (GHOST_LENSES=canon-ef-24-70mm-f2.8l) are ranked over its configurations and each verified at three
+#           zooms, the flare goals of issue 55
+#   zoom    the zoom lens's one map at ten configurations training never drew (bench_zoom.py on the bundled
+#           canon-ef-24-70mm-f2.8l: map accuracy, render MAPE ratio, and the render-time ratio neural ÷ realistic
+#           on this backend, where the CPU's is 1.16-1.35)
 #
 # Time: SUITE_DEADLINE=S (seconds from the start) makes every step stop by then (each Python step runs under
 # `timeout` with what is left, and a step left with < 20 s is skipped), and results.tar.gz is rewritten after
@@ -64,11 +69,13 @@ if [ -n "${GPU_SUITE_QUICK:-}" ]; then
     GHOST_LENSES="${GHOST_LENSES:-wide-22mm}"
     GHOST_ARGS="--set max_ghosts=1 --set forward_regressor.max_steps=200 --set forward_classifier.max_steps=200 --set forward_stop.max_steps=200 --set forward_regressor.lm_iterations=5 --set forward_classifier.lm_iterations=5 --set forward_stop.lm_iterations=5"
     COAT="--ghosts 1 --samples 65536"
+    ZOOM="--focal 35 --focus inf --rays 20000 --res 32x24 --spp 4 --reference-spp 16 --repeats 1"
     EVAL_N=2000; COST=14; COST_LENSES="${COST_LENSES:-wide-22mm}"
 else
     RAYS=24; FILM=1280x960; SPP=64; FLARE="--ghosts 8 --samples $((1 << 24)) --ref-samples $((1 << 27))"
     EQUAL="--res 640x480 --spp 4,16,64 --reference-spp 1024 --repeats 2"
     COAT="--ghosts 4 --samples $((1 << 24))"
+    ZOOM="--repeats 5"
     TRAIN="--paths transmit,ghosts"; EVAL_N=100000
     COST=22; COST_LENSES="${COST_LENSES:-$(echo $ALL_LENSES | tr , ' ')}"
 fi
@@ -167,6 +174,10 @@ stage_coatings() {
         --out "$RES/coatings_point_ood-59mm.json" || rc=1
     py 90 benchmarks/bench_flare.py --lens ood-59mm $COAT --starburst --out "$RES/starburst_ood-59mm.json" || rc=1
     return $rc
+}
+
+stage_zoom() {
+    py 400 benchmarks/bench_zoom.py $ZOOM --variant "$MI_NEURALLENS_VARIANT" --out "$RES/bench_zoom.json"
 }
 
 stage_tests() {

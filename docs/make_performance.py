@@ -100,6 +100,9 @@ class Results:
         self.cpu_mlp = {_lens_of(p, "mlp_"): _load(p) for p in sorted(glob.glob(os.path.join(perf, "mlp_*.json")))}
         self.gpu_render = {_lens_of(p, "render_"): _load(p) for p in sorted(glob.glob(os.path.join(perf, "gpu", "render_*.json")))}
         self.gpu_mlp = {_lens_of(p, "mlp_"): _load(p) for p in sorted(glob.glob(os.path.join(perf, "gpu", "mlp_*.json")))}
+        #: a GPU run's other files, by their key in sources.json ("gpu/bench_zoom.json")
+        self.gpu = {f"gpu/{os.path.basename(p)}": _load(p) for p in sorted(glob.glob(os.path.join(perf, "gpu", "*.json")))
+                    if not os.path.basename(p).startswith(("render_", "mlp_"))}
         src = os.path.join(perf, "sources.json")
         self.sources = _load(src).get("files", {}) if os.path.exists(src) else {}
         self.evals = {}
@@ -296,11 +299,13 @@ def ghost_counts(ev: dict, backend: str = "llvm") -> dict:
 
 def zoom_table(r: Results, name: str = "bench_zoom.json") -> str:
     """A lens's one camera map over its moving groups at configurations the training never drew (``bench_zoom.json``:
-    the zoom lens; ``bench_focus.json``: an internally focused prime, no focal-length column): the map against the
-    tracer on the same rays, neural_lens against realistic_lens on the still life."""
-    d = r.cpu.get(name)
+    the zoom lens; ``bench_focus.json``: an internally focused prime, no focal-length column;
+    ``gpu/bench_zoom.json``: the zoom lens on a GPU, ``gpu_suite.sh zoom``): the map against the tracer on the same
+    rays, neural_lens against realistic_lens on the still life."""
+    d = r.gpu.get(name) if name.startswith("gpu/") else r.cpu.get(name)
     if not d:
-        return "*No run stored.*\n"
+        return ("*Not measured on a GPU yet: `bash benchmarks/gpu_suite.sh zoom`, then `python docs/make_performance.py "
+                "--gpu-from` its results.*\n" if name.startswith("gpu/") else "*No run stored.*\n")
     zoom = any(x.get("focal_length_mm") is not None for x in d.get("rows", []))
     rows = []
     for x in d.get("rows", []):
@@ -602,7 +607,7 @@ def pages(r: Results | None = None) -> dict:
     return {PERF_PAGE: {"verdicts": verdicts(r), "tracer": tracer_table(r), "camera-rays": mlp_table(r),
                         "render": render_table(r), "equal-time": equal_time_table(r), "flare": flare_table(r), "starburst": starburst_table(r),
                         "coatings": coatings_table(r),
-                        "maps": maps_table(r), "zoom": zoom_table(r),
+                        "maps": maps_table(r), "zoom": zoom_table(r), "zoom-gpu": zoom_table(r, "gpu/bench_zoom.json"),
                         "focus": zoom_table(r, "bench_focus.json"), "baselines-speed": baselines_speed_table(r),
                         "baselines-accuracy": baselines_accuracy_table(r), "gpu-render": gpu_render_table(r),
                         "gpu-camera-rays": gpu_mlp_table(r)},
@@ -701,7 +706,8 @@ def _gpu_machine(src: str) -> tuple:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--from", dest="src", help="copy a CPU run's JSON from this folder first (make bench: out/bench)")
-    ap.add_argument("--gpu-from", help="copy a GPU run's render_*.json, mlp_*.json and gpu.txt from this folder first")
+    ap.add_argument("--gpu-from", help="copy a GPU run's render_*.json, mlp_*.json, bench_zoom.json and gpu.txt from "
+                                       "this folder first")
     ap.add_argument("--machine", help="the machine of the run taken, in words (default: read from this machine)")
     ap.add_argument("--check", action="store_true", help="write nothing; exit 1 if a generated block differs")
     a = ap.parse_args(argv)
@@ -713,7 +719,7 @@ def main(argv=None) -> int:
         print("took", ", ".join(take_run(a.src, names, PERF, m, _cpu_command)) or "nothing")
     if a.gpu_from:
         names = sorted(os.path.basename(p) for p in glob.glob(os.path.join(a.gpu_from, "*.json"))
-                       if os.path.basename(p).startswith(("render_", "mlp_")))
+                       if os.path.basename(p).startswith(("render_", "mlp_")) or os.path.basename(p) == "bench_zoom.json")
         m = (a.machine, a.machine.split(",")[0]) if a.machine else _gpu_machine(a.gpu_from)
         took = take_run(a.gpu_from, names, os.path.join(PERF, "gpu"), m,
                         lambda n, d: d.get("command", "").split(" --out ")[0] or "bash benchmarks/gpu_suite.sh bench")
