@@ -304,7 +304,7 @@ def zoom_table(r: Results, name: str = "bench_zoom.json") -> str:
     rays, neural_lens against realistic_lens on the still life."""
     d = r.gpu.get(name) if name.startswith("gpu/") else r.cpu.get(name)
     if not d:
-        return ("*Not measured on a GPU yet: `bash benchmarks/gpu_suite.sh zoom`, then `python docs/make_performance.py "
+        return ("*No GPU run stored: `bash benchmarks/gpu_suite.sh zoom` measures it, then `python docs/make_performance.py "
                 "--gpu-from` its results.*\n" if name.startswith("gpu/") else "*No run stored.*\n")
     zoom = any(x.get("focal_length_mm") is not None for x in d.get("rows", []))
     rows = []
