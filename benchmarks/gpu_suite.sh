@@ -34,7 +34,7 @@
 #           zooms, the flare goals of issue 55
 #   zoom    the zoom lens's one map at ten configurations training never drew (bench_zoom.py on the bundled
 #           canon-ef-24-70mm-f2.8l: map accuracy, render MAPE ratio, and the render-time ratio neural ÷ realistic
-#           on this backend, where the CPU's is 1.16-1.35)
+#           on this backend; the CPU's figures are in docs/performance.md)
 #
 # Time: SUITE_DEADLINE=S (seconds from the start) makes every step stop by then (each Python step runs under
 # `timeout` with what is left, and a step left with < 20 s is skipped), and results.tar.gz is rewritten after
