@@ -65,6 +65,7 @@ class NetConfig:
     lm_rows: int = 8192                 # fresh samples per Levenberg–Marquardt iteration
     lm_eval_every: int = 10             # Levenberg–Marquardt iterations between validations
     lm_max_weights: int = 2500          # larger networks are left to Adam (levenberg.MAX_PARAMS, the same)
+    lm_huber: float = 0.0               # regressor's finish: Huber loss, δ = this × its start's median |residual| (0: squares)
     sizes: tuple = ()                   # "HxW" to try, smallest first; a map keeps the first at its goals (maps.py)
 
 

@@ -422,6 +422,11 @@ class _StackFinish:
         self.it = 0                                       # the iterations of the networks still running
         self.feeds = [RowFeed(f, self.rows) for f in fits]
         self.best_theta = [self.theta[k].clone() for k in range(K)]
+        for k, f in enumerate(fits):              # a problem whose loss depends on where the finish starts
+            start = getattr(f, "lm_start", None)
+            if start is not None:
+                th = self.theta[k].clone()
+                start(lambda x, th=th: net.forward(th, x))
         self.best = [self.validate(k, None) for k in range(K)]
         for k in range(K):
             if nc.stop_at_goals and fits[k].goals_met():

@@ -136,6 +136,17 @@ def _regressor_fit(torch, dev, p: dict, nc: NetConfig, prior: dict, s0, n_pool: 
                         log=log, desc=desc)
 
 
+def huber_residual(torch, r, delta):
+    """The residuals ``r`` as Levenberg–Marquardt residuals of the Huber loss: ``r'`` with ``r'² = ρ(r)``,
+    ρ(r) = r² for |r| ≤ δ and 2δ|r| − δ² beyond (squares near zero, linear in the tail: a fit of the bulk, whose
+    median is what the goals judge, where squares spend the network on the tail), and ∂r'/∂r (1 inside, δ/|r'|
+    beyond).  ``delta`` broadcasts against ``r`` (per output column)."""
+    a = r.abs()
+    big = a > delta
+    q = torch.sqrt(torch.clamp(2.0 * delta * a - delta * delta, min=1e-30))
+    return torch.where(big, torch.sign(r) * q, r), torch.where(big, delta / q, torch.ones_like(r))
+
+
 class RegressorFit(Problem):
     """One regressor's training problem, its pieces as methods (what :func:`train_regressor` runs and
     tests call): the sample pool and its targets, the loss, validation and pool refresh.
@@ -270,7 +281,36 @@ class RegressorFit(Problem):
         if batch.get("W") is not None:
             w = w * self.torch.sqrt(batch["W"]).to(z.dtype)[:, None]
         M = self.M_of(batch["X"]).to(z.dtype)
-        return w * (z * M - batch["Y"].to(z.dtype)), w * M
+        r, s = w * (z * M - batch["Y"].to(z.dtype)), w * M
+        if self.huber_delta is None:
+            return r, s
+        r, slope = huber_residual(self.torch, r, self.huber_delta.to(z.dtype))
+        return r, s * slope
+
+    #: ``nc.lm_huber``'s δ per output column (a tensor), fixed when the finish starts (:meth:`lm_start`); None:
+    #: the finish minimises the squares
+    huber_delta = None
+
+    def lm_start(self, net):
+        """Called by the Levenberg–Marquardt finish with its starting network ``net``: with ``nc.lm_huber`` > 0,
+        fixes the Huber threshold δ of each output column at ``lm_huber`` × the median |weighted residual| of the
+        held-out rays, so that the finish's loss and its validation score are one function throughout."""
+        if self.nc.lm_huber <= 0:
+            return
+        self.net = net
+        with self.torch.no_grad():
+            pv, _ = self.predict(self.Xv)
+            r = (self.torch.sqrt(self.W) * (pv - self.Yv)).abs()
+        self.huber_delta = self.torch.clamp(self.nc.lm_huber * r.median(0).values, min=1e-12)
+        self.state["lm_huber_delta"] = self.huber_delta.tolist()
+
+    def score(self, pv):
+        """The held-out score the finish keeps the best weights by: the mean of the loss it minimises per
+        residual (squares, or with :attr:`huber_delta` the Huber loss)."""
+        if self.huber_delta is None:
+            return float(((pv - self.Yv) ** 2).mean())
+        r, _ = huber_residual(self.torch, self.torch.sqrt(self.W) * (pv - self.Yv), self.huber_delta)
+        return float((r ** 2).mean())
 
     def fresh_rows(self, k):
         """``k`` fresh pool rows from the stream."""
@@ -297,7 +337,7 @@ class RegressorFit(Problem):
         from .evaluate import regression_errors
         with self.torch.no_grad():
             pv, _ = self.predict(self.Xv)
-            vl = float(((pv - self.Yv) ** 2).mean())
+            vl = self.score(pv)
             yp = self.outputs(self.xv, self.xvn, pv.double().cpu().numpy())
         m = regression_errors(yp, self.yv, self.heading)
         rec = {"step": step, "loss": loss.item() if loss is not None else math.nan, "val_mse": vl,
