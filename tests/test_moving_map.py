@@ -92,6 +92,34 @@ def test_the_inputs_range_and_frame(zoom, configs):
     assert back == configs and back.lens is None
 
 
+def test_the_knot_inputs_carry_the_cam_curves_join(zoom, configs):
+    """The gaps' cubics (Fritsch–Carlson, per interval) join at the inner listed position with continuous slope but a
+    jump in curvature: over the zoom no gap is one cubic in t, and every gap is, to rounding, linear in 1, t, t², t³
+    and the knot inputs' truncated powers (t − 1)₊², (t − 1)₊³, which the configurations multiply r, ωx, ωy by."""
+    from mi_neurallens.transport.configurations import knot_monomials
+    assert knot_monomials(2) == () and knot_monomials(3) == ((2, 0, 1), (3, 0, 1))
+    assert configs.monomials[-2:] == knot_monomials(zoom.moving.positions)
+    t = np.linspace(0.0, 2.0, 161)
+    G = np.array([[g for _, g in sorted(zoom.moving.gaps_at(v).items())] for v in t])
+    moving = np.ptp(G, 0) > 1e-6
+    assert moving.sum() >= 3
+    G = G[:, moving]
+    cubic = np.vander(t, 4, increasing=True)
+    knots = np.c_[cubic, np.maximum(t - 1, 0) ** 2, np.maximum(t - 1, 0) ** 3]
+    rms = lambda A: np.sqrt(np.mean((A @ np.linalg.lstsq(A, G, rcond=None)[0] - G) ** 2, 0))
+    assert rms(knots).max() < 1e-9 * np.abs(G).max()
+    assert rms(cubic).max() > 1e-3                       # mm: what a smooth function of t alone misses
+    # the products' columns: r, ωx, ωy times (t − 1)₊^a, numpy and Dr.Jit alike
+    from mi_neurallens.trace.api import float_type
+    x = np.c_[np.random.default_rng(4).random((len(t), 4)), t, np.full(len(t), 0.3)]
+    P = configs.products_np(x)
+    np.testing.assert_allclose(P[:, -6:-3], x[:, :3] * np.maximum(t - 1, 0)[:, None] ** 2, rtol=1e-12)
+    np.testing.assert_allclose(P[:, -3:], x[:, :3] * np.maximum(t - 1, 0)[:, None] ** 3, rtol=1e-12)
+    F = float_type("float64")
+    Pd = np.stack([np.asarray(v) for v in configs.products_dr([F(x[:, i]) for i in range(6)])], 1)
+    np.testing.assert_allclose(Pd, P, rtol=1e-12, atol=1e-15)
+
+
 def test_a_run_on_a_base_keeps_its_domain_and_draws_as_this_version_does(configs):
     """A finish on a base map trains on the base's domain (bounds, band, frame: what its kept networks' inputs are
     normalised by) but draws its rays with this version's end weights, which the new model file then records."""
@@ -353,7 +381,7 @@ def test_a_learned_map_at_the_sensors_configuration(configs):
 
 
 def test_a_configured_map_folds_its_configuration_into_the_first_layers(configs):
-    """:class:`~mi_neurallens.neural.model.ConditionFold`: at a fixed configuration the 27 inputs of the EF 24-70's
+    """:class:`~mi_neurallens.neural.model.ConditionFold`: at a fixed configuration the 33 inputs of the EF 24-70's
     camera map are affine in the ray's four, so the folded networks (4 inputs, folded in float64) compute what the
     trained ones do, to float32 rounding (float32 only: a float64 kernel of these networks compiles for 10 s), and
     another configuration changes only kernel parameters (the same kernel source, no recompilation)."""
@@ -368,8 +396,8 @@ def test_a_configured_map_folds_its_configuration_into_the_first_layers(configs)
     s = mi.load_dict({"type": "neural_lens", "lens": ZOOM, "focal_length": 52.0, "focus_distance": 0.9,
                       "film": {"type": "hdrfilm", "width": 32, "height": 32}})
     tm = s.setup.configured_map(s.model.map("transmit", "backward"))
-    width = tm.regressor[0][0].shape[0]                # the first hidden layer: 27 inputs folded to the ray's 4
-    assert tm.regressor[0][0].shape[1] == 27
+    width = tm.regressor[0][0].shape[0]                # the first hidden layer: 33 inputs folded to the ray's 4
+    assert tm.regressor[0][0].shape[1] == 33 == tm.domain.n_inputs
     assert tm.condition_fold() is not None and tm.condition_fold().first["regressor"][0].shape == (width, 4)
     full = dataclasses.replace(tm, fold_conditions=False)
     rng = np.random.default_rng(3)

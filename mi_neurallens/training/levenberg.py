@@ -48,7 +48,7 @@ if TYPE_CHECKING:
 
 #: networks with more weights than this are not finished (JᵀJ would cost seconds per iteration on a CPU): the
 #: default of :attr:`NetConfig.lm_max_weights <mi_neurallens.training.config.NetConfig.lm_max_weights>`, which a
-#: recipe raises for one network (the EF 24-70's 4×27 camera regressor: 3 164 weights, 4.8 s an iteration on 2 cores)
+#: recipe raises for one network (the EF 24-70's 4×27 camera regressor: 3 326 weights, 4.8 s an iteration on 2 cores)
 MAX_PARAMS = 2500
 
 #: iterations' worth of rows one call of a problem's ``fresh_rows`` draws: a call costs a tracer launch (and a

@@ -29,7 +29,11 @@ ray**, so that one kernel traces training rays of many configurations at once.
   map of each configuration — changes several-fold, and a tanh network represents a product of its inputs only
   approximately.  So the map also takes the products of the ray's r, ωx, ωy with a few monomials of (t, f)
   (:data:`MONOMIALS`) as inputs: the regressor's linear skip over them spans a paraxial map whose coefficients are
-  cubic in the configuration, and the networks learn what is left (the aberrations).  They are computed from the
+  cubic in the configuration, and the networks learn what is left (the aberrations).  A zoom listed at more than
+  two positions adds the truncated powers (t − k)₊², (t − k)₊³ of each inner position ``k``
+  (:func:`knot_monomials`): the gaps' cubics join there with continuous slope but not curvature, so the lens is a
+  smooth function of t only together with them; without them a smooth network rounds the join off (the EF
+  24-70's map erred 1.5–2× as much 0.02 in t on either side of its 35.13 mm position as at it).  They are computed from the
   other inputs, never sampled (:meth:`Configurations.products_np`, :meth:`Configurations.products_dr`).
 * **Geometry per ray** (:meth:`Configurations.geometry`): the variable gaps as the prescription's monotone cubics
   in ``t`` (the same Fritsch–Carlson cubics as :func:`mi_neurallens.optics.moving.pchip`, as per-interval
@@ -58,6 +62,9 @@ FOCUS_MARGIN = 0.08
 #: inputs (see the module docstring): the paraxial map's coefficients as cubics in the zoom, quadratics in the focus
 MONOMIALS = {("zoom", "focus"): ((1, 0), (0, 1), (2, 0), (1, 1), (0, 2), (3, 0), (2, 1)),
              ("zoom",): ((1, 0), (2, 0), (3, 0)), ("focus",): ((0, 1), (0, 2))}
+#: the truncated powers (t − k)₊^a of each inner listed zoom position k that multiply r, ωx, ωy too (a, as the
+#: monomials' (a, 0, k); :func:`knot_monomials`): the join of two of the gaps' cubics, exactly in their basis
+KNOT_POWERS = (2, 3)
 #: the ray's inputs that the monomials multiply: r, ωx, ωy (not λ)
 PRODUCT_RAY_COLUMNS = (0, 1, 2)
 #: a in the zoom sampling's warp (:func:`end_warp`; module docstring, "Sampling"): 0 is uniform; 0.5 draws the zoom
@@ -69,6 +76,12 @@ FOCUS_END_WEIGHT = 0.5
 #: the end weights of a model file that records none: the zoom's warp, a uniform focus (as models were trained
 #: before the focus warp)
 LEGACY_END_WEIGHTS = (ZOOM_END_WEIGHT, 0.0)
+
+
+def knot_monomials(positions: int) -> tuple:
+    """The product monomials (a, 0, k) of a zoom listed at ``positions`` zoom positions: (t − k)₊^a for each inner
+    position k = 1 … positions − 2 and a in :data:`KNOT_POWERS` (none for two positions: one cubic, no join)."""
+    return tuple((a, 0, k) for k in range(1, int(positions) - 1) for a in KNOT_POWERS)
 
 
 def end_warp(u, a: float):
@@ -123,7 +136,8 @@ class Configurations:
     band_hi: np.ndarray
     z_sensor: float
     lens: object = dataclasses.field(default=None, compare=False, repr=False)
-    #: the (a, b) of the monomials t^a f^b whose products with r, ωx, ωy are inputs (:data:`MONOMIALS`; () none)
+    #: the (a, b) of the monomials t^a f^b whose products with r, ωx, ωy are inputs (:data:`MONOMIALS`; () none),
+    #: or (a, b, k): (t − k)₊^a f^b, a truncated power at the listed zoom position k (:func:`knot_monomials`)
     monomials: tuple = ()
     #: the sampling warps' end weights (zoom, focus) (:func:`end_warp`; module docstring, "Sampling")
     end_weights: tuple = (ZOOM_END_WEIGHT, FOCUS_END_WEIGHT)
@@ -159,7 +173,8 @@ class Configurations:
                     raise NeuralLensError(f"lens '{lens.name}': no focus band at zoom parameter {t:.4g}: {e}") from e
                 w = abs(b - a)
                 lo[i], hi[i] = min(a, b) - FOCUS_MARGIN * w, max(a, b) + FOCUS_MARGIN * w
-        out = cls(names, (float(t0), float(t1)), grid, lo, hi, 0.0, lens, MONOMIALS[names])
+        monomials = MONOMIALS[names] + (knot_monomials(mg.positions) if mg.is_zoom else ())
+        out = cls(names, (float(t0), float(t1)), grid, lo, hi, 0.0, lens, monomials)
         out.z_sensor = max(mv.at(lens, float(t), float(f), check=False).image_z
                            for t, f in out.corner_configurations())
         return out
@@ -181,7 +196,15 @@ class Configurations:
         """How many product inputs follow them (:attr:`monomials` × the ray's r, ωx, ωy)."""
         return len(self.monomials) * len(PRODUCT_RAY_COLUMNS)
 
-    def _monomial(self, t, f, a: int, b: int):
+    @staticmethod
+    def _monomial(t, f, a: int, b: int, knot=None):
+        """t^a f^b, or with ``knot`` k (t − k)₊^a f^b; numpy arrays, Python floats or Dr.Jit floats."""
+        if knot is not None:
+            if isinstance(t, (np.ndarray, float, int)):
+                t = np.maximum(t - knot, 0.0)
+            else:
+                import drjit as dr
+                t = dr.maximum(t - float(knot), 0.0)
         out = None
         for v, k in ((t, a), (f, b)):
             for _ in range(k):
@@ -192,8 +215,8 @@ class Configurations:
         """The product inputs (N, :attr:`n_products`) of the reduced inputs ``x`` (N, 4 + :attr:`dims`)."""
         t, f = self.split([x[:, 4 + j] for j in range(self.dims)])
         cols = []
-        for a, b in self.monomials:
-            m = self._monomial(np.asarray(t, np.float64), np.asarray(f, np.float64), a, b)
+        for mono in self.monomials:
+            m = self._monomial(np.asarray(t, np.float64), np.asarray(f, np.float64), *mono)
             cols += [x[:, j] * m for j in PRODUCT_RAY_COLUMNS]
         return np.stack(cols, 1) if cols else np.zeros((len(x), 0))
 
@@ -202,8 +225,8 @@ class Configurations:
         scalars of width 1: the monomials are then computed once)."""
         t, f = self.split(list(x[4:4 + self.dims]))
         out = []
-        for a, b in self.monomials:
-            m = self._monomial(t, f, a, b)
+        for mono in self.monomials:
+            m = self._monomial(t, f, *mono)
             out += [x[j] * m for j in PRODUCT_RAY_COLUMNS]
         return out
 
@@ -214,8 +237,8 @@ class Configurations:
         fs = np.linspace(float(self.band_lo.min()), float(self.band_hi.max()), 33)
         T, Fo = np.meshgrid(t, fs)
         s = []
-        for a, b in self.monomials:
-            m = float(np.abs(self._monomial(T, Fo, a, b)).max()) or 1.0
+        for mono in self.monomials:
+            m = float(np.abs(self._monomial(T, Fo, *mono)).max()) or 1.0
             s += [max(float(ray_scale[j]) * m, 1e-6) for j in PRODUCT_RAY_COLUMNS]
         return np.zeros(len(s)), np.array(s)
 
