@@ -156,7 +156,7 @@ class ConditionFold:
     ray's r, ωx, ωy, so every normalised input is an affine function of the ray's four normalised ones,
     ``xn = A·xn₄ + c``: each network's first layer (W, b) becomes (W·A, W·c + b), each linear skip S becomes S·A
     plus the constant S·c — the same function, in float64, before rounding to the kernel's float type.  The EF
-    24-70's 27 inputs become 4 (its three first layers and two skips: 1 800 fewer of its ~6 000 multiply-adds a ray).  The
+    24-70's 33 inputs become 4 (its three first layers and two skips: 2 400 fewer of its ~6 500 multiply-adds a ray).  The
     folded numbers are kernel parameters (``pool``), so another zoom or focus compiles nothing.  Applied where the
     networks are literals (``mlp = "fused"``, what ``neural_lens`` renders with)."""
     first: dict         # network name ("classifier", "regressor", "stop") → its first layer (W (H, 4), b (H,))
