@@ -33,7 +33,7 @@ ray**, so that one kernel traces training rays of many configurations at once.
   two positions adds the truncated powers (t − k)₊², (t − k)₊³ of each inner position ``k``
   (:func:`knot_monomials`): the gaps' cubics join there with continuous slope but not curvature, so the lens is a
   smooth function of t only together with them; without them a smooth network rounds the join off (the EF
-  24-70's map erred 1.5–2× as much 0.02 in t on either side of its 35.13 mm position as at it).  They are computed from the
+  24-70's map erred 1.4–1.7× as much 0.02 in t on either side of its 35.13 mm position as at it).  They are computed from the
   other inputs, never sampled (:meth:`Configurations.products_np`, :meth:`Configurations.products_dr`).
 * **Geometry per ray** (:meth:`Configurations.geometry`): the variable gaps as the prescription's monotone cubics
   in ``t`` (the same Fritsch–Carlson cubics as :func:`mi_neurallens.optics.moving.pchip`, as per-interval
@@ -200,8 +200,10 @@ class Configurations:
     def _monomial(t, f, a: int, b: int, knot=None):
         """t^a f^b, or with ``knot`` k (t − k)₊^a f^b; numpy arrays, Python floats or Dr.Jit floats."""
         if knot is not None:
-            if isinstance(t, (np.ndarray, float, int)):
+            if isinstance(t, np.ndarray):
                 t = np.maximum(t - knot, 0.0)
+            elif isinstance(t, (float, int)):
+                t = max(float(t) - knot, 0.0)
             else:
                 import drjit as dr
                 t = dr.maximum(t - float(knot), 0.0)
