@@ -4,7 +4,8 @@
 * Mitsuba plugins (``realistic_lens``, ``neural_lens`` sensors, ``lens_flare`` integrator) are
   registered for the current Mitsuba variant by :func:`register`, which ``import mi_neurallens``
   calls automatically when a variant is already set.  Registration is per variant: call
-  :func:`register` again after every ``mi.set_variant``.
+  :func:`register` after ``mi.set_variant`` selects a variant for the first time (switching back to a
+  registered variant keeps its plugins).
 
 Importing this package never imports torch and never sets a Mitsuba variant.
 """

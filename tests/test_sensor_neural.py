@@ -67,6 +67,22 @@ def test_load_dict_and_xml(variant):
     assert np.isfinite(img).all() and img.mean() > 0.1
 
 
+def test_switching_back_to_a_registered_variant_keeps_its_plugins():
+    """Registering in the spectral variant re-imports the plugin modules; the RGB variant's registration must
+    still build RGB classes (it once built the spectral ones, whose base constructor ignored the RGB film and
+    sampler: "unreferenced properties" on load, for whichever test ran next on that xdist worker)."""
+    use(RGB)
+    use(SPECTRAL)
+    mi.set_variant(RGB)                 # back, without register()
+    for kind in ("realistic_lens", "neural_lens"):
+        s = mi.load_dict(sensor(kind, w=16, h=12, spp=4, lens="wide-22mm"))
+        assert isinstance(s, mi.Sensor) and tuple(s.film().size()) == (16, 12)
+    img = render(sensor("realistic_lens", w=16, h=12, spp=4, lens="wide-22mm"))
+    assert img.shape == (12, 16, 3) and np.isfinite(img).all() and img.mean() > 0.01
+    flare = mi.load_dict({"type": "lens_flare", "integrator": {"type": "path"}})
+    assert isinstance(flare, mi.Integrator)
+
+
 def blocks(a, k=4):
     """k×k block means: keeps the lens's bias, averages away most of the Monte Carlo noise."""
     h, w, c = a.shape

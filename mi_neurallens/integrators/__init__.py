@@ -16,11 +16,11 @@ def register() -> list[str]:
         raise RuntimeError("mi_neurallens.integrators.register(): set a Mitsuba variant first")
     from . import lens_flare
     importlib.reload(lens_flare)
-    mi.register_integrator(lens_flare.PLUGIN, lambda props: lens_flare.LensFlare(props))
+    mi.register_integrator(lens_flare.PLUGIN, lambda props, cls=lens_flare.LensFlare: cls(props))
     names = [lens_flare.PLUGIN]
     if "_ad_" in mi.variant():
         from . import lens_ad
         importlib.reload(lens_ad)
-        mi.register_integrator(lens_ad.PLUGIN, lambda props: lens_ad.LensAD(props))
+        mi.register_integrator(lens_ad.PLUGIN, lambda props, cls=lens_ad.LensAD: cls(props))
         names.append(lens_ad.PLUGIN)
     return names

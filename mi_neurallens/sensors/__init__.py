@@ -7,7 +7,8 @@ Shared pieces: :mod:`.common` (properties, lens setup, film mapping, frames), :m
 the current variant's ``mi.Sensor``; :func:`register` re-imports their modules for the variant that
 is currently set and registers them with Mitsuba; it returns the registered names.  It is called by
 :func:`mi_neurallens.register` and automatically on ``import mi_neurallens`` when a variant is already
-set.  After every ``mi.set_variant(...)`` call ``mi_neurallens.register()`` again.
+set.  Call ``mi_neurallens.register()`` after ``mi.set_variant(...)`` selects a variant for the first time; a
+variant keeps its registration (and its own classes) when you switch away from it and back.
 """
 from __future__ import annotations
 
@@ -26,6 +27,9 @@ def register() -> list[str]:
     from . import base, neural_lens, realistic_lens
     for module in (base, realistic_lens, neural_lens):
         importlib.reload(module)
-    mi.register_sensor(realistic_lens.PLUGIN, lambda props: realistic_lens.RealisticLens(props))
-    mi.register_sensor(neural_lens.PLUGIN, lambda props: neural_lens.NeuralLens(props))
+    # Each variant's constructor holds its own class: a lambda that looked the class up in the module at load time
+    # would, after a later register() in another variant re-imported the module, build that variant's class here
+    # (its base constructor ignores this variant's film and sampler: "unreferenced properties").
+    for name, cls in ((realistic_lens.PLUGIN, realistic_lens.RealisticLens), (neural_lens.PLUGIN, neural_lens.NeuralLens)):
+        mi.register_sensor(name, lambda props, cls=cls: cls(props))
     return [realistic_lens.PLUGIN, neural_lens.PLUGIN]
