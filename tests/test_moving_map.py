@@ -139,6 +139,91 @@ def test_a_run_on_a_base_keeps_its_domain_and_draws_as_this_version_does(configs
     assert _base_domain(fixed.to_dict(), dataclasses.replace(planned, conditions=None)) == fixed
 
 
+def test_a_recipe_sets_how_densely_the_ranges_ends_are_drawn(zoom):
+    """``zoom_end_weight`` / ``focus_end_weight``, ``zoom_margin`` and ``zoom_dense_at`` reach the configurations a
+    run draws from (and so its model file); the share of drawn zooms near the range's ends (or its listed positions)
+    is the warp's; out of range is refused."""
+    from mi_neurallens.errors import NeuralLensError
+    from mi_neurallens.training.config import load_config
+    from mi_neurallens.training.whole_lens import _configurations
+    assert _configurations(zoom, load_config()).end_weights == (0.5, 0.5)
+    c = _configurations(zoom, load_config(overrides={"zoom_end_weight": 0.75}))
+    assert c.end_weights == (0.75, 0.5) and c.to_dict()["end_weights"] == [0.75, 0.5]
+    u = (np.arange(20000)[:, None] + 0.5) / 20000 * np.ones((1, 2))
+    for cf, a in ((c, 0.75), (_configurations(zoom, load_config(overrides={"zoom_end_weight": 0.0})), 0.0)):
+        t, _ = cf.u_to_tf(u)
+        ends = float(np.mean((t < 0.1) | (t > 1.9)))
+        # the warp's closed form: w(u) = u − a sin(2πu)/2π reaches 0.05 of the range at u = expect / 2
+        g = np.linspace(0.0, 0.5, 500001)
+        expect = 2 * g[np.searchsorted(g - a / (2 * math.pi) * np.sin(2 * math.pi * g), 0.05)]
+        assert ends == pytest.approx(expect, abs=2e-4)
+        assert expect > (0.28 if a else 0.0999)       # 0.75: those ends 2.9x as densely as uniform
+    with pytest.raises(NeuralLensError, match="zoom_end_weight.*0, 1"):
+        _configurations(zoom, load_config(overrides={"zoom_end_weight": 1.0}))
+    assert _configurations(zoom, load_config(overrides={"zoom_margin": 0.01})).zoom_margin == 0.01
+    with pytest.raises(NeuralLensError, match="zoom_margin"):
+        _configurations(zoom, load_config(overrides={"zoom_margin": 0.5}))
+    # densest at every listed position: the ends and the 35.13 mm where the gaps' cubics join
+    p = _configurations(zoom, load_config(overrides={"zoom_end_weight": 0.75, "zoom_dense_at": "positions"}))
+    assert p.zoom_periods == 2 and Configurations.from_dict(p.to_dict()) == p
+    t, f = p.u_to_tf(np.column_stack([np.linspace(0.0, 1.0, 200001), np.full(200001, 0.5)]))
+    share = [float(np.mean(np.abs(t - k) < 0.002)) / 0.002 for k in (0.0, 0.5, 1.0, 1.5, 2.0)]   # / uniform's
+    assert share[2] == pytest.approx(2 * share[0], rel=0.02)                # a knot has two sides, an end one
+    assert share[2] == pytest.approx(4.0, rel=0.02)                         # 1 / (1 − a) of uniform
+    assert share[1] == pytest.approx(share[3], rel=0.02) and share[1] == pytest.approx(1 / 1.75, rel=0.02)
+    u = np.random.default_rng(2).random((300, 2))
+    np.testing.assert_allclose(p.tf_to_u(*p.u_to_tf(u)), u, atol=1e-12)
+    import drjit as dr  # noqa: F401
+    from mi_neurallens.trace.api import float_type
+    F = float_type("float64")
+    np.testing.assert_allclose(p.u_to_tf_dr([F(u[:, 0]), F(u[:, 1])])[0].numpy(), p.u_to_tf(u)[0], atol=1e-12)
+    with pytest.raises(NeuralLensError, match="zoom_dense_at"):
+        _configurations(zoom, load_config(overrides={"zoom_dense_at": "middle"}))
+
+
+def test_a_zoom_margin_draws_beyond_the_listed_ends_along_the_continued_cam_curves(zoom, configs):
+    """``zoom_margin``: the training's zooms reach that fraction of the range beyond each end (numpy and Dr.Jit
+    alike, both ways), the tracer's gaps there are the end cubics continued (``mv.pchip``'s extension), the file
+    keeps it (a file without it: 0), the inputs' normalisation and what sensors may ask for stay the listed range."""
+    import dataclasses
+    import drjit as dr
+    from mi_neurallens.trace.api import float_type
+    from mi_neurallens.transport.configurations import ConfigurationGeometry
+    wide = dataclasses.replace(configs, zoom_margin=0.01)
+    assert configs.zoom_margin == 0.0 and wide.sampled_zoom_range == pytest.approx((-0.02, 2.02), abs=1e-15)
+    t, f = wide.u_to_tf(np.array([[0.0, 0.0], [1.0, 1.0], [0.5, 0.5]]))
+    np.testing.assert_allclose(t, [-0.02, 2.02, 1.0], atol=1e-12)
+    lo, hi = configs.band(0.0)
+    assert f[0] == pytest.approx(lo, abs=1e-12)          # the band held at its end values beyond the range
+    u = np.random.default_rng(1).random((500, 2))
+    t, f = wide.u_to_tf(u)
+    assert t.min() < -0.015 and t.max() > 2.015
+    np.testing.assert_allclose(wide.tf_to_u(t, f), u, atol=1e-12)
+    F = float_type("float64")
+    td, fd = wide.u_to_tf_dr([F(u[:, 0]), F(u[:, 1])])
+    np.testing.assert_allclose(td.numpy(), t, atol=1e-12)
+    np.testing.assert_allclose(fd.numpy(), f, atol=1e-12)
+    # the tracer's gaps beyond the ends: the prescription's end cubics continued
+    x = np.arange(3.0)
+    tq, fq = np.array([-0.02, -0.01, 2.01, 2.02]), np.array([0.0, 0.7, 0.3, 1.0])
+    geo = ConfigurationGeometry(wide, zoom, F, F(tq), F(fq))
+    z = np.array([dr.ravel(s["z"]).numpy() if hasattr(s["z"], "numpy") else np.full(4, s["z"])
+                  for s in geo.surfaces()])
+    for i, v in zoom.moving.gaps.items():
+        a = np.asarray(v, np.float64)
+        gi, gc = mv.pchip(x, a[:, 0], tq), mv.pchip(x, a[:, 1], tq)
+        np.testing.assert_allclose(z[i + 1] - z[i], gi + fq * (gc - gi), atol=1e-9)
+    # the file keeps it, an older file drew none; normalisation and the sensors' range unchanged
+    assert Configurations.from_dict(wide.to_dict()).zoom_margin == 0.01 and Configurations.from_dict(wide.to_dict()) == wide
+    d = wide.to_dict()
+    del d["zoom_margin"]
+    assert Configurations.from_dict(d) == configs
+    np.testing.assert_array_equal(wide.norm_center_scale()[0], configs.norm_center_scale()[0])
+    np.testing.assert_array_equal(wide.norm_center_scale()[1], configs.norm_center_scale()[1])
+    with pytest.raises(Exception, match="zoom parameter"):
+        wide.check(-0.01, 0.0)
+
+
 def test_one_kernel_traces_every_configuration_as_its_own_lens(zoom, configs):
     """The training's tracer, one configuration per ray in the sensor's frame, against each configuration's own
     lens (``optics.moving.at``) traced in its own lens space, planes moved by the frame's shift: the same rays

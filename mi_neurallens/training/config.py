@@ -129,6 +129,13 @@ class TrainConfig:
     ghost_energy_fraction: float = 0.99
     ship_ghosts: int = 32               # …but train at most this many (CPU budget)
     close_focus_mm: float | str = DEFAULT_CLOSE_FOCUS_MM  # nearest object the maps serve (mm; 0: infinity; planes.py)
+    zoom_end_weight: float | None = None    # a lens with moving groups: its training rays' configurations drawn
+    focus_end_weight: float | None = None   # a range's ends 1/(1-a) times as densely as uniform, 0 <= a < 1
+    #                                         (transport/configurations.py end_warp; None: ZOOM_/FOCUS_END_WEIGHT)
+    zoom_margin: float | None = None        # ...and drawn this fraction of the zoom range beyond each of its ends
+    #                                         (the cam curves continued; None: configurations.ZOOM_MARGIN)
+    zoom_dense_at: str = "ends"             # ...the zoom drawn densest at the range's "ends" or at every listed
+    #                                         zoom position ("positions": also where the cam curves' cubics join)
     film_half_diagonal_mm: float = FULL_FRAME_HALF_DIAGONAL_MM
     flare_resolution: int = 2048        # pixels across the film the flare maps' goals are stated for (flare_goals)
     field_margin: float = DEFAULT_FIELD_MARGIN

@@ -160,25 +160,42 @@ def train_lens(lens, cfg: TrainConfig, out_path: str, paths: str | None = None, 
 def _configurations(lens, cfg: TrainConfig):
     """A lens with moving groups: the configurations its maps take as inputs
     (:class:`~mi_neurallens.transport.configurations.Configurations`: the zoom range, and from infinity to the
-    prescription's close focus, or to the recipe's ``close_focus_mm`` where it gives a number, mm from the sensor);
-    None for a lens of one configuration."""
+    prescription's close focus, or to the recipe's ``close_focus_mm`` where it gives a number, mm from the sensor;
+    its training rays drawn with the recipe's ``zoom_end_weight`` / ``focus_end_weight``, ``zoom_margin`` and
+    ``zoom_dense_at``); None for a lens of one configuration."""
     if getattr(lens, "moving", None) is None:
         return None
     from ..transport.configurations import Configurations
     close = cfg.close_focus_mm if isinstance(cfg.close_focus_mm, (int, float)) and cfg.close_focus_mm > 0 else None
-    return Configurations.of_lens(lens, close)
+    configs = Configurations.of_lens(lens, close)
+    weights = tuple(d if w is None else w for w, d in zip((cfg.zoom_end_weight, cfg.focus_end_weight),
+                                                         configs.end_weights))
+    for name, w in zip(("zoom_end_weight", "focus_end_weight"), weights):
+        if not (isinstance(w, (int, float)) and 0.0 <= w < 1.0):
+            raise NeuralLensError(f"training config: {name} = {w!r}: give a number in [0, 1) (0: uniform sampling)")
+    margin = configs.zoom_margin if cfg.zoom_margin is None else cfg.zoom_margin
+    if not (isinstance(margin, (int, float)) and 0.0 <= margin <= 0.25):
+        raise NeuralLensError(f"training config: zoom_margin = {margin!r}: give a fraction of the zoom range in "
+                              f"[0, 0.25] (0: the listed range only)")
+    if cfg.zoom_dense_at not in ("ends", "positions"):
+        raise NeuralLensError(f"training config: zoom_dense_at = {cfg.zoom_dense_at!r}: give \"ends\" or \"positions\"")
+    periods = max(lens.moving.positions - 1, 1) if cfg.zoom_dense_at == "positions" else 1
+    return dataclasses.replace(configs, end_weights=tuple(float(w) for w in weights), zoom_margin=float(margin),
+                               zoom_periods=periods)
 
 
 def _base_domain(base_domain, planned: Domain) -> Domain:
     """The domain a run on a base map trains on: the base's (its bounds, film reach and configurations, which its
     kept networks' inputs are normalised by), its rays drawn as ``planned`` (this run's own domain) draws them:
-    the configurations' end weights (:func:`~mi_neurallens.transport.configurations.end_warp`) normalise nothing, so
-    a finish takes the sampling of the version that runs it, and the model file records it."""
+    the configurations' sampling (:func:`~mi_neurallens.transport.configurations.end_warp`'s weights and periods,
+    the zoom margin) normalises nothing, so a finish takes the sampling of the version that runs it, and the model file records it."""
     dom = Domain.from_dict(base_domain)
     if dom.conditions is None or getattr(planned, "conditions", None) is None:
         return dom
     return dataclasses.replace(dom, conditions=dataclasses.replace(dom.conditions,
-                                                                   end_weights=planned.conditions.end_weights))
+                                                                   end_weights=planned.conditions.end_weights,
+                                                                   zoom_margin=planned.conditions.zoom_margin,
+                                                                   zoom_periods=planned.conditions.zoom_periods))
 
 
 def _moving_sensor_distances(configs) -> tuple:

@@ -18,7 +18,12 @@ ray**, so that one kernel traces training rays of many configurations at once.
   and its middle 1/(1 + a) times: a network's error grows toward the edges of what it learned, and the ends are
   what users ask for most — the listed zoom positions, infinity focus — and the close focus.  ``a`` is
   :data:`ZOOM_END_WEIGHT` for the zoom, ``b`` :data:`FOCUS_END_WEIGHT` for the focus (:attr:`Configurations.end_weights`,
-  kept in the model file so that its held-out rays are drawn as its training rays were).
+  kept in the model file so that its held-out rays are drawn as its training rays were).  With a
+  :attr:`Configurations.zoom_margin` ``m`` the zoom is drawn over ``[t0 − m (t1 − t0), t1 + m (t1 − t0)]`` instead
+  (:attr:`Configurations.sampled_zoom_range`): the gaps' end cubics continued, the focus band held at its end
+  values, so that the listed ends are learned as inner points; sensors still take only ``[t0, t1]``.  With
+  :attr:`Configurations.zoom_periods` ``p`` the zoom's warp is ``w_a`` with ``p`` periods (:func:`end_warp`): densest
+  at every listed position for ``p = n − 1`` (exactly, without a margin), where the gaps' cubics join.
 * **Frame.**  The configurations differ in their gaps, so their vertices move relative to each other: the map's
   planes are fixed relative to the **sensor**, which does not move.  The map works in the lens space of the
   configuration whose image plane lies farthest behind its first vertex, every other configuration shifted along
@@ -73,6 +78,9 @@ ZOOM_END_WEIGHT = 0.5
 #: the same for the focus band: its ends are infinity (the focus most renders use) and the close focus, where the
 #: 24-70's map erred 1.5-2x as much as in the band's middle (bench_zoom at 45 mm: 5.6" at infinity, 2.7" at 0.5 m)
 FOCUS_END_WEIGHT = 0.5
+#: the fraction of the zoom range that training draws beyond each of its ends (:attr:`Configurations.zoom_margin`;
+#: the module docstring, "Sampling"); 0: the listed range only
+ZOOM_MARGIN = 0.0
 #: the end weights of a model file that records none: the zoom's warp, a uniform focus (as models were trained
 #: before the focus warp)
 LEGACY_END_WEIGHTS = (ZOOM_END_WEIGHT, 0.0)
@@ -84,21 +92,23 @@ def knot_monomials(positions: int) -> tuple:
     return tuple((a, 0, k) for k in range(1, int(positions) - 1) for a in KNOT_POWERS)
 
 
-def end_warp(u, a: float):
-    """w(u) = u − a sin(2πu) / 2π, ``0 ≤ a < 1``: [0, 1] onto itself, monotone, ends fixed, sample density
-    1 / w'(u) = 1 / (1 − a cos 2πu).  numpy arrays or Dr.Jit floats."""
+def end_warp(u, a: float, periods: int = 1):
+    """w(u) = u − a sin(2πpu) / 2πp, ``0 ≤ a < 1``, ``p = periods``: [0, 1] onto itself, monotone, ends fixed,
+    sample density 1 / w'(u) = 1 / (1 − a cos 2πpu): densest at u = k/p (k = 0 … p).  numpy arrays or Dr.Jit
+    floats."""
+    c = 2 * math.pi * int(periods)
     if isinstance(u, np.ndarray) or np.isscalar(u):
-        return u - a / (2 * math.pi) * np.sin(2 * math.pi * np.asarray(u, np.float64))
+        return u - a / c * np.sin(c * np.asarray(u, np.float64))
     import drjit as dr
-    return u - (a / (2 * math.pi)) * dr.sin((2 * math.pi) * u)
+    return u - (a / c) * dr.sin(c * u)
 
 
-def end_unwarp(w, a: float) -> np.ndarray:
+def end_unwarp(w, a: float, periods: int = 1) -> np.ndarray:
     """:func:`end_warp`'s inverse (numpy, float64; Newton from w, converged to 1e-15: w' ≥ 1 − a > 0)."""
     w = np.asarray(w, np.float64)
     u = w.copy()
     for _ in range(50):
-        step = (end_warp(u, a) - w) / (1.0 - a * np.cos(2 * math.pi * u))
+        step = (end_warp(u, a, periods) - w) / (1.0 - a * np.cos(2 * math.pi * int(periods) * u))
         u -= step
         if np.all(np.abs(step) < 1e-15):
             break
@@ -141,6 +151,12 @@ class Configurations:
     monomials: tuple = ()
     #: the sampling warps' end weights (zoom, focus) (:func:`end_warp`; module docstring, "Sampling")
     end_weights: tuple = (ZOOM_END_WEIGHT, FOCUS_END_WEIGHT)
+    #: the fraction of the zoom range the training rays reach beyond each of its ends (module docstring,
+    #: "Sampling"); what sensors may ask for stays :attr:`zoom_range`
+    zoom_margin: float = ZOOM_MARGIN
+    #: the zoom warp's periods over the sampled range: 1 draws its ends densest, the number of listed intervals every
+    #: listed position (where the gaps' cubics join, and what users ask for); module docstring, "Sampling"
+    zoom_periods: int = 1
 
     def __eq__(self, other) -> bool:
         return isinstance(other, Configurations) and self.to_dict() == other.to_dict()
@@ -282,24 +298,33 @@ class Configurations:
         """The band's edges at ``t`` (float or array): linear between the tabulated zoom parameters."""
         return np.interp(t, self.band_t, self.band_lo), np.interp(t, self.band_t, self.band_hi)
 
+    @property
+    def sampled_zoom_range(self) -> tuple:
+        """(t0, t1) the training rays are drawn over: :attr:`zoom_range` widened by :attr:`zoom_margin` of its
+        width on each side."""
+        t0, t1 = self.zoom_range
+        m = float(self.zoom_margin) * (t1 - t0)
+        return t0 - m, t1 + m
+
     def u_to_tf(self, u: np.ndarray):
         """The extra unit-cube columns (N, :attr:`dims`) → (t, f) (N,) each, float64."""
         u = np.asarray(u, np.float64)
-        t0, t1 = self.zoom_range
+        t0, t1 = self.sampled_zoom_range
         j = 0
         t = np.full(len(u), t0)
         if "zoom" in self.names:
-            t = t0 + end_warp(u[:, j], self.end_weights[0]) * (t1 - t0)
+            t = t0 + end_warp(u[:, j], self.end_weights[0], self.zoom_periods) * (t1 - t0)
             j += 1
         lo, hi = self._band_np(t)
         f = lo + end_warp(u[:, j], self.end_weights[1]) * (hi - lo) if "focus" in self.names else np.zeros(len(u))
         return t, f
 
     def tf_to_u(self, t, f) -> np.ndarray:
-        t0, t1 = self.zoom_range
+        t0, t1 = self.sampled_zoom_range
         cols = []
         if "zoom" in self.names:
-            cols.append(end_unwarp((np.asarray(t, np.float64) - t0) / max(t1 - t0, 1e-30), self.end_weights[0]))
+            cols.append(end_unwarp((np.asarray(t, np.float64) - t0) / max(t1 - t0, 1e-30), self.end_weights[0],
+                                   self.zoom_periods))
         if "focus" in self.names:
             lo, hi = self._band_np(t)
             cols.append(end_unwarp((np.asarray(f, np.float64) - lo) / np.maximum(hi - lo, 1e-30),
@@ -310,11 +335,11 @@ class Configurations:
         """:meth:`u_to_tf` in Dr.Jit: the extra unit-cube components (a list of :attr:`dims` Dr.Jit floats) → the
         map's condition inputs in :attr:`names` order."""
         import drjit as dr
-        t0, t1 = self.zoom_range
+        t0, t1 = self.sampled_zoom_range
         out, j = [], 0
         t = u[0] * 0.0 + t0
         if "zoom" in self.names:
-            t = dr.fma(end_warp(u[j], self.end_weights[0]), t1 - t0, t0)
+            t = dr.fma(end_warp(u[j], self.end_weights[0], self.zoom_periods), t1 - t0, t0)
             out.append(t)
             j += 1
         if "focus" in self.names:
@@ -359,7 +384,8 @@ class Configurations:
                 "band": {"zoom": [float(v) for v in self.band_t], "focus_lo": [float(v) for v in self.band_lo],
                          "focus_hi": [float(v) for v in self.band_hi]},
                 "z_sensor_mm": float(self.z_sensor), "product_monomials": [list(m) for m in self.monomials],
-                "end_weights": [float(v) for v in self.end_weights]}
+                "end_weights": [float(v) for v in self.end_weights], "zoom_margin": float(self.zoom_margin),
+                "zoom_periods": int(self.zoom_periods)}
 
     @classmethod
     def from_dict(cls, d, lens=None) -> "Configurations":
@@ -369,7 +395,8 @@ class Configurations:
         return cls(tuple(d["names"]), tuple(float(v) for v in d["zoom_range"]), np.asarray(b["zoom"], np.float64),
                    np.asarray(b["focus_lo"], np.float64), np.asarray(b["focus_hi"], np.float64),
                    float(d["z_sensor_mm"]), lens, tuple(tuple(int(v) for v in m) for m in d.get("product_monomials", ())),
-                   tuple(float(v) for v in d.get("end_weights", LEGACY_END_WEIGHTS)))
+                   tuple(float(v) for v in d.get("end_weights", LEGACY_END_WEIGHTS)), float(d.get("zoom_margin", 0.0)),
+                   int(d.get("zoom_periods", 1)))
 
     # ------------------------------------------------------------------ the tracer's geometry, per ray
     def geometry(self, float_type, cond, lens=None):
