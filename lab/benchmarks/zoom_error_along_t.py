@@ -19,7 +19,11 @@ import numpy as np
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--lens", default="canon-ef-24-70mm-f2.8l")
+    ap.add_argument("--model", default=None, help="model file (default: the lens's bundled model)")
     ap.add_argument("--focus", type=float, default=None, help="focus parameter (default: the band's middle)")
+    ap.add_argument("--distance", type=float, default=None,
+                    help="instead of --focus: the focus distance (mm from the sensor; inf: infinity), solved paraxially "
+                         "for the focus parameter at each t")
     ap.add_argument("--t", default="0,2.001,0.1", help="start,stop,step of the zoom parameter")
     ap.add_argument("--rays", type=int, default=60000)
     a = ap.parse_args()
@@ -31,13 +35,19 @@ def main():
     from mi_neurallens.training.evaluate import map_outputs_np, regression_errors
     from mi_neurallens.transport.sampling import PathSampler
     lens = nl.Lens.load(a.lens)
-    tm = load_model(bundled_model_path(a.lens), lens).map("transmit", "backward")
+    tm = load_model(a.model or bundled_model_path(a.lens), lens).map("transmit", "backward")
     dom = tm.domain
     u = np.random.default_rng(5).random((a.rays, dom.dims))        # the same rays at every t
     ps = PathSampler(lens, tm.path_id, tm.direction, tm.z_in, tm.z_out, dom, precision="float64")
     arcsec = 180 * 3600 / np.pi
     for t in np.arange(*(float(v) for v in a.t.split(","))):
-        f = a.focus if a.focus is not None else float(np.mean(dom.conditions.band(t)))
+        if a.distance is not None:
+            from mi_neurallens.optics.moving import focus_parameter
+            f = focus_parameter(lens, t, a.distance)
+        else:
+            f = a.focus if a.focus is not None else float(np.mean(dom.conditions.band(t)))
+        lo, hi = dom.conditions.band(t)
+        outside = "" if lo <= f <= hi else f" (outside the learned band [{lo:.3f}, {hi:.3f}]: extrapolated)"
         x = dom.u_to_x(u.copy())
         x[:, 4:dom.dims] = dom.conditions.values(t, f)
         x[:, dom.dims:] = dom.conditions.products_np(x)
@@ -48,7 +58,7 @@ def main():
         e = (yp[both, 2:4] - y[both, 2:4]) * arcsec
         print(f"t={t:.4f} f={f:+.4f}: direction {r['direction_arcsec_median']:.2f}\" position "
               f"{r['position_um_median']:.2f} um; dx error mean {e[:, 0].mean():+.2f}\" median |dx| "
-              f"{np.median(np.abs(e[:, 0])):.2f}\", |dy| {np.median(np.abs(e[:, 1])):.2f}\"", flush=True)
+              f"{np.median(np.abs(e[:, 0])):.2f}\", |dy| {np.median(np.abs(e[:, 1])):.2f}\"{outside}", flush=True)
 
 
 if __name__ == "__main__":
