@@ -17,7 +17,9 @@ parameter at the real rays' best focus, as the sensors do):
 * **render accuracy**: MAPE of ``neural_lens`` and of ``realistic_lens`` at ``--spp`` against a ``realistic_lens``
   reference at ``--reference-spp``, and their ratio (1: the learned map adds nothing to the noise);
 * **render time**: each sensor at ``--spp``, best of ``--repeats``, the two sensors' renders taking turns (warm-up
-  excluded, ``dr.sync_thread()``).
+  excluded, ``dr.sync_thread()``);
+* **camera time**: the same sensors' camera rays alone (``sample_ray`` on the render's film samples, no scene), best
+  of ``--repeats``, taking turns: the part of the render the lens is (a render also traces its kernel in Python).
 
 Run it on an idle machine; it writes the JSON and prints a table.
 """
@@ -92,6 +94,34 @@ def timed(mi, scenes: dict, spp, repeats) -> dict:
     return best
 
 
+def camera_timed(mi, scenes: dict, spp, repeats) -> dict:
+    """Best time (s) of each scene's sensor generating the camera rays of one render at ``spp`` (its film's pixels
+    times ``spp``, the same uniform samples for every sensor) and nothing else, over ``repeats``, taking turns."""
+    import drjit as dr
+
+    def rays(sensor, seed):
+        w, h = (int(v) for v in sensor.film().crop_size())
+        n = w * h * spp
+        sampler = mi.load_dict({"type": "independent"})
+        sampler.seed(seed, n)
+        idx = dr.arange(mi.UInt32, n) // spp
+        pos = mi.Vector2f(mi.Float(idx % w), mi.Float(idx // w))
+        film = (pos + sampler.next_2d()) / mi.Vector2f(w, h)
+        ray, weight = sensor.sample_ray(0.0, sampler.next_1d(), film, sampler.next_2d())
+        dr.eval(ray, weight)
+        dr.sync_thread()
+
+    for scene in scenes.values():
+        rays(scene.sensors()[0], 99)                     # warm-up: compile
+    best = {k: math.inf for k in scenes}
+    for k in range(repeats):
+        for name, scene in scenes.items():
+            t0 = time.perf_counter()
+            rays(scene.sensors()[0], 100 + k)
+            best[name] = min(best[name], time.perf_counter() - t0)
+    return best
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--lens", default="canon-ef-24-70mm-f2.8l")
@@ -136,17 +166,21 @@ def main(argv=None):
                 spp["render"] = sc["neural_lens"].sensors()[0].sampler().sample_count()
                 m = {k: mape(render(mi, s, spp["render"], seed=1), ref) for k, s in sc.items()}
                 t = timed(mi, sc, spp["render"], a.repeats)
+                c = camera_timed(mi, sc, spp["render"], a.repeats)
                 row["render"] = {"mape_realistic": m["realistic_lens"], "mape_neural": m["neural_lens"],
                                  "mape_ratio": m["neural_lens"] / m["realistic_lens"],
                                  "seconds_realistic": t["realistic_lens"], "seconds_neural": t["neural_lens"],
-                                 "time_ratio": t["neural_lens"] / t["realistic_lens"]}
+                                 "time_ratio": t["neural_lens"] / t["realistic_lens"],
+                                 "camera_seconds_realistic": c["realistic_lens"], "camera_seconds_neural": c["neural_lens"],
+                                 "camera_time_ratio": c["neural_lens"] / c["realistic_lens"]}
             rows.append(row)
             mm, rr = row["map"], row.get("render", {})
             at = "" if f is None else f"{f:6.2f} mm, "
             print(f"{at}{d:g} m: pos {mm['position_um_median']:.3g}/{mm['position_um_p99']:.3g} µm, "
                   f"dir {mm['direction_arcsec_median']:.3g}/{mm['direction_arcsec_p99']:.3g}\", misclass "
                   f"{100 * mm['misclassification']:.3g}%"
-                  + (f"; MAPE ratio {rr['mape_ratio']:.3f}, time ratio {rr['time_ratio']:.3f}" if rr else ""),
+                  + (f"; MAPE ratio {rr['mape_ratio']:.3f}, time ratio {rr['time_ratio']:.3f} (camera rays "
+                     f"{rr['camera_time_ratio']:.3f})" if rr else ""),
                   flush=True)
     out = {"lens": a.lens, "variant": variant, "machine": f"{platform.processor() or platform.machine()}, "
            f"{os.cpu_count()} cores", "resolution": list(res), "spp": spp.get("render", a.spp),

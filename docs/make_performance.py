@@ -314,14 +314,16 @@ def zoom_table(r: Results, name: str = "bench_zoom.json") -> str:
         rows.append(([f"{num(x.get('focal_length_mm'), 4)} mm"] if zoom else []) + [
             focus, f"{num(m.get('position_um_median'))} / {num(m.get('position_um_p99'))}",
             f"{num(m.get('direction_arcsec_median'))} / {num(m.get('direction_arcsec_p99'))}",
-            pct(m.get("misclassification")), ratio(rr.get("mape_ratio")), ratio(rr.get("time_ratio"))])
+            pct(m.get("misclassification")), ratio(rr.get("mape_ratio")), ratio(rr.get("time_ratio")),
+            ratio(rr.get("camera_time_ratio"))])
     res = "x".join(str(v) for v in d.get("resolution", []))
     note = (f"*`{d.get('lens')}`; render columns: the still life at {res}, {d.get('spp')} spp, MAPE against "
             f"realistic_lens at {d.get('reference_spp')} spp (neural ÷ realistic: 1 means the map adds nothing to "
-            "the noise), render time neural ÷ realistic at equal spp.*\n")
+            "the noise), render time neural ÷ realistic at equal spp, and the same for the camera rays alone (the "
+            "sensors' `sample_ray` on the render's samples, no scene).*\n")
     return table((["focal length"] if zoom else []) + [
         "focus", "exit position µm, median / p99", "direction ″, median / p99", "misclassified", "MAPE ratio",
-        "time ratio"], rows) + "\n" + note + r.source(name)
+        "time ratio", "camera rays time ratio"], rows) + "\n" + note + r.source(name)
 
 
 def maps_table(r: Results) -> str:
