@@ -78,28 +78,35 @@ def render(mi, scene, spp, seed=0):
     return np.array(img)
 
 
-def timed(mi, scenes: dict, spp, repeats) -> dict:
-    """Best render time (s) of each scene of ``scenes`` over ``repeats``, the scenes taking turns (one render each
-    per round) so that a slow spell of a shared machine slows both sensors' renders, not one sensor's block."""
+def best_in_turns(scenes: dict, repeats, run) -> dict:
+    """Best time (s) of ``run(scene, seed)`` for each scene of ``scenes`` over ``repeats`` (after one warm-up call
+    each, which compiles), the scenes taking turns (one call each per round) so that a slow spell of a shared machine
+    slows both sensors' runs, not one sensor's block.  ``run`` ends with ``dr.sync_thread()``."""
     import drjit as dr
     for scene in scenes.values():
-        render(mi, scene, spp, seed=99)                    # warm-up: compile
+        run(scene, 99)
     best = {k: math.inf for k in scenes}
     for k in range(repeats):
         for name, scene in scenes.items():
             dr.sync_thread()
             t0 = time.perf_counter()
-            render(mi, scene, spp, seed=100 + k)
+            run(scene, 100 + k)
             best[name] = min(best[name], time.perf_counter() - t0)
     return best
 
 
+def timed(mi, scenes: dict, spp, repeats) -> dict:
+    """Best render time (s) of each scene of ``scenes`` at ``spp`` (:func:`best_in_turns`)."""
+    return best_in_turns(scenes, repeats, lambda scene, seed: render(mi, scene, spp, seed=seed))
+
+
 def camera_timed(mi, scenes: dict, spp, repeats) -> dict:
     """Best time (s) of each scene's sensor generating the camera rays of one render at ``spp`` (its film's pixels
-    times ``spp``, the same uniform samples for every sensor) and nothing else, over ``repeats``, taking turns."""
+    times ``spp``, the same uniform samples for every sensor) and nothing else (:func:`best_in_turns`)."""
     import drjit as dr
 
-    def rays(sensor, seed):
+    def rays(scene, seed):
+        sensor = scene.sensors()[0]
         w, h = (int(v) for v in sensor.film().crop_size())
         n = w * h * spp
         sampler = mi.load_dict({"type": "independent"})
@@ -111,15 +118,7 @@ def camera_timed(mi, scenes: dict, spp, repeats) -> dict:
         dr.eval(ray, weight)
         dr.sync_thread()
 
-    for scene in scenes.values():
-        rays(scene.sensors()[0], 99)                     # warm-up: compile
-    best = {k: math.inf for k in scenes}
-    for k in range(repeats):
-        for name, scene in scenes.items():
-            t0 = time.perf_counter()
-            rays(scene.sensors()[0], 100 + k)
-            best[name] = min(best[name], time.perf_counter() - t0)
-    return best
+    return best_in_turns(scenes, repeats, rays)
 
 
 def main(argv=None):
