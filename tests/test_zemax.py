@@ -748,7 +748,7 @@ def test_codev_private_glass(tmp_path):
     (("S -200.0 &\n   90.0", "S -200.0 9x0"), "S", 3),
     (("  ASP; K -1.5", "  ASP; K -1.5; CIR S2 3.0"), "CIR", 3),
     (("SI 0.0 0.5", "SI -100.0 0.5"), "SI", 4),
-    (("EPD 10.0; DIM M", "EPD 10.0; DIM M; ZOO 3"), "ZOO", None),      # zoom positions: not read (clearly)
+    (("EPD 10.0; DIM M", "EPD 10.0; DIM M; ZOO RDY S2 50 60"), "ZOO", None),  # a zoomed radius (only gaps move)
 ])
 def test_codev_refusals(tmp_path, change, keyword, surface):
     text = SEQ.replace(*change)

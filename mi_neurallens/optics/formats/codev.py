@@ -17,6 +17,8 @@ surfaces ``SO``, ``S`` and ``SI`` lines ``<radius or curvature> <thickness> [gla
 glass    ``NAME_CATALOG`` (``NBK7_SCHOTT``, ``SLAL8_OHARA``), a name alone (searched in every
          catalogue), a private glass (``'E48'``), or a fictitious glass code ``nnnnnn.vvvv``
          (nd = 1.nnnnnn, Vd = vv.vv; ``517000.520000`` is nd 1.517, Vd 52).
+zoom     ``ZOO`` rows and ``Zj`` qualifiers of gaps, the aperture and the fields: the positions become moving
+         groups (:mod:`.codev_zoom`).
 
 Refused, naming the file, the surface and the command: ``REFL`` (mirrors), decenters and tilts
 (``XDE``/``YDE``/``ZDE``/``ADE``/``BDE``/``CDE``, ``DAR``, ``BEN``, ``REV``, ``RET``), other surface
@@ -31,6 +33,7 @@ vignetting factors ``VUY``/``VLY``), + 2 % — CODE V computes such "default ape
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from pathlib import Path
@@ -43,6 +46,7 @@ from ..glass import AIR, CATALOGS, Medium, catalog_glass, model_glass, table_gla
 from ..prescription import Lens
 from ._common import Ctx
 from ._sequential import SeqSurface, build_lens, max_semi_diameter, substitute_glass
+from .codev_zoom import ZOOMABLE, ZoomData
 from .zemax import _aperture as _zmx_aperture, _glass_subst
 
 UNITS = {"M": 1.0, "MM": 1.0, "C": 10.0, "CM": 10.0, "I": 25.4, "IN": 25.4}
@@ -61,6 +65,7 @@ _REFUSE = {"XDE": "a decenter", "YDE": "a decenter", "ZDE": "a decenter", "ADE":
            "CUX": "an anamorphic (X) curvature", "RDX": "an anamorphic (X) radius", "GRN": "a gradient index",
            "ZRN": "a Zernike surface", "USR": "a user-defined surface", "IMP": "a surface import"}
 _NUM = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eEdD][+-]?\d+)?$")
+_ZPOS = re.compile(r"(?i)Z\d+")
 
 
 def looks_like_codev(text: str) -> bool:
@@ -188,6 +193,7 @@ def read_codev(text: str, *, file: str | None = None, name: str | None = None, g
     notes: list[str] = []
     ignored: dict[str, int] = {}
     cur = None
+    zoom = ZoomData(ctx, _float)
 
     for ln, toks, quoted in commands(ctx, text):
         if in_prv and quoted:
@@ -206,6 +212,12 @@ def read_codev(text: str, *, file: str | None = None, name: str | None = None, g
         k = _key(toks[0])
         args = toks[1:]
         where_s = None if cur is None else cur.number
+        if k == "ZOO":
+            zoom.command(toks, ln)
+            continue
+        if k in ZOOMABLE and any(_ZPOS.fullmatch(a) for a in args):
+            zoom.qualified(toks, ln)
+            continue
         if re.fullmatch(r"(?i)S\d+", toks[0]) or (args and re.fullmatch(r"(?i)S(\d+|O|I|A)", args[0])):
             raise ctx.error(f"{' '.join(toks)} (line {ln}): commands addressed to a numbered surface are not "
                             "supported; the reader follows the surfaces in file order", surface=where_s, field=k)
@@ -268,11 +280,6 @@ def read_codev(text: str, *, file: str | None = None, name: str | None = None, g
             pwl = [_float(ctx, t, surface=None, command="PWL", line=ln) for t in args]
         elif k == "END":
             in_prv = False
-        elif k == "ZOO":
-            raise ctx.error(f"zoom positions ({' '.join(toks)}, line {ln}) are not read from CODE V files yet: export the "
-                            "lens as a Zemax .zmx (its configurations are read as moving groups) or write its "
-                            "variable gaps into the project JSON's 'moving' (docs/lens-format.md, 'Moving groups')",
-                            field="ZOO")
         elif k in _REFUSE:
             raise ctx.error(f"{_REFUSE[k]} ({' '.join(toks)}, line {ln}) is not supported: the lens must be a "
                             "rotationally symmetric refractive system", surface=where_s, field=k)
@@ -375,33 +382,75 @@ def read_codev(text: str, *, file: str | None = None, name: str | None = None, g
     if unused:
         raise ctx.error(f"glasses= names {', '.join(map(repr, unused))}, which no surface of this file uses",
                         field="glasses")
-    defocus = img.thickness * scale
-    seq[-1].thickness += defocus
-    if seq[-1].thickness < 0:
-        raise ctx.error(f"the image plane lies {-seq[-1].thickness:g} mm in front of the last surface (its thickness "
-                        f"plus the SI thickness {defocus:g})", surface=img.number, field="SI")
+    n_pos = zoom.positions(len(surfs))
 
-    # -- the system aperture
-    if stop_radius is not None:
-        ap, _ = _zmx_aperture(ctx, [], 1.0, math.inf, stop_radius)
-    elif aperture is None:
-        ap = ("float", None)
-        notes.append("no EPD or FNO in the file: the stop's CIR is the stop radius")
-    else:
-        kw, ln, args = aperture
-        v = _float(ctx, args[0] if args else "", surface=None, command=kw, line=ln)
+    def image_gap(seq, defocus):
+        seq[-1].thickness += defocus
+        if seq[-1].thickness < 0:
+            raise ctx.error(f"the image plane lies {-seq[-1].thickness:g} mm in front of the last surface (its "
+                            f"thickness plus the SI thickness {defocus:g})", surface=img.number, field="SI")
+
+    def system_aperture(kw, v, ln):
+        if stop_radius is not None:
+            return _zmx_aperture(ctx, [], 1.0, math.inf, stop_radius)[0]
+        if kw is None:
+            return ("float", None)
         if not v > 0:
             raise ctx.error(f"{kw} must be > 0, got {v:g} (line {ln})", field=kw)
-        ap = ("epd", v * scale) if kw == "EPD" else ("fno", v)
+        return ("epd", v * scale) if kw == "EPD" else ("fno", v)
+
+    def distance(t):
+        return math.inf if t * scale >= 1e10 else t * scale
+
+    defocus = img.thickness * scale
+    image_gap(seq, defocus)
+
+    # -- the system aperture
+    kw = v = ln = None
+    if aperture is not None:
+        kw, ln, args = aperture
+        v = _float(ctx, args[0] if args else "", surface=None, command=kw, line=ln)
+    elif stop_radius is None:
+        notes.append("no EPD or FNO in the file: the stop's CIR is the stop radius")
+    ap = system_aperture(kw, v, ln)
 
     if not any(s.stop for s in seq):
         raise ctx.error("no aperture stop: no surface carries STO (exactly one must)", field="STO")
 
+    # -- zoom positions: each position's gaps, aperture and fields; the surfaces without CIR get the largest of
+    # their positions' default semi-diameters (one clear aperture for the whole zoom)
+    positions = []
+    if zoom.rows:
+        zoomed_ap = [k for k in ("EPD", "FNO") if (k, None) in zoom.rows]
+        if len(zoomed_ap) > 1:
+            raise ctx.error("both EPD and FNO are zoomed: one system aperture per file", field="ZOO")
+        for p in range(n_pos):
+            c_seq = [dataclasses.replace(b, thickness=zoom.value(("THI", f.number), p, f.thickness) * scale,
+                                         lines=dict(b.lines)) for f, b in zip(surfs, seq)]
+            image_gap(c_seq, zoom.value(("THI", "SI"), p, img.thickness) * scale)
+            c_ap = ap
+            if zoomed_ap:
+                k_ap = zoomed_ap[0]
+                c_ap = system_aperture(k_ap, zoom.value((k_ap, None), p, None), zoom.lines[(k_ap, None)])
+            c_od = distance(zoom.value(("THI", 0), p, obj.thickness))
+            c_est = _default_semi_diameters(ctx, c_seq, object_medium, c_ap, primary, zoom.fields_at(fields, p),
+                                            scale, c_od)
+            positions.append((c_seq, c_ap, c_od, c_est))
+        widest = {}
+        for *_, c_est in positions:
+            for num, sd in c_est.items():
+                widest[num] = max(sd, widest.get(num, 0.0))
+        for c_seq in [seq] + [c[0] for c in positions]:
+            for sf in c_seq:
+                if str(sf.number) in widest:
+                    sf.semi_diameter = widest[str(sf.number)]
+
     # -- default semi-diameters for surfaces without CIR
-    object_distance = obj.thickness * scale
-    if object_distance >= 1e10:
-        object_distance = math.inf
+    object_distance = distance(obj.thickness)
     estimated = _default_semi_diameters(ctx, seq, object_medium, ap, primary, fields, scale, object_distance)
+    if positions:
+        estimated = widest
+    ignored.update(zoom.ignored)
 
     md = {"unit": dim or "M", "mm_per_unit": scale, "radius_mode": rdm, "primary_wavelength_nm": primary,
           "wavelengths_nm": wl or [primary], "object_distance_mm": None if math.isinf(object_distance)
@@ -415,6 +464,16 @@ def read_codev(text: str, *, file: str | None = None, name: str | None = None, g
                 "aspheric": "ASP", "housing_radius": "CIR EDG", "epd": "EPD", "fno": "FNO", "float": "CIR"}
     lens = build_lens(ctx, seq, keywords=keywords, object_medium=object_medium, aperture=ap, wavelength_nm=primary,
                       name=lens_name, metadata=md, stop_keyword="STO")
+    if positions:
+        from ._sequential import moving_from_configurations
+        mds = [{} for _ in positions]
+        lenses = [build_lens(ctx, c_seq, keywords=keywords, object_medium=object_medium, aperture=c_ap,
+                             wavelength_nm=primary, name=lens_name, metadata=m, stop_keyword="STO")
+                  for (c_seq, c_ap, *_), m in zip(positions, mds)]
+        # each position's object distance in front of our first vertex: the file's, plus dummy surfaces dropped
+        z0 = [float(m.get("first_vertex_z_in_file", 0.0) or 0.0) for m in mds]
+        lens = moving_from_configurations(ctx, lenses, [c[2] + z for c, z in zip(positions, z0)], field="ZOO")
+        md["zoom_positions"] = n_pos
     source = {"format": "CODE V .seq"}
     if file:
         source["file"] = Path(file).name
