@@ -306,6 +306,17 @@ def substitute_glass(ctx: Ctx, name: str, subst: dict, used: set, table: dict, *
     return m
 
 
+def moving_from_positions(ctx: Ctx, positions: list, *, field: str, **build_kw) -> Lens:
+    """A design file's configurations or zoom positions, ``[(surfaces, aperture, object distance (mm) in front of the
+    file's first surface), ...]``, each built like a file of its own (:func:`build_lens` with ``build_kw``), as one
+    lens with moving groups (:func:`moving_from_configurations`)."""
+    mds = [{} for _ in positions]
+    lenses = [build_lens(ctx, seq, aperture=ap, metadata=m, **build_kw) for (seq, ap, _), m in zip(positions, mds)]
+    # each object distance in front of our first vertex: the file's, plus dummy surfaces dropped in front
+    z0 = [float(m.get("first_vertex_z_in_file", 0.0) or 0.0) for m in mds]
+    return moving_from_configurations(ctx, lenses, [od + z for (_, _, od), z in zip(positions, z0)], field=field)
+
+
 def moving_from_configurations(ctx: Ctx, lenses: list, object_distances: list, *, field: str) -> Lens:
     """A design file's configurations as one lens with moving groups (:mod:`mi_neurallens.optics.moving`).
 

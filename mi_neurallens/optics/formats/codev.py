@@ -465,14 +465,10 @@ def read_codev(text: str, *, file: str | None = None, name: str | None = None, g
     lens = build_lens(ctx, seq, keywords=keywords, object_medium=object_medium, aperture=ap, wavelength_nm=primary,
                       name=lens_name, metadata=md, stop_keyword="STO")
     if positions:
-        from ._sequential import moving_from_configurations
-        mds = [{} for _ in positions]
-        lenses = [build_lens(ctx, c_seq, keywords=keywords, object_medium=object_medium, aperture=c_ap,
-                             wavelength_nm=primary, name=lens_name, metadata=m, stop_keyword="STO")
-                  for (c_seq, c_ap, *_), m in zip(positions, mds)]
-        # each position's object distance in front of our first vertex: the file's, plus dummy surfaces dropped
-        z0 = [float(m.get("first_vertex_z_in_file", 0.0) or 0.0) for m in mds]
-        lens = moving_from_configurations(ctx, lenses, [c[2] + z for c, z in zip(positions, z0)], field="ZOO")
+        from ._sequential import moving_from_positions
+        lens = moving_from_positions(ctx, [c[:3] for c in positions], field="ZOO", keywords=keywords,
+                                     object_medium=object_medium, wavelength_nm=primary, name=lens_name,
+                                     stop_keyword="STO")
         md["zoom_positions"] = n_pos
     source = {"format": "CODE V .seq"}
     if file:

@@ -366,14 +366,9 @@ def read_zemax(text: str, *, file: str | None = None, name: str | None = None, g
     lens = build_lens(ctx, seq, keywords=_KEYWORDS, object_medium=object_medium, aperture=aperture,
                       wavelength_nm=primary, name=lens_name, metadata=md, stop_keyword="STOP")
     if configs is not None:
-        from ._sequential import moving_from_configurations
-        mds = [{} for _ in configs]
-        lenses = [build_lens(ctx, c_seq, keywords=_KEYWORDS, object_medium=object_medium, aperture=c_ap,
-                             wavelength_nm=primary, name=lens_name, metadata=m, stop_keyword="STOP")
-                  for (c_seq, c_ap, _), m in zip(configs, mds)]
-        # the object distance in front of our first vertex: the file's, plus dummy surfaces dropped in front
-        z0 = [float(m.get("first_vertex_z_in_file", 0.0) or 0.0) for m in mds]
-        lens = moving_from_configurations(ctx, lenses, [c[2] + z for c, z in zip(configs, z0)], field="MNUM")
+        from ._sequential import moving_from_positions
+        lens = moving_from_positions(ctx, configs, field="MNUM", keywords=_KEYWORDS, object_medium=object_medium,
+                                     wavelength_nm=primary, name=lens_name, stop_keyword="STOP")
         md["configurations"] = n_conf
     source = {"format": "Zemax OpticStudio .zmx"}
     if file:
