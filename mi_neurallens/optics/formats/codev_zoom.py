@@ -153,8 +153,8 @@ class ZoomData:
 
 
 def _item(tok: str) -> str:
-    t = tok.upper()
-    return t if t in ("WL",) else t[:3]
+    """A command's name as the reader keys it: upper case, abbreviated to three letters (``THICKNESS`` = ``THI``)."""
+    return tok.upper()[:3]
 
 
 def _surface_number(key):
