@@ -10,7 +10,9 @@ the film.  This module measures that directly:
   (``pilot_with = "exact"``, same seed: common random numbers), so Monte Carlo noise cancels and what is
   left is the map's own error;
 * the paired MAPE: the mean relative luminance error over the pixels where the exact ghost is brighter
-  than 1 % of its peak (:func:`mi_neurallens.metrics.flare_error_map`);
+  than 1 % of its peak; a ghost focused to a spot of fewer than 16 such pixels compared after both images are
+  blurred by a Gaussian of 1 pixel, so that its error is its flux and placement at the pixel's scale, not how a
+  sub-µm shift splits it between two pixels (:func:`mi_neurallens.metrics.paired_flare_error_map`);
 * converged where it decides (:func:`refine_paired`): the noise that pairing leaves (a learned ray landing a
   few µm from its traced twin changes pixel near a pixel border) only adds to the error, so a ghost within
   the gate (``auto_max_flare_error``) at 2^24 samples is within it converged; one above it is rendered again
@@ -348,14 +350,15 @@ def paired_renders(scene, ghosts, samples, seed=1, sensor=0, boundary_band=0.0, 
 def paired_flare_error(scene, pid, samples=1 << SAMPLES_LOG2, seed=1, boundary_band=0.0, model=None) -> dict:
     """The learned map of ghost ``pid`` against the tracer on the same samples: ``paired_mape`` (None when
     the exact ghost leaves no pixel above the mask threshold: nothing to compare), ``pixels`` in the
-    mask, ``flux_ratio`` (learned / exact luminance)."""
+    mask, ``compact`` (a spot of a few pixels, compared blurred: :func:`~mi_neurallens.metrics.
+    paired_flare_error_map`), ``flux_ratio`` (learned / exact luminance)."""
     import numpy as np
-    from ..metrics import LUMINANCE, flare_error_map
+    from ..metrics import LUMINANCE, paired_flare_error_map
     ex, ne = paired_renders(scene, [pid], samples, seed, boundary_band=boundary_band, model=model)
-    rel, mask = flare_error_map(ne, ex)
+    rel, mask, compact = paired_flare_error_map(ne, ex)
     ye, yn = float(np.sum(ex[..., :3] @ LUMINANCE)), float(np.sum(ne[..., :3] @ LUMINANCE))
     return {"paired_mape": float(rel[mask].mean()) if mask.any() else None, "pixels": int(mask.sum()),
-            "flux_ratio": yn / ye if ye > 0 else None}
+            "compact": compact, "flux_ratio": yn / ye if ye > 0 else None}
 
 
 def verify_model(model_path, lens=None, *, ghosts=None, lights=None, samples_log2=SAMPLES_LOG2,
@@ -368,6 +371,7 @@ def verify_model(model_path, lens=None, *, ghosts=None, lights=None, samples_log
     up to 2^``max_log2`` (:func:`refine_paired`; ``max_log2 = samples_log2``: no refinement).  ``lens``: a
     bundled name or a lens file (default: the model's lens).  ``boundary_band``: the learned renders'
     (:class:`~mi_neurallens.flare.options.FlareOptions`; 0, the default, is what ``auto`` gates on)."""
+    from ..metrics import FLARE_COMPACT_PIXELS, FLARE_COMPACT_SIGMA_PX
     from .options import FlareOptions
     if refine_above is None:
         refine_above = FlareOptions.auto_max_flare_error
@@ -407,6 +411,7 @@ def verify_model(model_path, lens=None, *, ghosts=None, lights=None, samples_log
         out[pid] = {"paired_mape": max(vals) if vals else None,
                     "per_light": [r["paired_mape"] for r in rs],
                     "flux_ratio": [r["flux_ratio"] for r in rs],
+                    "pixels": [r["pixels"] for r in rs], "compact": [bool(r.get("compact")) for r in rs],
                     "lights_m": [[float(x), float(y), 5.0] for _, (x, y) in runs],
                     **({"configurations": [c for c, _ in runs]} if configs != [{}] else {}),
                     "log2_samples": max(r["log2_samples"] for r in rs),
@@ -414,7 +419,9 @@ def verify_model(model_path, lens=None, *, ghosts=None, lights=None, samples_log
                     "converged": [r["converged"] for r in rs],
                     "refined_above": float(refine_above), "film": [int(film[0]), int(film[1])],
                     "boundary_band": float(boundary_band),
-                    "protocol": "paired (same samples, pilot_with=exact), mask > 1 % of the exact ghost's peak; "
+                    "protocol": "paired (same samples, pilot_with=exact), mask > 1 % of the exact ghost's peak "
+                                f"(fewer than {FLARE_COMPACT_PIXELS} pixels: both blurred by a Gaussian of "
+                                f"{FLARE_COMPACT_SIGMA_PX:g} px first); "
                                 f"refined with 4x the samples above {refine_above:g} until it falls by less than "
                                 f"{CONVERGED_DROP:g}"}
     return out
