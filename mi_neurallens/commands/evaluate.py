@@ -208,7 +208,14 @@ def _verify_flare(args, path, model, out):
             c for c, v in zip(rec["converged"], rec["per_light"]) if v is not None)
         print(f"{key:>16}: flare, paired MAPE {'no pixel' if err is None else f'{err:.4f}'} "
               f"(max over {len(rec['lights_m'])} light positions, {samples} samples"
-              f"{', still falling' if falling else ''})", flush=True)
+              f"{', still falling' if falling else ''}{_spots(rec)})", flush=True)
+
+
+def _spots(rec) -> str:
+    """How many of a flare record's light positions saw the ghost as a spot, compared blurred
+    (:func:`~mi_neurallens.metrics.paired_flare_error_map`)."""
+    n = sum(1 for c in rec.get("compact", ()) if c)
+    return f"; a spot at {n}, compared blurred" if n else ""
 
 
 def _record_flare(path, model):
