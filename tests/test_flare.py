@@ -428,6 +428,9 @@ def test_boundary_band_traces_the_learned_edges_exactly():
                      boundary_band=1.0)
     st = [s for s in r.stats if s.path_id == pid][0]
     assert 0.01 < st.traced / st.samples < 0.1 and st.as_dict()["traced"] == st.traced
+    from mi_neurallens.flare.verify import paired_flare_error      # the verified record keeps the same share
+    assert paired_flare_error(scene, pid, 1 << 20, boundary_band=1.0)["traced_share"] == pytest.approx(
+        st.traced / st.samples, rel=1e-6)
     with pytest.raises(NeuralLensError, match="boundary_band"):
         FlareOptions(boundary_band=-1.0).validate()
 
@@ -507,6 +510,11 @@ def test_auto_renders_a_ghost_with_the_band_its_record_needs():
     assert choice(records(rec(0.05), rec(0.02, 1.0))) == (None, "verified flare error 0.02 > 0.01 (boundary_band 1)")
     assert choice(records(rec(0.05), rec(0.02, 1.0)), auto_max_flare_error=0.03) == (1.0, None)
     assert choice(records(rec(0.05), rec(None, 1.0)))[1].startswith("verified flare error: none")
+    # a band that leaves most of the ghost to the tracer lets nothing in; a narrower one that passes still does
+    mostly_traced = {**rec(0.001, 4.0), "traced_share": 0.99}
+    assert choice(records(rec(0.05), rec(0.02, 2.0), mostly_traced)) == (
+        None, "within the flare gate only with 99% of its samples traced (boundary_band 4), above 50%")
+    assert choice(records(rec(0.05), {**rec(0.008, 2.0), "traced_share": 0.14}, mostly_traced)) == (2.0, None)
     # one record per band: a newer record of a band replaces the older; an older file's banded "flare" moves over
     met = {"flare": rec(0.02, 1.0)}
     store_flare_record(met, rec(0.03))
@@ -580,6 +588,7 @@ def test_flare_verification_sees_a_shifted_map(tmp_path):
                        film=film, log=None)
     assert set(rec) == {pid}
     r = rec[pid]
+    assert r["traced_share"] == 0.0 and r["per_light_traced_share"] == [0.0, 0.0]      # band 0 traces nothing
     assert len(r["per_light"]) == 2 and r["paired_mape"] == max(v for v in r["per_light"] if v is not None)
     assert r["log2_samples"] == 14 and r["film"] == [48, 32] and r["boundary_band"] == 0.0
     # above a gate of 0 it is refined with 4x the samples (here up to 2^16) until it stops falling

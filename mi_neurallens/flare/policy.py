@@ -86,8 +86,11 @@ class FlarePolicy:
         narrowest wider band whose record passes is the one this ghost is rendered with (its edges traced,
         what the record measured), so a ghost whose learned edges miss the gate is still learned where the
         tracer at its edges brings it within.  No record: this render's band.  Where the map records what it
-        costs against tracing its ghost on this backend, that must be at most ``auto_max_cost``."""
-        from .verify import flare_records, learned_cost_ratio, passing_band, record_band, variant_backend
+        costs against tracing its ghost on this backend, that must be at most ``auto_max_cost``.  A record whose band
+        left more than :data:`~mi_neurallens.flare.verify.MAX_TRACED_SHARE` of the ghost's samples to the tracer
+        lets nothing in (the map would be mostly the tracer, and cost more)."""
+        from .verify import (MAX_TRACED_SHARE, flare_records, learned_cost_ratio, passing_band, record_band,
+                             traced_share, variant_backend)
         err_um = (tm.metrics.get("regressor") or {}).get("position_um_median")
         lim_um = self.opts.auto_max_error_px * 1000.0 * self.sensor_width_mm / self.film_width_px
         if err_um is None:
@@ -111,6 +114,9 @@ class FlarePolicy:
         at = f" (boundary_band {record_band(r):g})" if record_band(r) > 0 else ""
         if r.get("paired_mape") is None:
             return None, f"verified flare error: none (the ghost reached no pixel){at}"
+        if r["paired_mape"] <= lim:
+            return None, (f"within the flare gate only with {traced_share(r):.0%} of its samples traced{at}, "
+                          f"above {MAX_TRACED_SHARE:.0%}")
         return None, f"verified flare error {r['paired_mape']:.3g} > {lim:g}{at}"
 
     def learned_mlp(self, ids=None) -> str:

@@ -57,6 +57,11 @@ CONVERGED_DROP = 0.1
 #: unsure across much of it: the EF 24-70's ghost 48 at 68.1 mm, 0.0155, 0.0103 and 0.0073 at bands 2, 3 and 4,
 #: tracing 14, 20 and 30 % of its samples)
 BANDS = (0.0, 1.0, 2.0, 4.0)
+#: a record whose band left more than this share of the ghost's samples to the tracer (``traced_share``, at any of its
+#: light positions) lets no learned map in: at that band the map is mostly the tracer, and what it would save is
+#: less than its networks cost (canon-rf-24mm-f1.4l-vcm's ghost 1280, whose classifier is sure of little beyond
+#: ±3 logits: 2 %, 72 % and 99 % traced at bands 2, 3 and 4)
+MAX_TRACED_SHARE = 0.5
 
 
 def record_band(rec) -> float:
@@ -77,13 +82,21 @@ def flare_records(metrics) -> list:
 def passing_band(records, band: float, gate: float):
     """The ``boundary_band`` mode ``auto`` renders a ghost with, from its verified ``records`` (:func:`flare_records`)
     and the render's own ``band``: ``band`` where a record measured within it passes ``gate`` (its paired MAPE at
-    most the gate), else the narrowest wider band whose record passes, else None (no record passes: traced)."""
+    most the gate), else the narrowest wider band whose record passes, else None (no record passes: traced).  A
+    record whose band traced more than :data:`MAX_TRACED_SHARE` of the ghost's samples does not pass."""
     def passes(r):
-        return r.get("paired_mape") is not None and r["paired_mape"] <= gate
+        return (r.get("paired_mape") is not None and r["paired_mape"] <= gate
+                and not traced_share(r) > MAX_TRACED_SHARE)
     if any(passes(r) for r in records if record_band(r) <= band):
         return band
     wider = [record_band(r) for r in records if record_band(r) > band and passes(r)]
     return min(wider) if wider else None
+
+
+def traced_share(rec) -> float:
+    """The largest share of a ghost's samples a verified flare record's band left to the tracer over its light
+    positions (0 for a record of the learned edges, or one written before the share was kept)."""
+    return float(rec.get("traced_share") or 0.0)
 
 
 def verification_done(metrics, bands, gate: float) -> bool:
@@ -336,31 +349,38 @@ def verification_scene(lens, model, light=LIGHTS[0], film=FILM, camera=None):
     })
 
 
-def paired_renders(scene, ghosts, samples, seed=1, sensor=0, boundary_band=0.0, iris_band=None, model=None):
+def paired_renders(scene, ghosts, samples, seed=1, sensor=0, boundary_band=0.0, iris_band=None, model=None,
+                   traced=False):
     """(exact, learned) flare images (H×W×3 numpy) of ``ghosts`` alone (no diffraction) on the same samples;
     ``boundary_band``, ``iris_band``, ``model``: the learned render's (:class:`~mi_neurallens.flare.options.
-    FlareOptions`; ``model`` None: the sensor's)."""
+    FlareOptions`; ``model`` None: the sensor's).  ``traced``: (exact, learned, the share of the learned render's
+    samples its bands left to the tracer)."""
     from .render import render_flare
     ex = render_flare(scene, sensor, seed=seed, ghosts=list(ghosts), samples=samples, mode="exact",
                       diffraction=False).total
     ne = render_flare(scene, sensor, seed=seed, ghosts=list(ghosts), samples=samples, mode="neural",
                       pilot_with="exact", boundary_band=boundary_band, iris_band=iris_band, diffraction=False,
-                      model=model).total
-    return ex, ne
+                      model=model)
+    if not traced:
+        return ex, ne.total
+    n = sum(s.samples for s in ne.stats)
+    left = sum(s.samples if s.why_traced else s.traced for s in ne.stats)    # a ghost its map cannot answer: all
+    return ex, ne.total, (left / n if n else 0.0)
 
 
 def paired_flare_error(scene, pid, samples=1 << SAMPLES_LOG2, seed=1, boundary_band=0.0, model=None) -> dict:
     """The learned map of ghost ``pid`` against the tracer on the same samples: ``paired_mape`` (None when
     the exact ghost leaves no pixel above the mask threshold: nothing to compare), ``pixels`` in the
     mask it was measured on (the blurred images' for a spot), ``compact`` (a spot of a few pixels, compared blurred: :func:`~mi_neurallens.metrics.
-    paired_flare_error_map`), ``flux_ratio`` (learned / exact luminance)."""
+    paired_flare_error_map`), ``flux_ratio`` (learned / exact luminance), ``traced_share`` (of the learned
+    render's samples, those ``boundary_band`` left to the tracer)."""
     import numpy as np
     from ..metrics import LUMINANCE, paired_flare_error_map
-    ex, ne = paired_renders(scene, [pid], samples, seed, boundary_band=boundary_band, model=model)
+    ex, ne, share = paired_renders(scene, [pid], samples, seed, boundary_band=boundary_band, model=model, traced=True)
     rel, mask, compact = paired_flare_error_map(ne, ex)
     ye, yn = float(np.sum(ex[..., :3] @ LUMINANCE)), float(np.sum(ne[..., :3] @ LUMINANCE))
     return {"paired_mape": float(rel[mask].mean()) if mask.any() else None, "pixels": int(mask.sum()),
-            "compact": compact, "flux_ratio": yn / ye if ye > 0 else None}
+            "compact": compact, "flux_ratio": yn / ye if ye > 0 else None, "traced_share": float(share)}
 
 
 def verify_model(model_path, lens=None, *, ghosts=None, lights=None, samples_log2=SAMPLES_LOG2,
@@ -406,6 +426,7 @@ def verify_model(model_path, lens=None, *, ghosts=None, lights=None, samples_log
                 left = (time.perf_counter() - t0) * (total - done) / done
                 log(f"{where}light {light}: ghost {pid} ({k + 1}/{len(ids)}) paired MAPE {m}"
                     + (", a spot: compared blurred" if r.get("compact") else "")
+                    + (f", {r['traced_share']:.0%} of its samples traced" if boundary_band > 0 else "")
                     + ("" if r["converged"] or r["paired_mape"] is None else ", still falling")
                     + (f"; about {_duration(left)} left" if done < total else ""))
     out = {}
@@ -415,6 +436,8 @@ def verify_model(model_path, lens=None, *, ghosts=None, lights=None, samples_log
                     "per_light": [r["paired_mape"] for r in rs],
                     "flux_ratio": [r["flux_ratio"] for r in rs],
                     "pixels": [r["pixels"] for r in rs], "compact": [bool(r.get("compact")) for r in rs],
+                    "traced_share": max(r["traced_share"] for r in rs),
+                    "per_light_traced_share": [r["traced_share"] for r in rs],
                     "lights_m": [[float(x), float(y), 5.0] for _, (x, y) in runs],
                     **({"configurations": [c for c, _ in runs]} if configs != [{}] else {}),
                     "log2_samples": max(r["log2_samples"] for r in rs),

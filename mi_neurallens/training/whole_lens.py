@@ -512,9 +512,11 @@ def _finish_missed(lens, cfg: TrainConfig, out_path: str, trained, workdir: str,
 
 
 def _best_record(tm):
-    """The lowest paired flare error among the map's verified records, or None where it has none."""
-    from ..flare.verify import flare_records
-    recs = [r["paired_mape"] for r in flare_records(tm.metrics) if r.get("paired_mape") is not None]
+    """The lowest paired flare error among the map's verified records, or None where it has none; a record whose
+    band left most of the ghost to the tracer (``flare.verify.MAX_TRACED_SHARE``) says nothing of the map."""
+    from ..flare.verify import MAX_TRACED_SHARE, flare_records, traced_share
+    recs = [r["paired_mape"] for r in flare_records(tm.metrics)
+            if r.get("paired_mape") is not None and not traced_share(r) > MAX_TRACED_SHARE]
     return min(recs) if recs else None
 
 
