@@ -371,9 +371,9 @@ def paired_renders(scene, ghosts, samples, seed=1, sensor=0, boundary_band=0.0, 
 def paired_flare_error(scene, pid, samples=1 << SAMPLES_LOG2, seed=1, boundary_band=0.0, model=None) -> dict:
     """The learned map of ghost ``pid`` against the tracer on the same samples: ``paired_mape`` (None when
     the exact ghost leaves no pixel above the mask threshold: nothing to compare), ``pixels`` in the
-    mask it was measured on (the blurred images' for a spot), ``compact`` (a spot of a few pixels, compared blurred: :func:`~mi_neurallens.metrics.
-    paired_flare_error_map`), ``flux_ratio`` (learned / exact luminance), ``traced_share`` (of the learned
-    render's samples, those ``boundary_band`` left to the tracer)."""
+    mask it was measured on (the blurred images' for a spot), ``compact`` (a spot of a few pixels, compared
+    blurred: :func:`~mi_neurallens.metrics.paired_flare_error_map`), ``flux_ratio`` (learned / exact
+    luminance), ``traced_share`` (of the learned render's samples, those ``boundary_band`` left to the tracer)."""
     import numpy as np
     from ..metrics import LUMINANCE, paired_flare_error_map
     ex, ne, share = paired_renders(scene, [pid], samples, seed, boundary_band=boundary_band, model=model, traced=True)
