@@ -276,8 +276,8 @@ def bladed(lens="wide-22mm", fstop=10.74, ghosts=(66048, 144, 4224), samples=1 <
                        sensor_type="neural_lens", sets=[f"model={lens}", f"fstop={fstop!r}", "blades=6"])
     imgs, titles, out = [], [], []
     for g in ghosts:
-        ex, learned = paired_renders(scene, [g], samples, iris_band=0.0)
-        _, banded = paired_renders(scene, [g], samples, iris_band=1.0)
+        ex, learned, _ = paired_renders(scene, [g], samples, iris_band=0.0)
+        banded = paired_renders(scene, [g], samples, iris_band=1.0).learned
         y = ex[..., 1]
         rows, cols = np.nonzero(y > 0.01 * y.max())
         pad = 4

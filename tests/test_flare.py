@@ -415,10 +415,10 @@ def test_boundary_band_traces_the_learned_edges_exactly():
     from mi_neurallens.metrics import flare_error_map
     lens, pid = "canon-ef-24mm-f1.4l", 1056768
     scene = verification_scene(lens, lens, film=(120, 80))
-    ex, off = paired_renders(scene, [pid], 1 << 20)
-    _, every = paired_renders(scene, [pid], 1 << 20, boundary_band=1e9)
+    ex, off, _ = paired_renders(scene, [pid], 1 << 20)
+    every = paired_renders(scene, [pid], 1 << 20, boundary_band=1e9).learned
     np.testing.assert_allclose(every, ex, rtol=1e-4, atol=1e-6 * float(ex.max()))
-    _, band = paired_renders(scene, [pid], 1 << 20, boundary_band=1.0)
+    band = paired_renders(scene, [pid], 1 << 20, boundary_band=1.0).learned
     err = {}
     for name, img in (("off", off), ("band", band)):
         rel, mask = flare_error_map(img, ex)
@@ -754,7 +754,7 @@ def test_iris_band_traces_the_iris_edges_exactly():
                        sensor_type="neural_lens", sets=["model=wide-22mm", "fstop=10.74", "blades=6"])
     err, imgs = {}, {}
     for band in (0.0, 1.0):
-        ex, imgs[band] = paired_renders(scene, [pid], 1 << 22, iris_band=band)
+        ex, imgs[band], _ = paired_renders(scene, [pid], 1 << 22, iris_band=band)
         rel, mask = flare_error_map(imgs[band], ex)
         err[band] = float(rel[mask].mean())
     assert err[0.0] > 0.025 and err[1.0] < err[0.0] / 2, err       # 0.037 → 0.014 (0.033 → 0.009 at 2^24)

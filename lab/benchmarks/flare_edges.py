@@ -76,8 +76,8 @@ def main(argv=None):
     rows = []
     for g in ([] if a.combined_only else ghosts) + (["all"] if a.combined or a.combined_only else []):
         gl = ghosts if g == "all" else [g]
-        ex, ne = paired_renders(scene, gl, n, seed=1, boundary_band=a.boundary_band,
-                                iris_band=a.iris_band)   # `evaluate --flare`'s protocol
+        ex, ne, _ = paired_renders(scene, gl, n, seed=1, boundary_band=a.boundary_band,
+                                   iris_band=a.iris_band)   # `evaluate --flare`'s protocol
         rel, mask = flare_error_map(ne, ex)
         if not mask.any():      # the stop blocks this ghost entirely (or it leaves the film): nothing to compare
             rows.append(dict(ghost=g, log2_samples=a.samples, pixels=0,

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 import time
+import typing
 
 import numpy as np
 
@@ -349,23 +350,29 @@ def verification_scene(lens, model, light=LIGHTS[0], film=FILM, camera=None):
     })
 
 
-def paired_renders(scene, ghosts, samples, seed=1, sensor=0, boundary_band=0.0, iris_band=None, model=None,
-                   traced=False):
-    """(exact, learned) flare images (H×W×3 numpy) of ``ghosts`` alone (no diffraction) on the same samples;
-    ``boundary_band``, ``iris_band``, ``model``: the learned render's (:class:`~mi_neurallens.flare.options.
-    FlareOptions`; ``model`` None: the sensor's).  ``traced``: (exact, learned, the share of the learned render's
-    samples its bands left to the tracer)."""
+class PairedRenders(typing.NamedTuple):
+    """Two flare renders of the same ghosts on the same samples (:func:`paired_renders`): H×W×3 numpy images."""
+
+    exact: object
+    learned: object
+    #: of the learned render's samples, the share its bands (or a ghost its map cannot answer) left to the tracer
+    traced_share: float
+
+
+def paired_renders(scene, ghosts, samples, seed=1, sensor=0, boundary_band=0.0, iris_band=None,
+                   model=None) -> PairedRenders:
+    """The exact and the learned flare images of ``ghosts`` alone (no diffraction) on the same samples, and the
+    share of the learned render's samples left to the tracer; ``boundary_band``, ``iris_band``, ``model``: the
+    learned render's (:class:`~mi_neurallens.flare.options.FlareOptions`; ``model`` None: the sensor's)."""
     from .render import render_flare
     ex = render_flare(scene, sensor, seed=seed, ghosts=list(ghosts), samples=samples, mode="exact",
                       diffraction=False).total
     ne = render_flare(scene, sensor, seed=seed, ghosts=list(ghosts), samples=samples, mode="neural",
                       pilot_with="exact", boundary_band=boundary_band, iris_band=iris_band, diffraction=False,
                       model=model)
-    if not traced:
-        return ex, ne.total
     n = sum(s.samples for s in ne.stats)
     left = sum(s.samples if s.why_traced else s.traced for s in ne.stats)    # a ghost its map cannot answer: all
-    return ex, ne.total, (left / n if n else 0.0)
+    return PairedRenders(ex, ne.total, left / n if n else 0.0)
 
 
 def paired_flare_error(scene, pid, samples=1 << SAMPLES_LOG2, seed=1, boundary_band=0.0, model=None) -> dict:
@@ -376,7 +383,7 @@ def paired_flare_error(scene, pid, samples=1 << SAMPLES_LOG2, seed=1, boundary_b
     luminance), ``traced_share`` (of the learned render's samples, those ``boundary_band`` left to the tracer)."""
     import numpy as np
     from ..metrics import LUMINANCE, paired_flare_error_map
-    ex, ne, share = paired_renders(scene, [pid], samples, seed, boundary_band=boundary_band, model=model, traced=True)
+    ex, ne, share = paired_renders(scene, [pid], samples, seed, boundary_band=boundary_band, model=model)
     rel, mask, compact = paired_flare_error_map(ne, ex)
     ye, yn = float(np.sum(ex[..., :3] @ LUMINANCE)), float(np.sum(ne[..., :3] @ LUMINANCE))
     return {"paired_mape": float(rel[mask].mean()) if mask.any() else None, "pixels": int(mask.sum()),
