@@ -504,3 +504,38 @@ def test_a_configured_map_folds_its_configuration_into_the_first_layers(configs)
         dr.eval(other.eval_reduced_dr(xs))
         hist = [h for h in dr.kernel_history() if h["type"] == dr.KernelType.JIT]
     assert len(hist) >= 2 and hist[-1]["hash"] == hist[-2]["hash"]
+
+
+def test_a_conditioned_maps_goals_hold_in_its_worst_configuration_cell(zoom, configs):
+    """A map over moving groups is checked against its goals cell by cell (the range's ends and corners, where its
+    error grows): rays at a listed end and at infinity or close focus fall in the cells so named (infinity is the end
+    of the focus band the focus parameter images infinity at), cells with too few rays are left out, and the
+    regressor's and the classifier's goals fail on a worst cell above them even where the all-ray figure meets them."""
+    from types import SimpleNamespace
+    from mi_neurallens.training.classifier import ClassifierFit
+    from mi_neurallens.training.config import NetConfig
+    from mi_neurallens.training.regressor import RegressorFit
+    t0, t1 = configs.zoom_range
+    tf = [(t0, mv.focus_parameter(zoom, t0, math.inf)), (t1, mv.focus_parameter(zoom, t1, zoom.moving.close_focus_mm)),
+          (0.5 * (t0 + t1), float(np.mean(configs.band(0.5 * (t0 + t1))))), (t1, mv.focus_parameter(zoom, t1, math.inf))]
+    x = np.zeros((4000, 6))
+    x[:, 4:6] = np.repeat(np.array(tf), [1000, 1000, 1000, 1000], axis=0)
+    cells = configs.cells(x, min_rays=500)
+    assert sorted(cells) == ["mid, mid", "tele, close", "tele, infinity", "wide, infinity"]
+    np.testing.assert_array_equal(np.flatnonzero(cells["tele, close"]), np.arange(1000, 2000))
+    x[1000:2000:2, 4:6] = tf[0]                           # 500 of "tele, close" move to "wide, infinity"
+    assert "tele, close" not in configs.cells(x, min_rays=501) and "tele, close" in configs.cells(x, min_rays=500)
+    # the goals: median 2 um / 5 arcsec, 0.5 % misclassified, each within the margin 0.9
+    nc = NetConfig()
+    rec = {"pos_um_med": 1.0, "pos_um_p99": 10.0, "dir_as_med": 3.0, "dir_as_p99": 20.0}
+    met = lambda **r: RegressorFit.goals_met(SimpleNamespace(state={"history": [{**rec, **r}]}, nc=nc))
+    assert met() and met(cell_pos_um_med=1.7, cell_dir_as_med=4.4)
+    assert not met(cell_pos_um_med=1.7, cell_dir_as_med=4.6) and not met(cell_pos_um_med=1.9, cell_dir_as_med=4.4)
+    cmet = lambda **r: ClassifierFit.goals_met(SimpleNamespace(state={"history": [{"val_misclass": 0.003, **r}]}, nc=nc))
+    assert cmet() and cmet(cell_misclass=0.0044) and not cmet(cell_misclass=0.0046)
+    # what train and evaluate print below the table: each figure's worst cell
+    from mi_neurallens.training.evaluate import worst_cells
+    m = {"cells": {"wide, infinity": {"position_um_median": 1.2, "direction_arcsec_median": 5.5, "misclassification": 0.002},
+                   "tele, close": {"position_um_median": 1.9, "direction_arcsec_median": 4.0, "misclassification": None}}}
+    assert worst_cells(m) == "position 1.9 µm (tele, close), direction 5.5″ (wide, infinity), misclassified 0.200% (wide, infinity)"
+    assert worst_cells({}) == ""

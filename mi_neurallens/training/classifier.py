@@ -87,6 +87,9 @@ class ClassifierFit(Problem):
         self.X, self.L = self.samples(nc.pool)
         xv, lv = val
         self.Xv, self.Lv = self.f32((xv - center) / scale_in), torch.as_tensor(lv.astype(bool), device=dev)
+        #: a map over a lens's moving groups: its validation rays by configuration cell (as the regressor's)
+        conf = ps.domain.conditions
+        self.cells = {k: torch.as_tensor(m, device=dev) for k, m in conf.cells(xv).items()} if conf is not None else {}
         self.bce = torch.nn.BCEWithLogitsLoss()
 
     def f32(self, a):
@@ -149,9 +152,11 @@ class ClassifierFit(Problem):
         return r, (r != 0).to(z.dtype)
 
     def goals_met(self) -> bool:
-        """The last validation's misclassification is at most ``nc.goal_misclassification``."""
+        """The last validation's misclassification is at most ``nc.goal_misclassification``; a map over moving
+        groups in every configuration cell (the worst cell's, ``cell_misclass``)."""
         h = self.state["history"]
-        return bool(h) and h[-1]["val_misclass"] <= self.nc.goal_margin * self.nc.goal_misclassification
+        return bool(h) and h[-1].get("cell_misclass", h[-1]["val_misclass"]) \
+            <= self.nc.goal_margin * self.nc.goal_misclassification
 
     def validate(self, step, loss, seconds):
         """Held-out misclassification and BCE, appended to the history; returns (score, postfix)."""
@@ -161,10 +166,17 @@ class ClassifierFit(Problem):
             vb = float(self.bce(lg, self.Lv.float()))
         rec = {"step": step, "loss": loss.item() if loss is not None else math.nan, "val_bce": vb,
                "val_misclass": err, "seconds": seconds}
+        post = {}
+        if self.cells:
+            wrong = (lg > 0) != self.Lv
+            per = {k: float(wrong[c].float().mean()) for k, c in self.cells.items()}
+            w = max(per, key=per.get)
+            rec.update(cell_misclass=per[w], cell_misclass_worst=w)
+            post = dict(worst=f"{100 * per[w]:.3f}% ({w})")
         self.state["history"].append(rec)
         if self.log:
             self.log(self.desc, rec)
-        return err + 0.01 * vb, dict(miscls=f"{100 * err:.3f}%")
+        return err + 0.01 * vb, dict(miscls=f"{100 * err:.3f}%", **post)
 
 
 def calibrate_classifier(lens, tm, n: int = 200_000, seed: int = 0, fresnel: bool = True) -> float:

@@ -130,7 +130,38 @@ def evaluate_map(lens, tm, n: int = 200_000, seed: int = 999, mcmc_threshold: fl
         c["wrong_boundary_distance_units"] = "normalised input (1 = half the domain width)"
         c["wrong_far_from_boundary"] = int((~np.isfinite(dist)).sum())
     m["classifier"] = c
+    if dom.conditions is not None:
+        m["cells"] = cell_errors(dom.conditions, x, y, yp, tm.heading, xu, wrong)
     return m
+
+
+def cell_errors(conf, x, y, yp, heading, xu, wrong) -> dict:
+    """A map over moving groups, cell by cell of its configurations
+    (:meth:`~mi_neurallens.transport.configurations.Configurations.cells`): {cell: position µm and direction ″
+    medians of the held-out rays ``x`` (outputs ``y``, predicted ``yp``), misclassification of the natural-mix rays
+    ``xu`` (``wrong``: where the classifier erred)}."""
+    out = {}
+    reg, cls = conf.cells(x), conf.cells(xu)
+    for k in sorted(set(reg) | set(cls)):
+        r = regression_errors(yp[reg[k], :5], y[reg[k], :5], heading) if k in reg else {}
+        out[k] = {"position_um_median": r.get("position_um_median"), "direction_arcsec_median":
+                  r.get("direction_arcsec_median"), "misclassification": float(wrong[cls[k]].mean()) if k in cls else None}
+    return out
+
+
+def worst_cells(m: dict) -> str:
+    """The worst configuration cell of each figure in a map's metrics ``m`` (:func:`cell_errors`) as a line of
+    text; "" for a map without cells."""
+    cells = m.get("cells") or {}
+    parts = []
+    for key, what, fmt in (("position_um_median", "position", "{:.3g} µm"), ("direction_arcsec_median", "direction",
+                                                                              "{:.3g}″"),
+                           ("misclassification", "misclassified", "{:.3%}")):
+        got = {k: v[key] for k, v in cells.items() if v.get(key) is not None}
+        if got:
+            w = max(got, key=got.get)
+            parts.append(f"{what} {fmt.format(got[w])} ({w})")
+    return ", ".join(parts)
 
 
 GOALS = {"position_um_median": 2.0, "position_um_p99": 20.0, "direction_arcsec_median": 5.0,
@@ -165,4 +196,5 @@ def markdown_table(model, rows) -> str:
                      f"{100 * r['throughput_rel_median']:.3g}% | {100 * c['misclassification']:.3g}% | "
                      f"{100 * c['false_valid']:.3g}% | {100 * c['false_blocked']:.3g}% | "
                      f"{'—' if bd is None else f'{bd:.3g}'} | {stop} |{fl}")
-    return hdr + "\n".join(lines) + "\n"
+    worst = [f"* {key}, worst configuration cell (median): {worst_cells(m)}" for key, m in rows if worst_cells(m)]
+    return hdr + "\n".join(lines) + "\n" + ("\n" + "\n".join(worst) + "\n" if worst else "")

@@ -81,6 +81,10 @@ FOCUS_END_WEIGHT = 0.5
 #: the fraction of the zoom range that training draws beyond each of its ends (:attr:`Configurations.zoom_margin`;
 #: the module docstring, "Sampling"); 0: the listed range only
 ZOOM_MARGIN = 0.0
+#: the outer fraction of the zoom range and of the focus band that :meth:`Configurations.cells` counts as an end
+CELL_EDGES = {"zoom": 0.1, "focus": 0.2}
+#: the fewest held-out rays a cell's median is taken over (:meth:`Configurations.cells`)
+CELL_MIN_RAYS = 400
 #: the end weights of a model file that records none: the zoom's warp, a uniform focus (as models were trained
 #: before the focus warp)
 LEGACY_END_WEIGHTS = (ZOOM_END_WEIGHT, 0.0)
@@ -368,6 +372,36 @@ class Configurations:
         input is 0)."""
         d = dict(zip(self.names, cond))
         return d.get("zoom", 0.0), d.get("focus", 0.0)
+
+    def cells(self, x: np.ndarray, min_rays: int = CELL_MIN_RAYS) -> dict:
+        """The rays ``x`` (N, inputs; the map's inputs, configuration columns at 4, 5) grouped by where their
+        configuration lies in the learned range: the zoom range's outer :data:`CELL_EDGES` fraction at each end
+        ("wide", "tele"), the focus band's at each end ("infinity", "close"), the rest ("mid").  Returns
+        {name: boolean mask (N,)} of the cells holding at least ``min_rays`` rays, e.g. ``"tele, infinity"``: what a
+        conditioned map's goals are checked on, since its error grows toward the range's ends and corners, which an
+        all-ray median averages away (the goals hold per configuration)."""
+        x = np.asarray(x, dtype=np.float64)
+        t, f = self.split([x[:, 4 + j] for j in range(self.dims)])
+        t = np.broadcast_to(np.asarray(t, np.float64), (len(x),))
+        f = np.broadcast_to(np.asarray(f, np.float64), (len(x),))
+        parts = []
+        if "zoom" in self.names:
+            t0, t1 = self.zoom_range
+            a = (t - t0) / max(t1 - t0, 1e-30)
+            e = CELL_EDGES["zoom"]
+            parts.append((("wide", a < e), ("mid", (a >= e) & (a <= 1 - e)), ("tele", a > 1 - e)))
+        if "focus" in self.names:
+            lo, hi = self._band_np(t)
+            b = (f - lo) / np.maximum(hi - lo, 1e-30)
+            # the focus parameter is 0 at the infinity gaps: the band's end nearer 0 is infinity
+            inf_lo = abs(float(np.median(self.band_lo))) <= abs(float(np.median(self.band_hi)))
+            e = CELL_EDGES["focus"]
+            low, high = (("infinity", "close") if inf_lo else ("close", "infinity"))
+            parts.append(((low, b < e), ("mid", (b >= e) & (b <= 1 - e)), (high, b > 1 - e)))
+        out = {"": np.ones(len(x), bool)}
+        for part in parts:
+            out = {(f"{k}, {n}" if k else n): m & c for k, m in out.items() for n, c in part}
+        return {k: m for k, m in out.items() if m.sum() >= min_rays}
 
     # ------------------------------------------------------------------ normalisation and file form
     def norm_center_scale(self):
