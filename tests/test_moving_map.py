@@ -539,3 +539,31 @@ def test_a_conditioned_maps_goals_hold_in_its_worst_configuration_cell(zoom, con
                    "tele, close": {"position_um_median": 1.9, "direction_arcsec_median": 4.0, "misclassification": None}}}
     assert worst_cells(m) == "position 1.9 µm (tele, close), direction 5.5″ (wide, infinity), misclassified 0.200% (wide, infinity)"
     assert worst_cells({}) == ""
+
+
+def test_the_cell_weighted_finish_weighs_each_rows_cell_by_its_error(zoom, configs):
+    """``lm_cell_weight`` = p: a cell's rows weigh (its goal ratio / the cells' median ratio)^p within the clip, the
+    score is the worst cell's ratio, and fresh rows carry their cell's weight (times an edge weight, 1 here)."""
+    from types import SimpleNamespace
+    from mi_neurallens.training.config import NetConfig
+    from mi_neurallens.training.regressor import RegressorFit
+    e = lambda p, d: {"position_um_median": p, "direction_arcsec_median": d}
+    med = {"wide, infinity": e(1.0, 6.0), "mid, mid": e(1.0, 2.5), "tele, close": e(3.0, 2.0), "tele, mid": e(0.2, 0.5)}
+    fit = SimpleNamespace(nc=NetConfig(lm_cell_weight=2.0), state={}, CELL_WEIGHT_CLIP=RegressorFit.CELL_WEIGHT_CLIP)
+    worst = RegressorFit.cell_weights(fit, med)
+    assert worst == pytest.approx(1.5)                       # tele, close: 3 um against 2
+    # ratios 1.2, 0.5, 1.5, 0.1; their median 0.85
+    assert fit.cell_w["wide, infinity"] == pytest.approx((1.2 / 0.85) ** 2)
+    assert fit.cell_w["tele, close"] == pytest.approx((1.5 / 0.85) ** 2)
+    assert fit.cell_w["tele, mid"] == pytest.approx(0.25)    # (0.1 / 0.85)^2 = 0.014, clipped at 1/4
+    t0, t1 = configs.zoom_range
+    x = np.zeros((3, 6))
+    x[:, 4:6] = [(t0, mv.focus_parameter(zoom, t0, math.inf)), (t1, configs.band(t1)[1]),
+                 (t0, float(np.mean(configs.band(t0))))]             # wide, mid: no weight given, 1
+    stream = SimpleNamespace(sample=lambda k: (np.zeros((3, 6)), x, np.zeros((3, 5))))
+    rows = SimpleNamespace(stream=stream, center=np.zeros(6), scale_in=np.ones(6), f32=np.asarray,
+                           targets=lambda x, xn, y: y, space=lambda y: y, nc=fit.nc, cell_w=fit.cell_w, conf=configs)
+    np.testing.assert_allclose(RegressorFit.fresh_rows(rows, 3)["W"], [fit.cell_w["wide, infinity"],
+                                                                       fit.cell_w["tele, close"], 1.0])
+    rows.cell_w = None
+    assert "W" not in RegressorFit.fresh_rows(rows, 3)

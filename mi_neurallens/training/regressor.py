@@ -186,8 +186,12 @@ class RegressorFit(Problem):
         self.near_edge = mv < nc.edge_margin
         #: a map over a lens's moving groups: its validation rays by configuration cell, whose worst median the goals
         #: are checked on (:meth:`~mi_neurallens.transport.configurations.Configurations.cells`)
-        conf = stream.ps.domain.conditions
+        self.conf = conf = stream.ps.domain.conditions
         self.cells = conf.cells(self.xv) if conf is not None else {}
+        #: ``nc.lm_cell_weight``: each configuration cell's row weight in the finish, renewed at each validation
+        #: (:meth:`cell_weights`); None: uniform
+        self.cell_w = None
+        self.finishing = False
 
     def f32(self, a):
         return self.torch.as_tensor(np.ascontiguousarray(a, dtype=np.float32), device=self.dev)
@@ -298,7 +302,9 @@ class RegressorFit(Problem):
     def lm_start(self, net):
         """Called by the Levenberg–Marquardt finish with its starting network ``net``: with ``nc.lm_huber`` > 0,
         fixes the Huber threshold δ of each output column at ``lm_huber`` × the median |weighted residual| of the
-        held-out rays, so that the finish's loss and its validation score are one function throughout."""
+        held-out rays, so that the finish's loss and its validation score are one function throughout; with
+        ``nc.lm_cell_weight`` > 0 turns on the cell weights (:meth:`cell_weights`)."""
+        self.finishing = True
         if self.nc.lm_huber <= 0:
             return
         self.net = net
@@ -317,13 +323,39 @@ class RegressorFit(Problem):
         return float((r ** 2).mean())
 
     def fresh_rows(self, k):
-        """``k`` fresh pool rows from the stream."""
+        """``k`` fresh pool rows from the stream; in the finish, with :attr:`cell_w`, each row weighted by its
+        configuration cell's weight (times its edge weight)."""
         ur, xr, yr = self.stream.sample(k)
         xrn = (xr - self.center) / self.scale_in
         out = {"X": self.f32(xrn), "Y": self.f32(self.targets(xr, xrn, self.space(yr))), "Yraw": self.f32(yr)}
-        if self.nc.edge_weight > 0:
-            out["W"] = self.f32(edge_weights(self.stream.ps, ur, self.nc))
+        w = edge_weights(self.stream.ps, ur, self.nc) if self.nc.edge_weight > 0 else None
+        if self.cell_w:
+            wc = np.ones(len(xr))
+            for c, m in self.conf.cells(xr, min_rays=0).items():
+                wc[m] = self.cell_w.get(c, 1.0)
+            w = wc if w is None else w * wc
+        if w is not None:
+            out["W"] = self.f32(w)
         return out
+
+    #: the cell weights' range: a cell weighs at most this many times, at least its inverse, the cells' median one
+    CELL_WEIGHT_CLIP = 4.0
+
+    def cell_weights(self, med: dict) -> float:
+        """The finish's weighting over configuration cells (``nc.lm_cell_weight`` = p > 0): from each cell's
+        validation medians ``med`` ({cell: regression_errors}), its ratio to the goals r = max(position / goal,
+        direction / goal), and its rows' weight (r / the cells' median r)^p, within :data:`CELL_WEIGHT_CLIP` either
+        way (:attr:`cell_w`, used by the next fresh rows).  So the finish spends the network where the map misses
+        its goals most, which decides whether it meets them: they hold per configuration.  Returns the worst r,
+        the score the finish keeps its best weights by (a minimax over the cells, since the weighted loss changes
+        with the weights)."""
+        (pm, _), (dm, _) = self.nc.goal_position_um, self.nc.goal_direction_arcsec
+        r = {c: max(e["position_um_median"] / pm, e["direction_arcsec_median"] / dm) for c, e in med.items()}
+        mid = float(np.median(list(r.values())))
+        p, c_ = float(self.nc.lm_cell_weight), self.CELL_WEIGHT_CLIP
+        self.cell_w = {c: float(np.clip((v / mid) ** p, 1.0 / c_, c_)) for c, v in r.items()}
+        self.state["lm_cell_weights"] = self.cell_w
+        return max(r.values())
 
     def goals_met(self) -> bool:
         """The last validation meets ``nc.goal_position_um`` and ``nc.goal_direction_arcsec`` (median, p99),
@@ -360,6 +392,8 @@ class RegressorFit(Problem):
             wd = max(med, key=lambda k: med[k]["direction_arcsec_median"])
             rec.update(cell_pos_um_med=med[wp]["position_um_median"], cell_pos_worst=wp,
                        cell_dir_as_med=med[wd]["direction_arcsec_median"], cell_dir_worst=wd)
+            if self.finishing and self.nc.lm_cell_weight > 0:
+                vl = rec["cell_score"] = self.cell_weights(med)
             post = dict(worst=f"{rec['cell_pos_um_med']:.2f}µm/{rec['cell_dir_as_med']:.2f}\" ({wd})")
         self.state["history"].append(rec)
         if self.log:
