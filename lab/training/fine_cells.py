@@ -15,7 +15,8 @@ import sys
 import numpy as np
 from mi_neurallens.transport import configurations as C
 
-ZOOM_BINS = [0.0, 0.1, 0.3, 0.5, 0.7, 0.9, 1.0 + 1e-9]
+#: inner edges of the zoom bins, as fractions of the zoom range (rays beyond either end fall in the end bins)
+ZOOM_EDGES = [0.1, 0.3, 0.5, 0.7, 0.9]
 orig = C.Configurations.cells
 
 def cells(self, x, min_rays=C.CELL_MIN_RAYS):
@@ -31,15 +32,9 @@ def cells(self, x, min_rays=C.CELL_MIN_RAYS):
     for k, m in base.items():
         fk = k.split(", ")[-1] if "focus" in self.names else ""
         focus[fk] = focus.get(fk, np.zeros(len(x), bool)) | m
-    out = {}
-    for i in range(len(ZOOM_BINS) - 1):
-        z = (a >= ZOOM_BINS[i]) & (a < ZOOM_BINS[i + 1])
-        if i == 0:
-            z = a < ZOOM_BINS[1]
-        if i == len(ZOOM_BINS) - 2:
-            z = a >= ZOOM_BINS[i]
-        for fk, fm in focus.items():
-            out[f"z{i}" + (f", {fk}" if fk else "")] = z & fm
+    zbin = np.digitize(a, ZOOM_EDGES)
+    out = {f"z{i}" + (f", {fk}" if fk else ""): (zbin == i) & fm
+           for i in range(len(ZOOM_EDGES) + 1) for fk, fm in focus.items()}
     return {k: m for k, m in out.items() if m.sum() >= min_rays}
 
 C.Configurations.cells = cells
