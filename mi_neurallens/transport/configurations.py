@@ -8,10 +8,11 @@ groups focus), over which range they were learned, and gives the tracer the geom
 ray**, so that one kernel traces training rays of many configurations at once.
 
 * **Range.**  ``t`` over the listed positions, ``[0, n−1]``; ``f`` at each ``t`` over the *focus band*: from the
-  focus parameter that images infinity on the sensor to the one that images the close-focus distance (paraxially,
-  d line: :func:`mi_neurallens.optics.moving.focus_parameter`), widened by :data:`FOCUS_MARGIN` of its width on
-  each side, since the renderer focuses where the real rays focus best, a little off the paraxial solution.
-  Tabulated at :data:`BAND_GRID` zoom parameters, linear between them.
+  focus parameter that images infinity on the sensor to the one that images the close-focus distance, each both
+  paraxially (d line) and where the real rays focus best (:func:`mi_neurallens.optics.moving.focus_parameter`; the
+  sensors focus there: :func:`~mi_neurallens.optics.moving.configure`), widened by :data:`FOCUS_MARGIN` of its
+  width on each side, since a network errs most at the edge of what it learned.  Tabulated at :data:`BAND_GRID`
+  zoom parameters, linear between them.
 * **Sampling.**  A training sample's two extra unit-cube coordinates ``(u4, u5)`` give
   ``t = t0 + w_a(u4) (t1 − t0)`` and ``f = f_lo(t) + w_b(u5) (f_hi(t) − f_lo(t))``, where the warp
   ``w_a(u) = u − a sin(2πu) / 2π`` (:func:`end_warp`) draws a range's ends 1/(1 − a) times as densely as uniform
@@ -60,8 +61,11 @@ from ..errors import LensError, NeuralLensError
 CONDITION_NAMES = ("zoom", "focus")
 #: zoom parameters at which the focus band is tabulated (linear between)
 BAND_GRID = 17
-#: the focus band's widening on each side, as a fraction of its width (the real rays' best focus lies a little
-#: off the paraxial focus the band is solved for)
+#: the focus band's widening on each side beyond the paraxial and the real-ray focus of infinity and of the close
+#: focus, as a fraction of its width.  The band once spanned the paraxial solutions alone, widened by this margin to
+#: reach the real rays' best focus, where the sensors focus: at 45-57 mm the EF 24-70's real-ray infinity focus lies
+#: 0.068 (8 % of the band) beyond the paraxial one, so the margin was used up there (45 mm at infinity was its map's
+#: worst configuration) and, at 47-57 mm, exceeded by up to 0.65 % (:data:`BAND_TOLERANCE`)
 FOCUS_MARGIN = 0.08
 #: the monomials t^a f^b (a, b) whose products with the ray's r, ωx, ωy are inputs too, per set of configuration
 #: inputs (see the module docstring): the paraxial map's coefficients as cubics in the zoom, quadratics in the focus
@@ -81,6 +85,11 @@ FOCUS_END_WEIGHT = 0.5
 #: the fraction of the zoom range that training draws beyond each of its ends (:attr:`Configurations.zoom_margin`;
 #: the module docstring, "Sampling"); 0: the listed range only
 ZOOM_MARGIN = 0.0
+#: how far beyond its learned focus band, as a fraction of the band's width, a map is still evaluated
+#: (:meth:`Configurations.check`): models trained before the band held the real-ray focus (:data:`FOCUS_MARGIN`) end
+#: up to 0.65 % of it short of the real rays' infinity focus (the bundled EF 24-70's at 47-57 mm), where its map errs
+#: no more than inside (docs/neural_lens.md, "Zoom and focus")
+BAND_TOLERANCE = 0.01
 #: the outer fraction of the zoom range and of the focus band that :meth:`Configurations.cells` counts as an end
 CELL_EDGES = {"zoom": 0.1, "focus": 0.2}
 #: the fewest held-out rays a cell's median is taken over (:meth:`Configurations.cells`)
@@ -187,12 +196,13 @@ class Configurations:
             close = float(close_focus_mm if close_focus_mm is not None else mg.close_focus_mm)
             for i, t in enumerate(grid):
                 try:
-                    a = mv.focus_parameter(lens, float(t), math.inf)
-                    b = mv.focus_parameter(lens, float(t), close)
+                    ends = [mv.focus_parameter(lens, float(t), d, real_rays=r)
+                            for d in (math.inf, close) for r in (False, True)]
                 except LensError as e:
                     raise NeuralLensError(f"lens '{lens.name}': no focus band at zoom parameter {t:.4g}: {e}") from e
-                w = abs(b - a)
-                lo[i], hi[i] = min(a, b) - FOCUS_MARGIN * w, max(a, b) + FOCUS_MARGIN * w
+                a, b = min(ends), max(ends)
+                w = b - a
+                lo[i], hi[i] = a - FOCUS_MARGIN * w, b + FOCUS_MARGIN * w
         monomials = MONOMIALS[names] + (knot_monomials(mg.positions) if mg.is_zoom else ())
         out = cls(names, (float(t0), float(t1)), grid, lo, hi, 0.0, lens, monomials)
         out.z_sensor = max(mv.at(lens, float(t), float(f), check=False).image_z
@@ -270,12 +280,13 @@ class Configurations:
 
     def check(self, zoom: float, focus: float) -> None:
         """A :class:`~mi_neurallens.errors.NeuralLensError` when (``zoom``, ``focus``) lies outside what the map
-        learned, naming the range."""
+        learned (the focus band widened by :data:`BAND_TOLERANCE` of its width), naming the range."""
         t0, t1 = self.zoom_range
         if "zoom" in self.names and not (t0 - 1e-9 <= zoom <= t1 + 1e-9):
             raise NeuralLensError(f"zoom parameter {zoom:.4g} is outside the learned range [{t0:g}, {t1:g}]")
         lo, hi = self.band(zoom)
-        if "focus" in self.names and not (lo - 1e-9 <= focus <= hi + 1e-9):
+        tol = BAND_TOLERANCE * (hi - lo) + 1e-9
+        if "focus" in self.names and not (lo - tol <= focus <= hi + tol):
             raise NeuralLensError(f"focus parameter {focus:.4g} at zoom parameter {zoom:.4g} is outside the learned "
                                   f"band [{lo:.4g}, {hi:.4g}] (infinity to the close focus the map was trained for)")
 
