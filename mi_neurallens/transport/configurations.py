@@ -88,7 +88,7 @@ ZOOM_MARGIN = 0.0
 #: how far beyond its learned focus band, as a fraction of the band's width, a map is still evaluated
 #: (:meth:`Configurations.check`): models trained before the band held the real-ray focus (:data:`FOCUS_MARGIN`) end
 #: up to 0.65 % of it short of the real rays' infinity focus (the bundled EF 24-70's at 47-57 mm), where its map errs
-#: no more than inside (docs/neural_lens.md, "Zoom and focus")
+#: no more than inside (docs/neural_lens.md, "Zoom and internal focusing")
 BAND_TOLERANCE = 0.01
 #: the outer fraction of the zoom range and of the focus band that :meth:`Configurations.cells` counts as an end
 CELL_EDGES = {"zoom": 0.1, "focus": 0.2}
