@@ -31,7 +31,9 @@
 #           lens per call if they do not fit), with each lens's bundled recipe; each model comes back in
 #           results.tar.gz, to be merged into the bundled one with `mi-neurallens merge`.  A zoom lens's ghosts
 #           (GHOST_LENSES=canon-ef-24-70mm-f2.8l) are ranked over its configurations and each verified at three
-#           zooms, the flare goals of issue 55
+#           zooms, the flare goals of issue 55.  That set needs more than one call on an H200 (docs/neural_lens.md):
+#           a call cut short brings its checkpoints back (results/ghosts/*.work), and GHOST_RESUME=that folder, carried
+#           with .whl, resumes them in the next
 #   zoom    the zoom lens's one map at ten configurations training never drew (bench_zoom.py on the bundled
 #           canon-ef-24-70mm-f2.8l: map accuracy, render MAPE ratio, and the render-time ratio neural ÷ realistic
 #           on this backend; the CPU's figures are in docs/performance.md)
@@ -215,14 +217,22 @@ stage_costs() {
     return $rc
 }
 
-stage_ghosts() {
-    local rc=0 t0
+stage_ghosts() {   # GHOST_RESUME=DIR: resume from the work folders a cut-short call brought back (results/ghosts/)
+    local rc=0 t0 work
+    mkdir -p "$RES/ghosts"
+    [ -n "${GHOST_RESUME:-}" ] && cp -r "$GHOST_RESUME"/*.work "$RES/ghosts/"
     for lens in ${GHOST_LENSES:-wide-22mm ood-59mm canon-ef-24mm-f1.4l}; do
         t0=$SECONDS
         py 100000 -m mi_neurallens train "$lens" --paths ghosts ${GHOST_ARGS:-} --out "$RES/ghosts" --no-progress \
             2>&1 | tee "$RES/ghosts_$lens.log" || rc=1
         echo "wall: $((SECONDS - t0)) s for the ghosts of $lens" | tee -a "$RES/ghosts_$lens.log"
-        rm -rf "$RES/ghosts/"*.work
+        work="$RES/ghosts/$lens.model.safetensors.work"
+        if [ -f "$RES/ghosts/$lens.model.safetensors" ]; then
+            rm -rf "$work"
+        elif [ -d "$work" ]; then      # cut short: its checkpoints come back in results.tar.gz, for GHOST_RESUME
+            echo "kept $(du -sh "$work" | cut -f1) of checkpoints: carry results/ghosts/ and set GHOST_RESUME to resume" \
+                | tee -a "$RES/ghosts_$lens.log"
+        fi
     done
     return $rc
 }
