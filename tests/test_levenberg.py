@@ -353,6 +353,54 @@ def test_a_huber_finish_fits_the_bulk_where_squares_chase_the_tail():
     assert med["huber"] < 0.7 * med["squares"], med
 
 
+class WeightedMap(SmoothMap):
+    """Two columns that one hidden unit cannot both fit, ``(tanh 2x₀, tanh 2x₁)``, the finish weighing them by ``w``
+    (the regressor's column weights, ``RegressorFit.W``)."""
+
+    def __init__(self, w, seed=7):
+        super().__init__(seed=seed)
+        self.sw = torch.sqrt(torch.as_tensor(w, dtype=torch.float64))
+
+    @staticmethod
+    def f(X):
+        return torch.tanh(2 * X[:, :2])
+
+    def lm_residual(self, z, batch):
+        sw = self.sw.to(z.dtype)
+        return sw * (z - batch["Y"].to(z.dtype)), sw.expand_as(z)
+
+    def validate(self, step, loss, seconds):
+        col = ((self.net(self.Xv) - self.Yv) ** 2).mean(0)
+        self.state["history"].append({"step": step, "rms": float(col.max().sqrt())})
+        return float((self.sw.float() ** 2 * col).sum()), {}
+
+
+def test_direction_weight_trades_position_accuracy_for_direction_accuracy():
+    """``NetConfig.direction_weight`` multiplies the direction columns' loss weights (and nothing else) before the
+    weights are normalised; a finish whose network cannot fit every column then fits the heavier ones better and
+    the others worse: how a zoom map whose position meets its goal with room to spare (0.8 of it) and whose
+    direction misses it (1.2) is balanced."""
+    from mi_neurallens.training.config import NetConfig
+    from mi_neurallens.training.outputs import loss_weights
+    assert NetConfig().direction_weight == 1.0
+    oscale, y = np.array([0.5, 0.4, 0.01, 0.008, 0.02]), np.full((8, 5), 0.9)
+    w1, w2 = loss_weights("goals", oscale, y), loss_weights("goals", oscale, y, 2.0)
+    np.testing.assert_allclose(w2[2:4] / w2[:2], 2.0 * w1[2:4] / w1[:2], rtol=1e-12)   # directions over positions
+    np.testing.assert_allclose(w2[0] / w2[1], w1[0] / w1[1], rtol=1e-12)
+    assert w1[4] == w2[4] == 0.05                                                       # T keeps its floor
+    np.testing.assert_allclose(loss_weights("uniform", oscale, y, 3.0), np.array([1, 1, 3, 3, 1]) / 1.8)
+    # the trade, through the finish itself: a 4-1-2 network from the same start, either column weighed 8
+    layers = random_layers([4, 1, 2], seed=3)
+    nc = types.SimpleNamespace(lm_rows=1024, lm_eval_every=10, stop_at_goals=False, patience=100)
+    cols = {}
+    for heavy in (0, 1):
+        prob = WeightedMap([8.0 if c == heavy else 1.0 for c in (0, 1)])
+        got = finish(torch, prob, layers, nc, seconds=1e9, max_iterations=40)
+        net = FlatMLP(torch, got)
+        cols[heavy] = ((net.forward(net.flatten(got), prob.Xv.double()) - prob.Yv.double()) ** 2).mean(0).sqrt()
+    assert cols[0][0] < 0.3 * cols[1][0] and cols[1][1] < 0.3 * cols[0][1], cols
+
+
 def test_stop_head_residuals_are_its_weighted_loss():
     """The stop head's residuals square to its column-weighted MSE, stacked or not; ``goals`` weights follow
     each column's spread (mm), so the µm error of a wide column counts as much as a narrow one's."""

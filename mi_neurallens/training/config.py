@@ -42,6 +42,7 @@ class NetConfig:
     direction_loss: str = "mse+cosine"  # or "cosine" (paper)
     cosine_weight: float = 1.0
     loss_weights: str = "goals"         # regressor, stop head: MSE weights ∝ std / goal, floored; or "uniform"
+    direction_weight: float = 1.0       # regressor: its direction columns' loss weight × this (outputs.loss_weights)
     odd_y: bool = True                  # regressor: y, dy = (ωy / s_max) × network: odd in ωy, no mirror seam
     input_box: bool = False             # regressor, stop head: train on the valid rays' box (input_box.py)
     exit_position: str = "auto"         # regressor: "plane", "cos" (× |dz|) or "auto" (cos beyond 60°: outputs.py)

@@ -171,7 +171,7 @@ class RegressorFit(Problem):
         u0, x0, y0 = pool0
         xn0 = (x0 - center) / scale_in
         self.sig_d2 = float(np.mean(self.oscale[2:4] ** 2))
-        self.W = self.f32(loss_weights(nc.loss_weights, self.oscale, y0))
+        self.W = self.f32(loss_weights(nc.loss_weights, self.oscale, y0, nc.direction_weight))
         # M of a batch from its normalised inputs (ωy = center + scale·xn)
         self.wy_c, self.wy_s = float(center[2]), float(scale_in[2])
         self.X = self.f32(xn0)
