@@ -118,13 +118,12 @@ def loss_weights(mode: str, oscale, y, direction_weight: float = 1.0) -> np.ndar
     other."""
     if mode == "uniform":
         w = np.ones(5)
-        w[2:4] *= float(direction_weight)
-        return w / w.mean()
-    if mode != "goals":
+    elif mode == "goals":
+        goal = np.array(GOAL_UNITS, dtype=np.float64)
+        goal[4] *= max(float(np.mean(np.abs(y[:, 4]))), 1e-6)
+        w = np.asarray(oscale, np.float64) / goal
+    else:
         raise NeuralLensError(f"unknown loss_weights {mode!r}: use 'goals' or 'uniform'")
-    goal = np.array(GOAL_UNITS, dtype=np.float64)
-    goal[4] *= max(float(np.mean(np.abs(y[:, 4]))), 1e-6)
-    w = np.asarray(oscale, np.float64) / goal
     w[2:4] *= float(direction_weight)
     w = w / w.mean()
     return np.maximum(w, 0.05)
