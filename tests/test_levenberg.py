@@ -288,6 +288,7 @@ def test_huber_residuals_square_to_the_huber_loss():
                                 huber_delta=None)
     fit.M_of = lambda xb, const=None: torch.ones(xb.shape[:-1] + (5,), dtype=xb.dtype)
     fit.predict = lambda xb: (fit.net(xb), fit.M_of(xb))
+    fit.huber_medians = lambda pv: RegressorFit.huber_medians(fit, pv)
     RegressorFit.lm_start(fit, lambda x: 0.1 * x[:, :1].expand(-1, 5))
     rv = torch.sqrt(fit.W) * (0.1 * Xv[:, :1] - Yv)
     np.testing.assert_allclose(fit.huber_delta.numpy(), 1.5 * rv.abs().median(0).values.numpy(), rtol=1e-12)
@@ -351,6 +352,77 @@ def test_a_huber_finish_fits_the_bulk_where_squares_chase_the_tail():
         net = FlatMLP(torch, got)
         med[name] = float((net.forward(net.flatten(got), prob.Xv.double()) - prob.Yv.double()).abs().median())
     assert med["huber"] < 0.7 * med["squares"], med
+
+
+class FollowingHuberMap(ContaminatedMap):
+    """:class:`ContaminatedMap` whose finish runs on the regressor's own Huber machinery: δ fixed by
+    ``RegressorFit.lm_start`` at ``lm_huber`` × the held-out median residual, the score, and, with ``refix`` > 0,
+    δ fixed anew by ``RegressorFit.lm_refix`` as the residuals fall (unit column weights, the network's outputs the
+    predictions)."""
+
+    def __init__(self, refix, seed=7):
+        super().__init__(seed=seed)
+        self.torch, self.W = torch, torch.ones(2, dtype=torch.float64)
+        self.nc = types.SimpleNamespace(lm_huber=0.5, lm_huber_refix=refix)
+
+    from mi_neurallens.training.regressor import RegressorFit as _R
+    lm_start, lm_refix, huber_medians, score = _R.lm_start, _R.lm_refix, _R.huber_medians, _R.score
+    huber_delta = last_pv = None
+    del _R
+
+    def predict(self, X):
+        return self.net(X).double(), None
+
+    def lm_residual(self, z, batch):
+        from mi_neurallens.training.regressor import huber_residual
+        return huber_residual(torch, z - batch["Y"].to(z.dtype), self.huber_delta.to(z.dtype))
+
+    def validate(self, step, loss, seconds):
+        pv, _ = self.predict(self.Xv)
+        self.last_pv = pv
+        med = float((pv - self.Yv).abs().median())
+        self.state["history"].append({"step": step, "median": med, "delta": self.huber_delta.tolist()})
+        return self.score(pv), {}
+
+
+def test_a_huber_threshold_that_follows_the_residuals_fits_the_bulk_tighter():
+    """``lm_huber_refix``: δ, fixed at the finish's start from a random network's residuals, lies far above the
+    finished map's, where the Huber loss is the squares again; fixed anew whenever a column's median residual has
+    fallen 1.5 times (at new bests only, each time the best score re-scored by the new loss), the same 60 iterations
+    from the same start reach a lower median error on the heavy-tailed rows.  ``lm_refix`` leaves δ alone before
+    the residuals have fallen that far, and with ``lm_huber_refix`` = 0."""
+    layers = random_layers([4, 16, 16, 2], seed=3)
+    nc = types.SimpleNamespace(lm_rows=1024, lm_eval_every=5, stop_at_goals=False, patience=100)
+    med, probs = {}, {}
+    for refix in (0.0, 1.5):
+        probs[refix] = prob = FollowingHuberMap(refix)
+        Yv = prob.Yv.double()
+        prob.Yv = Yv
+        got = finish(torch, prob, layers, nc, seconds=1e9, max_iterations=60)
+        net = FlatMLP(torch, got)
+        med[refix] = float((net.forward(net.flatten(got), prob.Xv.double()) - Yv).abs().median())
+    fixed, follow = probs[0.0].state, probs[1.5].state
+    assert "lm_huber_refixes" not in fixed
+    assert len({tuple(h["delta"]) for h in fixed["history"]}) == 1
+    assert follow["lm_huber_refixes"] >= 2
+    d0, d1 = np.array(follow["history"][0]["delta"]), np.array(follow["lm_huber_delta"])
+    assert (d1 < d0 / 1.5 ** 2).any(), (d0, d1)               # δ came down with the residuals
+    assert med[1.5] < 0.8 * med[0.0], med
+    # lm_refix itself: nothing until some column's median has fallen 1.5 times; then δ and the score anew
+    prob = FollowingHuberMap(1.5)
+    prob.Yv = prob.Yv.double()
+    prob.net = lambda X: torch.zeros(X.shape[0], 2, dtype=torch.float64)
+    prob.lm_start(prob.net)
+    delta0 = prob.huber_delta.clone()
+    prob.last_pv = prob.Yv * (1 - 1 / 1.4)                     # residuals 1/1.4 of the start's: not yet
+    assert prob.lm_refix() is None and torch.equal(prob.huber_delta, delta0)
+    prob.last_pv = prob.Yv * (1 - 1 / 1.6)
+    s = prob.lm_refix()
+    np.testing.assert_allclose(prob.huber_delta.numpy(), delta0.numpy() / 1.6, rtol=1e-9)
+    assert s == prob.score(prob.last_pv) and prob.state["lm_huber_refixes"] == 1
+    prob.nc.lm_huber_refix = 0.0
+    prob.last_pv = prob.Yv * 0.9
+    assert prob.lm_refix() is None
 
 
 class WeightedMap(SmoothMap):

@@ -67,6 +67,8 @@ class NetConfig:
     lm_eval_every: int = 10             # Levenberg–Marquardt iterations between validations
     lm_max_weights: int = 2500          # larger networks are left to Adam (levenberg.MAX_PARAMS, the same)
     lm_huber: float = 0.0               # regressor's finish: Huber loss, δ = this × its start's median |residual| (0: squares)
+    lm_huber_refix: float = 0.0         # ... and δ fixed anew whenever a column's median |residual| has fallen this many
+                                        # times since it was (0: once, at the finish's start; regressor.RegressorFit.lm_refix)
     lm_cell_weight: float = 0.0         # regressor's finish over moving groups: rows weighted by their configuration cell's
                                         # error over the cells' median, to this power, best weights by the worst cell (0: off)
     sizes: tuple = ()                   # "HxW" to try, smallest first; a map keeps the first at its goals (maps.py)

@@ -480,8 +480,9 @@ class _StackFinish:
 
     def judge(self, k, loss, moved: bool):
         """After an iteration: network ``k`` validated where it is due (every ``eval_every`` iterations, or when no
-        step lowers its loss), its best weights kept, and stopped at its goals, after ``patience`` validations
-        without a better score, when it diverges or when it has converged."""
+        step lowers its loss), its best weights kept (where the problem's loss follows its residuals, ``lm_refix``,
+        it may change at a new best, which is then scored by the new loss), and stopped at its goals, after
+        ``patience`` validations without a better score, when it diverges or when it has converged."""
         nc = self.nc
         converged = not moved and self.lams[k] > 1e8     # no step lowers the loss: at a minimum of what rows can tell
         if self.it % self.eval_every and not converged:
@@ -492,6 +493,10 @@ class _StackFinish:
             return
         if score < self.best[k]:
             self.best[k], self.best_theta[k], self.since_best[k] = score, self.theta[k].clone(), 0
+            refix = getattr(self.fits[k], "lm_refix", None)     # a loss that follows the residuals (the Huber δ)
+            rescored = None if refix is None else refix()
+            if rescored is not None:                          # changed here: the best weights scored by the new loss
+                self.best[k] = rescored
         else:
             self.since_best[k] += 1
         if nc.stop_at_goals and self.fits[k].goals_met():

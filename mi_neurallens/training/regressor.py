@@ -295,9 +295,11 @@ class RegressorFit(Problem):
         r, slope = huber_residual(self.torch, r, self.huber_delta.to(z.dtype))
         return r, s * slope
 
-    #: ``nc.lm_huber``'s δ per output column (a tensor), fixed when the finish starts (:meth:`lm_start`); None:
-    #: the finish minimises the squares
+    #: ``nc.lm_huber``'s δ per output column (a tensor), fixed when the finish starts (:meth:`lm_start`) and, with
+    #: ``nc.lm_huber_refix``, anew as the residuals fall (:meth:`lm_refix`); None: the finish minimises the squares
     huber_delta = None
+    #: the last validation's predictions in the finish on the Huber loss (what :meth:`lm_refix` reads)
+    last_pv = None
 
     def lm_start(self, net):
         """Called by the Levenberg–Marquardt finish with its starting network ``net``: with ``nc.lm_huber`` > 0,
@@ -310,9 +312,33 @@ class RegressorFit(Problem):
         self.net = net
         with self.torch.no_grad():
             pv, _ = self.predict(self.Xv)
-            r = (self.torch.sqrt(self.W) * (pv - self.Yv)).abs()
-        self.huber_delta = self.torch.clamp(self.nc.lm_huber * r.median(0).values, min=1e-12)
+        self.huber_delta = self.huber_medians(pv)
         self.state["lm_huber_delta"] = self.huber_delta.tolist()
+
+    def huber_medians(self, pv):
+        """``nc.lm_huber`` × the median |weighted residual| of the held-out predictions ``pv`` per output column: the
+        Huber threshold δ for weights that predict ``pv`` (at least 1e-12)."""
+        r = (self.torch.sqrt(self.W) * (pv - self.Yv)).abs()
+        return self.torch.clamp(self.nc.lm_huber * r.median(0).values, min=1e-12)
+
+    def lm_refix(self):
+        """Called by the Levenberg–Marquardt finish after a validation that gave it its best weights so far: with
+        ``nc.lm_huber_refix`` = f > 0, where some output column's held-out median |weighted residual| has fallen
+        f times or more since δ was fixed, δ is fixed anew at ``lm_huber`` × the medians of these weights.  So the
+        loss follows the residuals down and keeps fitting the bulk: fixed once, at the start (Adam's errors, several
+        times the finished map's), δ soon lies above most residuals and the Huber loss is the squares again.
+        Returns the score (:meth:`score`) of the validated weights under the new δ, the finish's best score from
+        here, or None where δ stays (recorded: ``lm_huber_delta``, the refixes counted in ``lm_huber_refixes``)."""
+        f = float(getattr(self.nc, "lm_huber_refix", 0.0))
+        if f <= 0 or self.huber_delta is None or self.last_pv is None:
+            return None
+        delta = self.huber_medians(self.last_pv)
+        if float((self.huber_delta / delta).max()) < f:
+            return None
+        self.huber_delta = delta
+        self.state["lm_huber_delta"] = delta.tolist()
+        self.state["lm_huber_refixes"] = int(self.state.get("lm_huber_refixes", 0)) + 1
+        return self.score(self.last_pv)
 
     def score(self, pv):
         """The held-out score the finish keeps the best weights by: the mean of the loss it minimises per
@@ -375,6 +401,7 @@ class RegressorFit(Problem):
         with self.torch.no_grad():
             pv, _ = self.predict(self.Xv)
             vl = self.score(pv)
+            self.last_pv = pv if self.huber_delta is not None else None
             yp = self.outputs(self.xv, self.xvn, pv.double().cpu().numpy())
         m = regression_errors(yp, self.yv, self.heading)
         rec = {"step": step, "loss": loss.item() if loss is not None else math.nan, "val_mse": vl,
