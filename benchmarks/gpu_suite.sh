@@ -220,7 +220,15 @@ stage_costs() {
 stage_ghosts() {   # GHOST_RESUME=DIR: resume from the work folders a cut-short call brought back (results/ghosts/)
     local rc=0 t0 work
     mkdir -p "$RES/ghosts"
-    [ -n "${GHOST_RESUME:-}" ] && cp -r "$GHOST_RESUME"/*.work "$RES/ghosts/"
+    if [ -n "${GHOST_RESUME:-}" ]; then   # a wrong folder stops here, not after a fresh start has spent the call
+        local saved=("$GHOST_RESUME"/*.work)
+        if [ ! -d "${saved[0]}" ]; then
+            echo "GHOST_RESUME=$GHOST_RESUME holds no <lens>.model.safetensors.work folder: give the results/ghosts/" \
+                 "folder a cut-short call brought back" | tee "$RES/ghosts_resume.log" >&2
+            return 1
+        fi
+        cp -r "${saved[@]}" "$RES/ghosts/"
+    fi
     for lens in ${GHOST_LENSES:-wide-22mm ood-59mm canon-ef-24mm-f1.4l}; do
         t0=$SECONDS
         py 100000 -m mi_neurallens train "$lens" --paths ghosts ${GHOST_ARGS:-} --out "$RES/ghosts" --no-progress \
