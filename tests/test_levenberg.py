@@ -585,8 +585,10 @@ def test_trainer_finishes_small_networks_and_a_finish_only_run_finishes_a_model(
     for (W, b), (W0, b0) in zip(ref.stop_head.layers, adam.stop_head.layers):
         np.testing.assert_array_equal(W, W0)
         np.testing.assert_array_equal(b, b0)
-    # finish-only with a wider regressor configured: the map's 2×16 network is widened (the same function) and finished
-    wide_cfg = load_config(overrides={**over, "regressor": dict(over["regressor"], width=24, **fin),
+    # finish-only with a wider regressor configured: the map's 2×16 network is widened (the same function) and finished,
+    # here on the Huber loss whose threshold follows the residuals (the model records its last δ and the refixes)
+    wide_cfg = load_config(overrides={**over, "regressor": dict(over["regressor"], width=24, lm_huber=0.5,
+                                                                lm_huber_refix=1.25, **fin),
                                       "classifier": dict(over["classifier"], **fin)})
     wid = train_map(lens, 0, "backward", z_rear, z_front, dom, wide_cfg, str(tmp_path / "w"), progress=False,
                     eval_n=20000, finish_only="maps", base=adam)
@@ -594,6 +596,9 @@ def test_trainer_finishes_small_networks_and_a_finish_only_run_finishes_a_model(
     assert [W.shape for W, _ in wid.classifier] == [W.shape for W, _ in adam.classifier]
     assert wid.training["regressor"]["widened_from"] == [16, 16] and wid.training["regressor"]["width"] == 24
     assert wid.metrics["regressor"]["position_um_median"] < 0.3 * ra["position_um_median"]
+    wlm = wid.training["regressor_lm"]
+    assert wlm["lm_huber_refixes"] >= 1 and len(wlm["lm_huber_delta"]) == 5
+    assert "lm_huber_refixes" not in ref.training["regressor_lm"]
     # finish_only = "stop-heads": only the stop head's finish, from its own weights widened to the configured width; the
     # classifier and regressor are the base's, bit for bit
     stop_cfg = load_config(overrides={**over, "stop": dict(over["stop"], width=24, lm_minutes=10.0, lm_iterations=30)})
