@@ -363,11 +363,13 @@ class FollowingHuberMap(ContaminatedMap):
     def __init__(self, refix, seed=7):
         super().__init__(seed=seed)
         self.torch, self.W = torch, torch.ones(2, dtype=torch.float64)
-        self.nc = types.SimpleNamespace(lm_huber=0.5, lm_huber_refix=refix)
+        self.nc = types.SimpleNamespace(lm_huber=0.5, lm_huber_refix=refix, lm_cell_weight=0.0)
 
     from mi_neurallens.training.regressor import RegressorFit as _R
     lm_start, lm_refix, huber_medians, score = _R.lm_start, _R.lm_refix, _R.huber_medians, _R.score
+    scores_by_cell = _R.scores_by_cell
     huber_delta = last_pv = None
+    cells: dict = {}
     del _R
 
     def predict(self, X):
@@ -420,6 +422,11 @@ def test_a_huber_threshold_that_follows_the_residuals_fits_the_bulk_tighter():
     s = prob.lm_refix()
     np.testing.assert_allclose(prob.huber_delta.numpy(), delta0.numpy() / 1.6, rtol=1e-9)
     assert s == prob.score(prob.last_pv) and prob.state["lm_huber_refixes"] == 1
+    # kept by the worst cell (lm_cell_weight), the best score does not depend on δ: δ follows, the score stays
+    prob.cells, prob.nc.lm_cell_weight = {"wide, inf": np.arange(10)}, 1.0
+    prob.last_pv = prob.Yv * (1 - 1 / (1.6 * 1.6))
+    assert prob.lm_refix() is None and prob.state["lm_huber_refixes"] == 2
+    np.testing.assert_allclose(prob.huber_delta.numpy(), delta0.numpy() / 1.6 ** 2, rtol=1e-9)
     prob.nc.lm_huber_refix = 0.0
     prob.last_pv = prob.Yv * 0.9
     assert prob.lm_refix() is None

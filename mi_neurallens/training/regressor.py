@@ -328,8 +328,10 @@ class RegressorFit(Problem):
         loss follows the residuals down and keeps fitting the bulk: fixed once, at the start (Adam's errors, several
         times the finished map's), δ soon lies above most residuals and the Huber loss is the squares again.
         Returns the score (:meth:`score`) of the validated weights under the new δ, the finish's best score from
-        here, or None where δ stays (recorded: ``lm_huber_delta``, the refixes counted in ``lm_huber_refixes``)."""
-        f = float(getattr(self.nc, "lm_huber_refix", 0.0))
+        here, or None where the score stays: δ stays, or the finish keeps its best weights by the worst cell
+        (:meth:`scores_by_cell`), which δ does not change (recorded: ``lm_huber_delta``, the refixes counted in
+        ``lm_huber_refixes``)."""
+        f = float(self.nc.lm_huber_refix)
         if f <= 0 or self.huber_delta is None or self.last_pv is None:
             return None
         delta = self.huber_medians(self.last_pv)
@@ -338,7 +340,12 @@ class RegressorFit(Problem):
         self.huber_delta = delta
         self.state["lm_huber_delta"] = delta.tolist()
         self.state["lm_huber_refixes"] = int(self.state.get("lm_huber_refixes", 0)) + 1
-        return self.score(self.last_pv)
+        return None if self.scores_by_cell() else self.score(self.last_pv)
+
+    def scores_by_cell(self) -> bool:
+        """The finish keeps its best weights by the worst configuration cell's goal ratio (:meth:`cell_weights`),
+        not by :meth:`score`: a map over moving groups finishing with ``nc.lm_cell_weight`` > 0."""
+        return bool(self.cells) and self.finishing and self.nc.lm_cell_weight > 0
 
     def score(self, pv):
         """The held-out score the finish keeps the best weights by: the mean of the loss it minimises per
@@ -419,7 +426,7 @@ class RegressorFit(Problem):
             wd = max(med, key=lambda k: med[k]["direction_arcsec_median"])
             rec.update(cell_pos_um_med=med[wp]["position_um_median"], cell_pos_worst=wp,
                        cell_dir_as_med=med[wd]["direction_arcsec_median"], cell_dir_worst=wd)
-            if self.finishing and self.nc.lm_cell_weight > 0:
+            if self.scores_by_cell():
                 vl = rec["cell_score"] = self.cell_weights(med)
             post = dict(worst=f"{rec['cell_pos_um_med']:.2f}µm/{rec['cell_dir_as_med']:.2f}\" ({wd})")
         self.state["history"].append(rec)
