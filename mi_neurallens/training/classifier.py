@@ -152,11 +152,19 @@ class ClassifierFit(Problem):
         return r, (r != 0).to(z.dtype)
 
     def goals_met(self) -> bool:
-        """The last validation's misclassification is at most ``nc.goal_misclassification``; a map over moving
-        groups in every configuration cell (the worst cell's, ``cell_misclass``)."""
+        """The last validation's misclassification is at most ``nc.goal_misclassification`` (with the margin
+        ``nc.goal_margin``).  A map over moving groups meets it in every configuration cell (the worst cell's,
+        ``cell_misclass``) at the last **two** validations: a cell holds a few thousand validation rays and a few
+        dozen misclassified ones, so its rate moves by about 0.1 percentage points from one validation to the
+        next (the EF 24-70's worst cell 0.53 → 0.44 %), and one lucky validation would stop the network."""
         h = self.state["history"]
-        return bool(h) and h[-1].get("cell_misclass", h[-1]["val_misclass"]) \
-            <= self.nc.goal_margin * self.nc.goal_misclassification
+        goal = self.nc.goal_margin * self.nc.goal_misclassification
+        if not h:
+            return False
+        if "cell_misclass" not in h[-1]:
+            return h[-1]["val_misclass"] <= goal
+        last = [r["cell_misclass"] for r in h[-2:] if "cell_misclass" in r]
+        return len(last) == 2 and max(last) <= goal
 
     def validate(self, step, loss, seconds):
         """Held-out misclassification and BCE, appended to the history; returns (score, postfix)."""
