@@ -72,6 +72,18 @@ def test_flare_goals_scale_with_the_pixel():
         flare_goals(0)
 
 
+def test_a_camera_classifier_trains_to_its_patience_and_a_ghosts_stops_at_its_goals():
+    """The camera map's classifier runs past its goals by default (fewer rays misclassified for seconds more); the
+    forward maps' classifiers (up to 32 ghosts) stop at theirs, also where a recipe runs the camera's on."""
+    cfg = load_config(None, "x")
+    assert not cfg.net("classifier", "backward").stop_at_goals and cfg.net("classifier", "forward").stop_at_goals
+    assert cfg.net("regressor", "backward").stop_at_goals and cfg.net("stop", "backward").stop_at_goals
+    recipe = load_config(None, "x", {"classifier": {"stop_at_goals": False, "max_minutes": 3.0}})
+    assert recipe.net("classifier", "forward").stop_at_goals
+    assert not load_config(None, "x", {"forward_classifier": {"stop_at_goals": False}}).net(
+        "classifier", "forward").stop_at_goals
+
+
 def test_sizes_are_checked_when_read():
     assert parse_size("3x16") == (3, 16) and parse_size("5X32") == (5, 32)
     for bad in ("3", "3x", "0x16", "ax16"):
