@@ -521,6 +521,7 @@ def test_a_conditioned_maps_goals_hold_in_its_worst_configuration_cell(zoom, con
     error grows): rays at a listed end and at infinity or close focus fall in the cells so named (infinity is the end
     of the focus band the focus parameter images infinity at), cells with too few rays are left out, and the
     regressor's and the classifier's goals fail on a worst cell above them even where the all-ray figure meets them."""
+    import dataclasses
     from types import SimpleNamespace
     from mi_neurallens.training.classifier import ClassifierFit
     from mi_neurallens.training.config import NetConfig
@@ -535,6 +536,16 @@ def test_a_conditioned_maps_goals_hold_in_its_worst_configuration_cell(zoom, con
     np.testing.assert_array_equal(np.flatnonzero(cells["tele, close"]), np.arange(1000, 2000))
     x[1000:2000:2, 4:6] = tf[0]                           # 500 of "tele, close" move to "wide, infinity"
     assert "tele, close" not in configs.cells(x, min_rays=501) and "tele, close" in configs.cells(x, min_rays=500)
+    # the zoom margin's rays (beyond the listed range: trained on, never rendered) are in no cell, but for the
+    # finish's row weights; the ends themselves are in, also as float32 inputs
+    wide = dataclasses.replace(configs, zoom_margin=0.05)
+    y = np.zeros((3000, 6))
+    for k, t in enumerate((t1, t1 + 0.02 * (t1 - t0), t0 - 0.02 * (t1 - t0))):
+        y[1000 * k:1000 * (k + 1), 4:6] = (t, float(np.mean(wide.band(t1))))
+    inner = wide.cells(y.astype(np.float32), min_rays=1)
+    assert sorted(inner) == ["tele, mid"] and np.flatnonzero(inner["tele, mid"]).tolist() == list(range(1000))
+    every = wide.cells(y, min_rays=1, margin=True)
+    assert sorted(every) == ["tele, mid", "wide, mid"] and every["tele, mid"].sum() == 2000
     # the goals: median 2 um / 5 arcsec, 0.5 % misclassified, each within the margin 0.9
     nc = NetConfig()
     rec = {"pos_um_med": 1.0, "pos_um_p99": 10.0, "dir_as_med": 3.0, "dir_as_p99": 20.0}

@@ -364,7 +364,7 @@ class RegressorFit(Problem):
         w = edge_weights(self.stream.ps, ur, self.nc) if self.nc.edge_weight > 0 else None
         if self.cell_w:
             wc = np.ones(len(xr))
-            for c, m in self.conf.cells(xr, min_rays=0).items():
+            for c, m in self.conf.cells(xr, min_rays=0, margin=True).items():
                 wc[m] = self.cell_w.get(c, 1.0)
             w = wc if w is None else w * wc
         if w is not None:

@@ -384,13 +384,17 @@ class Configurations:
         d = dict(zip(self.names, cond))
         return d.get("zoom", 0.0), d.get("focus", 0.0)
 
-    def cells(self, x: np.ndarray, min_rays: int = CELL_MIN_RAYS) -> dict:
+    def cells(self, x: np.ndarray, min_rays: int = CELL_MIN_RAYS, margin: bool = False) -> dict:
         """The rays ``x`` (N, inputs; the map's inputs, configuration columns at 4, 5) grouped by where their
         configuration lies in the learned range: the zoom range's outer :data:`CELL_EDGES` fraction at each end
         ("wide", "tele"), the focus band's at each end ("infinity", "close"), the rest ("mid").  Returns
         {name: boolean mask (N,)} of the cells holding at least ``min_rays`` rays, e.g. ``"tele, infinity"``: what a
         conditioned map's goals are checked on, since its error grows toward the range's ends and corners, which an
-        all-ray median averages away (the goals hold per configuration)."""
+        all-ray median averages away (the goals hold per configuration).
+
+        The rays of the :attr:`zoom_margin` (zooms beyond the listed range, which training draws and no sensor
+        renders) are in no cell, so the goals are checked on renderable configurations only; with ``margin`` they
+        are in the end cells beside them (what the finish's row weights need: a weight for every row)."""
         x = np.asarray(x, dtype=np.float64)
         t, f = self.split([x[:, 4 + j] for j in range(self.dims)])
         t = np.broadcast_to(np.asarray(t, np.float64), (len(x),))
@@ -400,7 +404,8 @@ class Configurations:
             t0, t1 = self.zoom_range
             a = (t - t0) / max(t1 - t0, 1e-30)
             e = CELL_EDGES["zoom"]
-            parts.append((("wide", a < e), ("mid", (a >= e) & (a <= 1 - e)), ("tele", a > 1 - e)))
+            inside = np.ones(len(x), bool) if margin else (a >= -1e-6) & (a <= 1.0 + 1e-6)   # float32 inputs too
+            parts.append((("wide", (a < e) & inside), ("mid", (a >= e) & (a <= 1 - e)), ("tele", (a > 1 - e) & inside)))
         if "focus" in self.names:
             lo, hi = self._band_np(t)
             b = (f - lo) / np.maximum(hi - lo, 1e-30)
