@@ -12,8 +12,8 @@ max), the fraction of rays whose validity flips, and the classifier + regressor 
 ``--repeats``, same run).  The candidates are odd Padé approximants of tanh with the input clamped where
 they reach 1, and two minimax rationals of the same form (:func:`fit_minimax`, issue 55: on an AVX-512 Zen 5 the
 activation is about half the cost of the EF 24-70's map: an identity activation evaluated it 1.8x as fast),
-against Eigen's 13/6 rational (the training activation).  Lenses without moving groups only: a map with configuration
-inputs (a zoom lens's) needs its ``condition_values`` set first.
+against Eigen's 13/6 rational (the training activation).  A map of a lens with moving groups is measured at its
+first zoom position focused at infinity, as ``bench_mlp.py`` measures it.
 
     python lab/benchmarks/activation_budget.py --maps wide-22mm:0,canon-ef-24mm-f1.4l:0,wide-22mm:2560 --repeats 10
 
@@ -156,6 +156,12 @@ def main(argv=None):
         lens = Lens.load(lens_name)
         model = load_model(bundled_model_path(lens_name), lens)
         tm = model.map("transmit" if pid == 0 else pid, "backward" if pid == 0 else "forward")
+        cond = getattr(tm.domain, "conditions", None)
+        if cond is not None:    # moving groups: configured as bench_mlp.py does (the first position, infinity)
+            import math
+            from mi_neurallens.optics import moving as mv
+            lens, t, f = mv.configure(lens, None, math.inf)
+            tm = cond.configure_map(tm, lens.image_z, t, f)
         tm.stop_head = None                                # the camera path at the trained aperture
         x = sample_inputs(tm, n, seed=pid + 7)
         logit_ref, y_ref = tm.eval_reduced_np(x)
