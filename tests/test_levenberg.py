@@ -593,15 +593,20 @@ def test_trainer_finishes_small_networks_and_a_finish_only_run_finishes_a_model(
         np.testing.assert_array_equal(W, W0)
         np.testing.assert_array_equal(b, b0)
     # finish-only with a wider regressor configured: the map's 2×16 network is widened (the same function) and finished,
-    # here on the Huber loss whose threshold follows the residuals (the model records its last δ and the refixes)
+    # here on the Huber loss whose threshold follows the residuals (the model records its last δ and the refixes);
+    # then, as widen_width asks, widened again and finished again (levenberg.widened_finish), both recorded
     wide_cfg = load_config(overrides={**over, "regressor": dict(over["regressor"], width=24, lm_huber=0.5,
-                                                                lm_huber_refix=1.25, **fin),
+                                                                lm_huber_refix=1.25, widen_width=28,
+                                                                widen_minutes=10.0, **fin),
                                       "classifier": dict(over["classifier"], **fin)})
     wid = train_map(lens, 0, "backward", z_rear, z_front, dom, wide_cfg, str(tmp_path / "w"), progress=False,
                     eval_n=20000, finish_only="maps", base=adam)
-    assert [W.shape for W, _ in wid.regressor] == [(24, 4), (24, 24), (5, 24)]
+    assert [W.shape for W, _ in wid.regressor] == [(28, 4), (28, 28), (5, 28)]
     assert [W.shape for W, _ in wid.classifier] == [W.shape for W, _ in adam.classifier]
     assert wid.training["regressor"]["widened_from"] == [16, 16] and wid.training["regressor"]["width"] == 24
+    assert wid.training["regressor_widened"]["from"] == [24, 24] and wid.training["regressor_widened"]["to"] == 28
+    assert wid.training["regressor_widened"]["first_finish"]["lm"]["iterations"] == 35
+    assert "classifier_widened" not in wid.training
     assert wid.metrics["regressor"]["position_um_median"] < 0.3 * ra["position_um_median"]
     wlm = wid.training["regressor_lm"]
     assert wlm["lm_huber_refixes"] >= 1 and len(wlm["lm_huber_delta"]) == 5
@@ -647,6 +652,52 @@ def test_widening_keeps_the_function_and_lets_the_finish_go_lower():
     finish(torch, again, wide, nc, seconds=1e9, max_iterations=40)
     assert again.state["history"][0]["rms"] == pytest.approx(stalled, rel=1e-3)    # it starts where it stalled
     assert min(h["rms"] for h in again.state["history"]) < 0.5 * stalled, (stalled, again.state["history"])
+
+
+def test_a_widened_finish_continues_past_the_goals_from_the_same_function(tmp_path):
+    """``widen_width`` / ``widen_minutes`` (:func:`widened_finish`, what a recipe asks of one ``train``): after the
+    first finish, which stops at its goals, the network is widened (the same function: the widened finish's first
+    validation is where the first finish ended), finished to its iteration budget past the goals, far lower; the
+    state records both finishes, and a rerun takes the widened network from its checkpoint.  A widened network
+    larger than the finish takes is refused before any training."""
+    from mi_neurallens import NeuralLensError
+    from mi_neurallens.training.levenberg import check_widenable, finish_results, widened_finish
+    nc = types.SimpleNamespace(hidden=2, width=4, widen_width=12, widen_minutes=1e6, lm_minutes=1e6,
+                               lm_max_weights=MAX_PARAMS, lm_iterations=40, lm_rows=1024, lm_eval_every=10,
+                               stop_at_goals=True, patience=100)
+
+    def run(ckpt):
+        fit = SmoothMap(goal=0.3)
+        res = [{"layers": random_layers([4, 4, 4, 2], seed=5), "state": fit.state}]
+        res[0]["state"]["stop_reason"] = "time_budget"            # Adam's
+        finish_results(torch, [fit], res, nc, ["backward.0"], ckpt)
+        first = [dict(h) for h in res[0]["state"]["history"]]
+        widened_finish(torch, [fit], res, nc, ["backward.0"], ckpt)
+        return fit, res[0], first
+
+    fit, r, first = run(str(tmp_path / "stack"))
+    st = r["state"]
+    assert [np.shape(W) for W, _ in r["layers"]] == [(12, 4), (12, 12), (2, 12)]
+    assert st["widened"]["from"] == [4, 4] and st["widened"]["to"] == 12
+    assert st["widened"]["first_finish"]["lm"]["stop_reason"] == "goals"     # the first finish stopped at its goals
+    assert st["widened"]["first_finish"]["lm"]["iterations"] < 40
+    assert st["lm"]["stop_reason"] == "max_iterations" and st["lm"]["iterations"] == 40   # the second did not
+    assert st["adam_stop_reason"] == "time_budget" and st["stop_reason"] == "goals"
+    later = st["history"][len(first):]
+    assert st["history"][:len(first)] == first and {h["phase"] for h in later} == {"widened"}
+    assert later[0]["rms"] == pytest.approx(first[-1]["rms"], rel=1e-4)     # widened: the same function
+    assert min(h["rms"] for h in later) < 0.5 * min(h["rms"] for h in first)
+    best = FlatMLP(torch, r["layers"])
+    got = float(((best.forward(best.flatten(r["layers"]), fit.Xv.double()) - fit.Yv.double()) ** 2).mean().sqrt())
+    assert got == pytest.approx(min(h["rms"] for h in later), rel=1e-3)
+    _, again, _ = run(str(tmp_path / "stack"))                     # a rerun: both finishes from their checkpoints
+    for (W, b), (W0, b0) in zip(again["layers"], r["layers"]):
+        np.testing.assert_array_equal(W, W0)
+    check_widenable(nc, 4, 2, "regressor")
+    with pytest.raises(NeuralLensError, match=r"regressor.widen_width = 40 makes a 2x40 network of 1922 weights.*"
+                                              r"--set regressor.lm_max_weights=1922"):
+        check_widenable(types.SimpleNamespace(**{**vars(nc), "widen_width": 40, "lm_max_weights": 1500}), 4, 2,
+                        "regressor")
 
 
 def test_row_feed_hands_out_each_fresh_row_once_in_chunks():

@@ -358,6 +358,8 @@ def test_budget_is_the_sum_of_the_networks_wall_budgets():
     sized = load_config(None, overrides={"forward_regressor": {"sizes": ["3x16", "5x32"]}, "stop": {"max_minutes": 0.0}})
     got = budget_minutes(sized, "forward", 2)
     assert got["regressor"] == pytest.approx(2 * (2 * 1.0 + 1.0)) and got["stop"] == 0.0
+    wide = load_config(None, overrides={"regressor": {"widen_width": 24, "widen_minutes": 3.0}})
+    assert budget_minutes(wide, "backward", 1)["regressor"] == pytest.approx(5.5 + 3.0)    # the widened finish too
     assert minutes_text(12.34) == "12.3 min" and minutes_text(170.0) == "2 h 50 min"
     line = _budget_text(c, {"backward": [object()], "forward": [object()] * 33})
     assert "34 map(s) to train (1 backward, 33 forward)" in line and "at most 2 h 13 min" in line

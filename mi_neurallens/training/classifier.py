@@ -19,7 +19,7 @@ from ..transport.planning import Domain
 from ..transport.sampling import PathSampler
 from .data import classifier_samples
 from .evaluate import map_outputs_np
-from .levenberg import FINISH_POOL, finish_results
+from .levenberg import FINISH_POOL, check_widenable, finish_results, widened_finish
 from .nets import load_torch, new_state, pick_device
 from .stacked import Problem
 
@@ -36,7 +36,8 @@ def train_classifier(ps: PathSampler, valid_u_source, val, nc: NetConfig, *, cen
 def train_classifiers(problems, nc: NetConfig, *, ckpt: str | None = None, threads: int = 2, device: str = "auto",
                       progress: bool = True, log=None, desc: str = "classifiers", start=None) -> list:
     """Train the classifiers of several maps as one stack, then (margin target only) finish each with
-    Levenberg–Marquardt for ``nc.lm_minutes`` (:func:`~mi_neurallens.training.levenberg.finish_results`).
+    Levenberg–Marquardt for ``nc.lm_minutes`` (:func:`~mi_neurallens.training.levenberg.finish_results`) and, where
+    ``nc.widen_width`` asks, widen and finish it again (:func:`~mi_neurallens.training.levenberg.widened_finish`).
     ``problems``: one dict per map with ``ps`` (:class:`~mi_neurallens.transport.sampling.PathSampler`),
     ``valid_u_source`` (n → (n, 4) valid unit-cube samples), ``val`` ((x, label) natural-mix held-out),
     ``center``, ``scale_in``, ``seed`` and ``key``.  ``start``: one trained classifier per map (``{"layers", …}``):
@@ -47,6 +48,9 @@ def train_classifiers(problems, nc: NetConfig, *, ckpt: str | None = None, threa
     torch.manual_seed(int(problems[0]["seed"]))
     keys = [p["key"] for p in problems]
     prior = peek_stack(ckpt, keys)
+    if nc.target == "margin":
+        check_widenable(nc, len(problems[0]["center"]), 1,
+                        ("forward_" if keys[0].startswith("forward") else "") + "classifier")
     ncp = dataclasses.replace(nc, pool=pool_rows(nc, len(problems), 4 * (len(problems[0]["center"]) + 1))
                               if start is None else FINISH_POOL)
     fits = []
@@ -67,6 +71,7 @@ def train_classifiers(problems, nc: NetConfig, *, ckpt: str | None = None, threa
         res = [{"layers": s0["layers"], "state": f.state} for s0, f in zip(start, fits)]
     if nc.target == "margin":
         finish_results(torch, fits, res, nc, keys, ckpt, log, progress)
+        widened_finish(torch, fits, res, nc, keys, ckpt, log, progress)
     for r in res:
         r["state"]["stacked_with"] = len(problems)
     return res

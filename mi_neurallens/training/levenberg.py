@@ -21,7 +21,9 @@ A run's networks finish after Adam through :func:`finish_results`: those that mi
 enough, in stacks of one shape (:func:`lm_stack_size`: one on a CPU, many on a GPU), each saved as it finishes.
 A finish-only run (``mi-neurallens train --finish-only``) starts from a model's networks, widened first where the
 configuration asks (:func:`widen_as_configured`), and refuses before any work what the finish cannot change
-(:func:`check_finishable`).
+(:func:`check_finishable`).  A network's settings may also ask for a second finish in the same run, after the
+first: widened to ``widen_width`` and finished ``widen_minutes`` more (:func:`widened_finish`; refused before any
+work where the widened network is too large to finish, :func:`check_widenable`).
 
 What a problem provides (:class:`~.stacked.Problem`): ``fresh_rows(n)``, ``lm_residual(z, batch)`` →
 (r, s) with r the residuals (n, outputs) whose mean square is the loss and ``s = ∂r/∂z`` (the losses are
@@ -631,6 +633,79 @@ def finish_results(torch, fits, results, nc: NetConfig, keys, ckpt: str | None =
             if ckpt:
                 atomic_write_text(f"{ckpt}.lm.{keys[j]}.json",
                                   json.dumps({"layers": [(W.tolist(), b.tolist()) for W, b in layers], "state": st}))
+
+
+def widened_finish(torch, fits, results, nc: NetConfig, keys, ckpt: str | None = None, log=None,
+                   progress: bool = False) -> None:
+    """The second finish a network's settings may ask for after :func:`finish_results` (``nc.widen_width`` and
+    ``nc.widen_minutes``), in place: each network of ``results`` with ``nc.hidden`` hidden layers, one of them
+    narrower than ``widen_width``, widened to it (:func:`widen_as_configured`: the same function, with room) and
+    finished for ``widen_minutes`` more — to that budget, or ``patience``, not to its goals: the goals are medians
+    over the validation's configuration cells, which a map can meet while one configuration inside a cell misses
+    (the EF 24-70's camera map: its finish stopped at its goals with the close-focus tele corner at 2.08 µm; widened
+    from 4×27 to 4×29 and finished 14 minutes more, 1.86 µm).  Networks the first finish skipped (larger than
+    ``lm_max_weights``) stay as they are.  Each network's state records ``widened``: the hidden widths before, and
+    the first finish's ``lm`` record and stop reasons, and the second finish's validations are marked
+    ``phase = "widened"``; its ``stop_reason`` is ``"goals"`` where the last validation is within them, else Adam's.  With ``ckpt``, each is saved to ``<ckpt>.lm.<key>.widened.json`` and a rerun takes
+    it from there."""
+    import zlib
+    width, minutes = int(getattr(nc, "widen_width", 0)), float(getattr(nc, "widen_minutes", 0.0))
+    if width <= 0 or minutes <= 0:
+        return
+    todo = []
+    for j, (r, key) in enumerate(zip(results, keys)):
+        st = r["state"]
+        if "skipped" in st.get("lm", {}):
+            continue
+        layers, before = widen_as_configured(r["layers"], nc.hidden, width, [zlib.crc32(key.encode()), width])
+        if before is None:
+            continue
+        first = {k: st.pop(k) for k in ("lm", "stop_reason", "adam_stop_reason") if k in st}
+        st["widened"] = {"from": before, "to": width, "first_finish": first}
+        r["layers"] = layers
+        if log:
+            log(getattr(fits[j], "desc", key), {"phase": "widen", "from": "x".join(map(str, before)),
+                                                "to": f"{nc.hidden}x{width}"})
+        todo.append(j)
+    if not todo:
+        return
+    nc2 = _replaced(nc, lm_minutes=minutes, stop_at_goals=False)
+    n_first = {j: len(results[j]["state"]["history"]) for j in todo}
+    finish_results(torch, [fits[j] for j in todo], [results[j] for j in todo], nc2, [f"{keys[j]}.widened" for j in todo],
+                   ckpt, log, progress)
+    for j in todo:
+        st = fits[j].state = results[j]["state"]
+        for rec in st["history"][n_first[j]:]:      # its steps count from Adam's last again, as the first finish's
+            rec["phase"] = "widened"
+        first = st["widened"]["first_finish"]
+        st["adam_stop_reason"] = first.get("adam_stop_reason", first.get("stop_reason"))
+        st["stop_reason"] = "goals" if fits[j].goals_met() else st["adam_stop_reason"]
+
+
+def _replaced(nc, **changes):
+    """``nc`` (a :class:`~mi_neurallens.training.config.NetConfig`, or a namespace in tests) with ``changes``."""
+    import copy
+    out = copy.copy(nc)
+    for k, v in changes.items():
+        setattr(out, k, v)
+    return out
+
+
+def check_widenable(nc: NetConfig, n_in: int, n_out: int, table: str) -> None:
+    """Before any training: a :class:`~mi_neurallens.errors.NeuralLensError` where ``nc`` asks for a widened finish
+    (``widen_width``, ``widen_minutes``) of a network (``n_in`` inputs, ``n_out`` outputs, ``nc.hidden`` hidden
+    layers) that would then have more weights than the finish takes (``lm_max_weights``), so the widened network
+    would be left untrained; ``table``: its configuration table, which the message names."""
+    from ..errors import NeuralLensError
+    width = int(getattr(nc, "widen_width", 0))
+    if width <= 0 or float(getattr(nc, "widen_minutes", 0.0)) <= 0:
+        return
+    dims = [int(n_in)] + [max(width, int(nc.width))] * int(nc.hidden) + [int(n_out)]
+    P = sum(a * b + b for a, b in zip(dims[:-1], dims[1:]))
+    if P > nc.lm_max_weights:
+        raise NeuralLensError(f"{table}.widen_width = {width} makes a {nc.hidden}x{width} network of {P} weights, more "
+                              f"than the Levenberg-Marquardt finish takes ({table}.lm_max_weights = "
+                              f"{nc.lm_max_weights}); raise it, e.g. --set {table}.lm_max_weights={P}")
 
 
 #: a stack's Jacobians on a GPU stay below this (bytes; float32, with the scaled copy)

@@ -266,6 +266,8 @@ def _neural_map(lens, spec, reg: dict, cls: dict, stream, cfg: TrainConfig, ncs,
         if r["state"].get("lm"):       # with the regressor's Huber threshold: its last δ, how often it was fixed anew
             huber = {k: r["state"][k] for k in ("lm_huber_delta", "lm_huber_refixes") if k in r["state"]}
             training[f"{net_name}_lm"] = {**r["state"]["lm"], **huber}
+        if r["state"].get("widened"):  # widened after its finish and finished again (levenberg.widened_finish)
+            training[f"{net_name}_widened"] = r["state"]["widened"]
     if reg["state"].get("input_box"):      # trained on this box (input_box), folded back into the map's inputs
         training["regressor_input_box"] = dict(zip(("center", "scale"), reg["state"]["input_box"]))
     if keep is not None or finish_only is not None:

@@ -20,7 +20,7 @@ from ..errors import NeuralLensError
 from .config import NetConfig
 from .data import RegressorStream
 from .input_box import fold_input_box, input_box, is_box
-from .levenberg import FINISH_POOL, finish_results
+from .levenberg import FINISH_POOL, check_widenable, finish_results, widened_finish
 from .nets import load_torch, new_state, pick_device
 from .outputs import (ODD_COLUMNS, edge_weights, fit_output_transform, loss_weights, odd_factor,
                       wants_position_cos)
@@ -42,7 +42,8 @@ def train_regressors(problems, nc: NetConfig, *, ckpt: str | None = None, thread
                      progress: bool = True, log=None, desc: str = "regressors", start=None) -> list:
     """Train the regressors of several maps as one stack (:func:`~mi_neurallens.training.stacked.train_stack`),
     then finish each with Levenberg–Marquardt for ``nc.lm_minutes``
-    (:func:`~mi_neurallens.training.levenberg.finish_results`).
+    (:func:`~mi_neurallens.training.levenberg.finish_results`), and, where ``nc.widen_width`` asks, widen and finish
+    it again (:func:`~mi_neurallens.training.levenberg.widened_finish`).
 
     ``problems``: one dict per map with ``stream`` (:class:`~mi_neurallens.training.data.RegressorStream`), ``val``
     ((x, y) float64 held-out valid samples), ``heading``, ``center``, ``scale_in``, ``seed``, ``s_max`` (the
@@ -57,6 +58,7 @@ def train_regressors(problems, nc: NetConfig, *, ckpt: str | None = None, thread
     keys = [p["key"] for p in problems]
     prior = peek_stack(ckpt, keys)
     n_in = len(problems[0]["center"])
+    check_widenable(nc, n_in, 5, ("forward_" if keys[0].startswith("forward") else "") + "regressor")
     n_pool = pool_rows(nc, len(problems), 4 * (n_in + 5 + 5 + 1)) if start is None else FINISH_POOL
     t_start = time.perf_counter()
     fits = [_regressor_fit(torch, dev, p, nc, prior, None if start is None else start[j], n_pool, ckpt, log,
@@ -68,6 +70,7 @@ def train_regressors(problems, nc: NetConfig, *, ckpt: str | None = None, thread
     else:
         res = [{"layers": s0["layers"], "state": f.state} for s0, f in zip(start, fits)]
     finish_results(torch, fits, res, nc, keys, ckpt, log, progress)
+    widened_finish(torch, fits, res, nc, keys, ckpt, log, progress)
     out = []
     for r, f, p in zip(res, fits, problems):
         st = r["state"]

@@ -25,7 +25,7 @@ from ..transport.sampling import PathSampler, heldout_valid
 from .data import RegressorStream
 from .evaluate import stop_errors
 from .input_box import fold_input_box, input_box, is_box
-from .levenberg import check_finishable, finish_results, widen_as_configured
+from .levenberg import check_finishable, check_widenable, finish_results, widen_as_configured, widened_finish
 from .nets import load_torch, new_state, pick_device
 from .outputs import fit_output_transform
 from .stacked import Problem
@@ -197,6 +197,7 @@ def train_stop_heads(lens, tms, nc: NetConfig, *, seeds, fresnel: bool = True, m
         raise NeuralLensError(f"train_stop_heads: one stack needs one crossing count, got {sorted(ks)}")
     k = ks.pop()
     keys = [tm.key for tm in tms]
+    check_widenable(nc, len(tms[0].input_center), 2 * k, "forward_stop" if tms[0].direction == "forward" else "stop")
     if start is None:
         res = train_stack(torch, dev, fits, nc, seeds=seeds, n_in=len(tms[0].input_center), n_out=2 * k, keys=keys,
                           progress=progress,
@@ -204,6 +205,7 @@ def train_stop_heads(lens, tms, nc: NetConfig, *, seeds, fresnel: bool = True, m
     else:
         res = [_finish_start(tm, head, f, nc, log) for tm, head, f in zip(tms, start, fits)]
     finish_results(torch, fits, res, nc, keys, log=log, progress=progress)
+    widened_finish(torch, fits, res, nc, keys, log=log, progress=progress)
     return [_stop_head(r, tr, box, tm, nc, k, seed, None if start is None else start[j], t0, len(tms))
             for j, (r, tr, seed, box, tm) in enumerate(zip(res, transforms, seeds, boxes, tms))]
 
@@ -273,6 +275,8 @@ def _stop_head(r: dict, transform, trained_box, tm, nc: NetConfig, k: int, seed:
                 "wall_seconds": time.perf_counter() - t0, "stacked_with": n_maps, "history": st["history"]}
     if st.get("lm"):
         training["lm"] = st["lm"]
+    if st.get("widened"):           # widened after its finish and finished again (levenberg.widened_finish)
+        training["widened"] = st["widened"]
     if box is not None:
         training["input_box"] = box
     if s0 is not None:          # "refined_from": the record's name in the model files written before "finish"
