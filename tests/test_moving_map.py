@@ -534,6 +534,18 @@ def test_a_conditioned_maps_goals_hold_in_its_worst_configuration_cell(zoom, con
     cells = configs.cells(x, min_rays=500)
     assert sorted(cells) == ["mid, mid", "tele, close", "tele, infinity", "wide, infinity"]
     np.testing.assert_array_equal(np.flatnonzero(cells["tele, close"]), np.arange(1000, 2000))
+    # with its corners: the listed ends at infinity and close focus are in their end cells and in the corners there;
+    # a zoom 5 % of the range inside the tele end is in "tele, close" only (CORNER_EDGES: the zoom's outer 3 %)
+    with_corners = configs.cells(x, min_rays=500, corners=True)
+    assert sorted(with_corners) == sorted([*cells, "tele, close, corner", "tele, infinity, corner",
+                                                  "wide, infinity, corner"])
+    np.testing.assert_array_equal(with_corners["tele, close, corner"], cells["tele, close"])
+    t_in = t1 - 0.05 * (t1 - t0)
+    x[1500:2000, 4:6] = (t_in, mv.focus_parameter(zoom, t_in, zoom.moving.close_focus_mm))
+    inner = configs.cells(x, min_rays=500, corners=True)
+    assert inner["tele, close"].sum() == 1000 and inner["tele, close, corner"].sum() == 500
+    assert "tele, close, corner" not in configs.cells(x, min_rays=501, corners=True)
+    x[1000:2000, 4:6] = tf[1]
     x[1000:2000:2, 4:6] = tf[0]                           # 500 of "tele, close" move to "wide, infinity"
     assert "tele, close" not in configs.cells(x, min_rays=501) and "tele, close" in configs.cells(x, min_rays=500)
     # the zoom margin's rays (beyond the listed range: trained on, never rendered) are in no cell, but for the

@@ -58,6 +58,8 @@ class NetConfig:
     goal_misclassification: float = 0.005       # classifier: held-out misclassification (natural mix)
     goal_stop_um: tuple = (2.0, 20.0)           # stop head: stop-plane crossing error (median, p99), µm
     goal_margin: float = 0.9            # stop when the validation is within goal × this (the held-out set differs)
+    goal_corners: bool = False          # regressor over moving groups: its goals checked on the range's corners too
+                                        # (configurations.CORNER_EDGES), not only on its cells (CELL_EDGES)
     pool: int = 2_000_000               # samples held in memory per map; refreshed from the tracer
     refresh_every: int = 2000           # steps between pool refreshes (fresh tracer data)
     refresh_fraction: float = 0.25

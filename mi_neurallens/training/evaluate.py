@@ -136,12 +136,12 @@ def evaluate_map(lens, tm, n: int = 200_000, seed: int = 999, mcmc_threshold: fl
 
 
 def cell_errors(conf, x, y, yp, heading, xu, wrong) -> dict:
-    """A map over moving groups, cell by cell of its configurations
+    """A map over moving groups, cell by cell of its configurations and at its range's corners
     (:meth:`~mi_neurallens.transport.configurations.Configurations.cells`): {cell: position µm and direction ″
     medians of the held-out rays ``x`` (outputs ``y``, predicted ``yp``), misclassification of the natural-mix rays
     ``xu`` (``wrong``: where the classifier erred)}."""
     out = {}
-    reg, cls = conf.cells(x), conf.cells(xu)
+    reg, cls = conf.cells(x, corners=True), conf.cells(xu, corners=True)
     for k in sorted(set(reg) | set(cls)):
         r = regression_errors(yp[reg[k], :5], y[reg[k], :5], heading) if k in reg else {}
         out[k] = {"position_um_median": r.get("position_um_median"), "direction_arcsec_median":

@@ -190,7 +190,7 @@ class RegressorFit(Problem):
         #: a map over a lens's moving groups: its validation rays by configuration cell, whose worst median the goals
         #: are checked on (:meth:`~mi_neurallens.transport.configurations.Configurations.cells`)
         self.conf = conf = stream.ps.domain.conditions
-        self.cells = conf.cells(self.xv) if conf is not None else {}
+        self.cells = conf.cells(self.xv, corners=nc.goal_corners) if conf is not None else {}
         #: ``nc.lm_cell_weight``: each configuration cell's row weight in the finish, renewed at each validation
         #: (:meth:`cell_weights`); None: uniform
         self.cell_w = None
@@ -367,7 +367,7 @@ class RegressorFit(Problem):
         w = edge_weights(self.stream.ps, ur, self.nc) if self.nc.edge_weight > 0 else None
         if self.cell_w:
             wc = np.ones(len(xr))
-            for c, m in self.conf.cells(xr, min_rays=0, margin=True).items():
+            for c, m in self.conf.cells(xr, min_rays=0, margin=True, corners=self.nc.goal_corners).items():
                 wc[m] = self.cell_w.get(c, 1.0)
             w = wc if w is None else w * wc
         if w is not None:

@@ -92,6 +92,11 @@ ZOOM_MARGIN = 0.0
 BAND_TOLERANCE = 0.01
 #: the outer fraction of the zoom range and of the focus band that :meth:`Configurations.cells` counts as an end
 CELL_EDGES = {"zoom": 0.1, "focus": 0.2}
+#: the outer fraction of each that a corner cell spans (:meth:`Configurations.cells` with ``corners``): inside an end
+#: cell, where the range's extreme configuration errs most and the end cell's median hides it.  The focus band
+#: reaches :data:`FOCUS_MARGIN` beyond the focus of infinity and of the close focus (0.08 / 1.16 = 6.9 % of it), so
+#: its outer 12 % are that margin and the renderable band's outer 5 %
+CORNER_EDGES = {"zoom": 0.03, "focus": 0.12}
 #: the fewest held-out rays a cell's median is taken over (:meth:`Configurations.cells`)
 CELL_MIN_RAYS = 400
 #: the end weights of a model file that records none: the zoom's warp, a uniform focus (as models were trained
@@ -384,7 +389,8 @@ class Configurations:
         d = dict(zip(self.names, cond))
         return d.get("zoom", 0.0), d.get("focus", 0.0)
 
-    def cells(self, x: np.ndarray, min_rays: int = CELL_MIN_RAYS, margin: bool = False) -> dict:
+    def cells(self, x: np.ndarray, min_rays: int = CELL_MIN_RAYS, margin: bool = False,
+              corners: bool = False) -> dict:
         """The rays ``x`` (N, inputs; the map's inputs, configuration columns at 4, 5) grouped by where their
         configuration lies in the learned range: the zoom range's outer :data:`CELL_EDGES` fraction at each end
         ("wide", "tele"), the focus band's at each end ("infinity", "close"), the rest ("mid").  Returns
@@ -394,29 +400,42 @@ class Configurations:
 
         The rays of the :attr:`zoom_margin` (zooms beyond the listed range, which training draws and no sensor
         renders) are in no cell, so the goals are checked on renderable configurations only; with ``margin`` they
-        are in the end cells beside them (what the finish's row weights need: a weight for every row)."""
+        are in the end cells beside them (what the finish's row weights need: a weight for every row).
+
+        With ``corners``, also the range's corners: the outer :data:`CORNER_EDGES` fraction of every axis at each
+        of its ends, e.g. ``"tele, close, corner"`` (for one axis, ``"close, corner"``), the configurations the range
+        ends at (the shortest close focus at the longest focal length) and a map errs most at, which the end cells
+        around them average with milder ones.  A corner's rays are in its end cell too."""
         x = np.asarray(x, dtype=np.float64)
         t, f = self.split([x[:, 4 + j] for j in range(self.dims)])
         t = np.broadcast_to(np.asarray(t, np.float64), (len(x),))
         f = np.broadcast_to(np.asarray(f, np.float64), (len(x),))
-        parts = []
+        parts, ends = [], []          # per axis: its three cells; its two corner ranges
         if "zoom" in self.names:
             t0, t1 = self.zoom_range
             a = (t - t0) / max(t1 - t0, 1e-30)
-            e = CELL_EDGES["zoom"]
+            e, c = CELL_EDGES["zoom"], CORNER_EDGES["zoom"]
             inside = np.ones(len(x), bool) if margin else (a >= -1e-6) & (a <= 1.0 + 1e-6)   # float32 inputs too
             parts.append((("wide", (a < e) & inside), ("mid", (a >= e) & (a <= 1 - e)), ("tele", (a > 1 - e) & inside)))
+            ends.append((("wide", (a < c) & inside), ("tele", (a > 1 - c) & inside)))
         if "focus" in self.names:
             lo, hi = self._band_np(t)
             b = (f - lo) / np.maximum(hi - lo, 1e-30)
             # the focus parameter is 0 at the infinity gaps: the band's end nearer 0 is infinity
             inf_lo = abs(float(np.median(self.band_lo))) <= abs(float(np.median(self.band_hi)))
-            e = CELL_EDGES["focus"]
+            e, c = CELL_EDGES["focus"], CORNER_EDGES["focus"]
             low, high = (("infinity", "close") if inf_lo else ("close", "infinity"))
             parts.append(((low, b < e), ("mid", (b >= e) & (b <= 1 - e)), (high, b > 1 - e)))
-        out = {"": np.ones(len(x), bool)}
-        for part in parts:
-            out = {(f"{k}, {n}" if k else n): m & c for k, m in out.items() for n, c in part}
+            ends.append(((low, b < c), (high, b > 1 - c)))
+
+        def products(axes):
+            out = {"": np.ones(len(x), bool)}
+            for part in axes:
+                out = {(f"{k}, {n}" if k else n): m & c for k, m in out.items() for n, c in part}
+            return out
+        out = products(parts)
+        if corners and ends:
+            out.update({f"{k}, corner": m for k, m in products(ends).items()})
         return {k: m for k, m in out.items() if m.sum() >= min_rays}
 
     # ------------------------------------------------------------------ normalisation and file form
