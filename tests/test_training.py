@@ -345,8 +345,8 @@ def test_close_focus_auto_is_300_mm_unless_the_lens_is_long_and_then_a_quarter_m
 
 
 def test_budget_is_the_sum_of_the_networks_wall_budgets():
-    """What `train` announces before a lens: the most minutes its networks may take — Adam's budget once per
-    size tried plus the finish, per map — checked against the defaults' numbers written out."""
+    """What `train` announces before a lens: the most minutes its networks may take — Adam's budget and the
+    finish's per size tried, per map — checked against the defaults' numbers written out."""
     from mi_neurallens.training.config import budget_minutes, minutes_text
     from mi_neurallens.training.whole_lens import _budget_text, _spent_text
     c = load_config(None)
@@ -357,7 +357,7 @@ def test_budget_is_the_sum_of_the_networks_wall_budgets():
     assert bwd == pytest.approx({"regressor": 5.5, "classifier": 2.0, "stop": 2.0})
     sized = load_config(None, overrides={"forward_regressor": {"sizes": ["3x16", "5x32"]}, "stop": {"max_minutes": 0.0}})
     got = budget_minutes(sized, "forward", 2)
-    assert got["regressor"] == pytest.approx(2 * (2 * 1.0 + 1.0)) and got["stop"] == 0.0
+    assert got["regressor"] == pytest.approx(2 * 2 * (1.0 + 1.0)) and got["stop"] == 0.0     # each size finished
     wide = load_config(None, overrides={"regressor": {"widen_width": 24, "widen_minutes": 3.0}})
     assert budget_minutes(wide, "backward", 1)["regressor"] == pytest.approx(5.5 + 3.0)    # the widened finish too
     assert minutes_text(12.34) == "12.3 min" and minutes_text(170.0) == "2 h 50 min"

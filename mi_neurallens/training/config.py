@@ -76,6 +76,7 @@ class NetConfig:
     widen_width: int = 0                # after the finish: the hidden layers widened to this width (the same function)
     widen_minutes: float = 0.0          # and finished this many minutes more, to that budget, not stopping at the goals
                                         # (0: not; levenberg.widened_finish)
+    widen_iterations: int = 0           # ... and at most this many iterations (0: as lm_iterations; a count: any machine)
     sizes: tuple = ()                   # "HxW" to try, smallest first; a map keeps the first at its goals (maps.py)
 
 
@@ -219,8 +220,9 @@ NETWORK_KINDS = ("regressor", "classifier", "stop")
 
 def budget_minutes(cfg: TrainConfig, direction: str, n_maps: int) -> dict:
     """The most wall-clock minutes the networks of ``n_maps`` maps of ``direction`` may train with ``cfg``, per
-    network kind (:data:`NETWORK_KINDS`): Adam's ``max_minutes`` once per size it may try, plus the finish's
-    ``lm_minutes`` and the widened finish's ``widen_minutes`` (a stop head for every map).  An upper bound — each
+    network kind (:data:`NETWORK_KINDS`): per size it may try (``sizes``, each trained whole), Adam's
+    ``max_minutes``, the finish's ``lm_minutes`` and the widened finish's ``widen_minutes`` (a stop head for every
+    map, at one size).  An upper bound — each
     network leaves at its goals, Adam also at ``max_steps`` — without the data set-up and the held-out
     evaluation."""
     out = {}
@@ -229,7 +231,7 @@ def budget_minutes(cfg: TrainConfig, direction: str, n_maps: int) -> dict:
         tries = max(len(nc.sizes), 1) if kind != "stop" else 1
         widen = nc.widen_minutes if nc.widen_width > 0 else 0.0
         out[kind] = (0.0 if kind == "stop" and nc.max_minutes <= 0
-                     else n_maps * (tries * nc.max_minutes + nc.lm_minutes + widen))
+                     else n_maps * tries * (nc.max_minutes + nc.lm_minutes + widen))
     return out
 
 

@@ -640,7 +640,8 @@ def widened_finish(torch, fits, results, nc: NetConfig, keys, ckpt: str | None =
     """The second finish a network's settings may ask for after :func:`finish_results` (``nc.widen_width`` and
     ``nc.widen_minutes``), in place: each network of ``results`` with ``nc.hidden`` hidden layers, one of them
     narrower than ``widen_width``, widened to it (:func:`widen_as_configured`: the same function, with room) and
-    finished for ``widen_minutes`` more — to that budget, or ``patience``, not to its goals: the goals are medians
+    finished for ``widen_minutes`` more (at most ``widen_iterations``, or else ``lm_iterations``, iterations) — to
+    that budget, or ``patience``, not to its goals: the goals are medians
     over the validation's configuration cells, which a map can meet while one configuration inside a cell misses
     (the EF 24-70's camera map: its 4×27 finish stops at its goals after 37 minutes, the close-focus tele corner
     above them; widened to 4×29, that corner is at 2.34 µm after 14 minutes, 2.00 after 45; docs/training.md).  Networks the first
@@ -664,12 +665,13 @@ def widened_finish(torch, fits, results, nc: NetConfig, keys, ckpt: str | None =
         st["widened"] = {"from": before, "to": width, "first_finish": first}
         r["layers"] = layers
         if log:
-            log(getattr(fits[j], "desc", key), {"phase": "widen", "from": "x".join(map(str, before)),
-                                                "to": f"{nc.hidden}x{width}"})
+            shape = f"{len(before)}x{before[0]}" if len(set(before)) == 1 else "-".join(map(str, before))
+            log(getattr(fits[j], "desc", key), {"phase": "widen", "from": shape, "to": f"{nc.hidden}x{width}"})
         todo.append(j)
     if not todo:
         return
-    nc2 = _replaced(nc, lm_minutes=minutes, stop_at_goals=False)
+    nc2 = _replaced(nc, lm_minutes=minutes, stop_at_goals=False,
+                    lm_iterations=int(getattr(nc, "widen_iterations", 0)) or nc.lm_iterations)
     n_first = {j: len(results[j]["state"]["history"]) for j in todo}
     finish_results(torch, [fits[j] for j in todo], [results[j] for j in todo], nc2, [f"{keys[j]}.widened" for j in todo],
                    ckpt, log, progress)
