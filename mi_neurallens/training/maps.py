@@ -47,7 +47,7 @@ def map_seed(cfg: TrainConfig, path_id: int, direction: str) -> int:
 #: held-out rays a regressor is validated on (fewer where ``heldout`` is smaller)
 REGRESSOR_VALIDATION = 20_000
 #: ... and one whose goals are checked at the corners of its configurations (``goal_corners``): a corner holds about
-#: 0.8 % of the rays (the EF 24-70's 140-190 of 20 000), and a cell's median needs
+#: 1.3 % of the rays (the EF 24-70's 200-270 of 20 000), and a cell's median needs
 #: :data:`~mi_neurallens.transport.configurations.CELL_MIN_RAYS`
 CORNER_VALIDATION = 100_000
 
