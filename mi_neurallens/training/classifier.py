@@ -14,7 +14,7 @@ import math
 import numpy as np
 
 from ..errors import NeuralLensError
-from .config import NetConfig
+from .config import NetConfig, table_name
 from ..transport.planning import Domain
 from ..transport.sampling import PathSampler
 from .data import classifier_samples
@@ -49,8 +49,7 @@ def train_classifiers(problems, nc: NetConfig, *, ckpt: str | None = None, threa
     keys = [p["key"] for p in problems]
     prior = peek_stack(ckpt, keys)
     if nc.target == "margin":
-        check_widenable(nc, len(problems[0]["center"]), 1,
-                        ("forward_" if keys[0].startswith("forward") else "") + "classifier")
+        check_widenable(nc, len(problems[0]["center"]), 1, table_name("classifier", keys[0].split(".")[0]))
     ncp = dataclasses.replace(nc, pool=pool_rows(nc, len(problems), 4 * (len(problems[0]["center"]) + 1))
                               if start is None else FINISH_POOL)
     fits = []

@@ -192,7 +192,7 @@ class TrainConfig:
     def net(self, kind: str, direction: str) -> NetConfig:
         """The network settings of ``kind`` (``regressor``, ``classifier`` or ``stop``) for maps in
         ``direction`` (forward maps apply the ``forward_<kind>`` overrides)."""
-        base, over = getattr(self, kind), getattr(self, f"forward_{kind}")
+        base, over = getattr(self, kind), getattr(self, table_name(kind, "forward"))
         if direction != "forward":
             return base
         if kind == "regressor":
@@ -200,6 +200,12 @@ class TrainConfig:
         if kind == "stop" and "lm_minutes" not in over:
             over = {**over, "lm_minutes": min(base.lm_minutes, FORWARD_STOP_LM_MINUTES)}
         return _apply(base, over, f"forward_{kind}") if over else base
+
+
+def table_name(kind: str, direction: str) -> str:
+    """The recipe table (and ``--set`` prefix) of the ``kind`` networks (``regressor``, ``classifier`` or ``stop``)
+    of maps in ``direction``: ``forward_<kind>`` for forward maps, else ``<kind>``."""
+    return f"forward_{kind}" if direction == "forward" else kind
 
 
 def flare_goals(resolution: int, film_half_diagonal_mm: float = FULL_FRAME_HALF_DIAGONAL_MM) -> dict:

@@ -641,13 +641,13 @@ def widened_finish(torch, fits, results, nc: NetConfig, keys, ckpt: str | None =
     ``nc.widen_minutes``), in place: each network of ``results`` with ``nc.hidden`` hidden layers, one of them
     narrower than ``widen_width``, widened to it (:func:`widen_as_configured`: the same function, with room) and
     finished for ``widen_minutes`` more (at most ``widen_iterations``, or else ``lm_iterations``, iterations) — to
-    that budget, or ``patience``, not to its goals: the goals are medians
-    over the validation's configuration cells, which a map can meet while one configuration inside a cell misses
-    (the EF 24-70's camera map: its 4×27 finish stops at its goals after 37 minutes, the close-focus tele corner
-    above them; widened to 4×29, that corner is at 2.34 µm after 14 minutes, 2.00 after 45; docs/training.md).  Networks the first
-    finish skipped (larger than ``lm_max_weights``) stay as they are.  Each network's state records ``widened``: the
-    hidden widths before, and the first finish's ``lm`` record and stop reasons; the second finish's validations are
-    marked ``phase = "widened"``; its ``stop_reason`` is ``"goals"`` where the last validation is within them, else
+    that budget, or ``patience``, not to its goals: the goals are medians over the validation's configuration cells,
+    which a map can meet while one configuration inside a cell misses (the EF 24-70's camera map: its 4×27 finish
+    stops at its goals, the close-focus tele corner above them; widened to 4×29, that corner comes to 2.34 µm after
+    14 minutes, 2.00 after 45 on a Zen 5; docs/neural_lens.md).  Networks the first finish skipped (larger than
+    ``lm_max_weights``) stay as they are.  Each network's state records ``widened``: the hidden widths before, and
+    the first finish's ``lm`` record and stop reasons; the second finish's validations are marked
+    ``phase = "widened"``; its ``stop_reason`` is ``"goals"`` where the last validation is within them, else
     Adam's.  With ``ckpt``, each is saved to ``<ckpt>.lm.<key>.widened.json`` and a rerun takes it from there."""
     import zlib
     width, minutes = int(getattr(nc, "widen_width", 0)), float(getattr(nc, "widen_minutes", 0.0))

@@ -17,7 +17,7 @@ import time
 import numpy as np
 
 from ..errors import NeuralLensError
-from .config import NetConfig
+from .config import NetConfig, table_name
 from .data import RegressorStream
 from .input_box import fold_input_box, input_box, is_box
 from .levenberg import FINISH_POOL, check_widenable, finish_results, widened_finish
@@ -58,7 +58,7 @@ def train_regressors(problems, nc: NetConfig, *, ckpt: str | None = None, thread
     keys = [p["key"] for p in problems]
     prior = peek_stack(ckpt, keys)
     n_in = len(problems[0]["center"])
-    check_widenable(nc, n_in, 5, ("forward_" if keys[0].startswith("forward") else "") + "regressor")
+    check_widenable(nc, n_in, 5, table_name("regressor", keys[0].split(".")[0]))
     n_pool = pool_rows(nc, len(problems), 4 * (n_in + 5 + 5 + 1)) if start is None else FINISH_POOL
     t_start = time.perf_counter()
     fits = [_regressor_fit(torch, dev, p, nc, prior, None if start is None else start[j], n_pool, ckpt, log,

@@ -20,7 +20,7 @@ import time
 import numpy as np
 
 from ..errors import NeuralLensError
-from .config import NetConfig
+from .config import NetConfig, table_name
 from ..transport.sampling import PathSampler, heldout_valid
 from .data import RegressorStream
 from .evaluate import stop_errors
@@ -171,7 +171,7 @@ def train_stop_heads(lens, tms, nc: NetConfig, *, seeds, fresnel: bool = True, m
     hidden layers first widened to ``nc.width`` where that is wider and the layer count is ``nc.hidden``
     (:func:`~mi_neurallens.training.levenberg.widen`: the same function, with room)."""
     if start is not None:
-        table = "forward_stop" if tms[0].direction == "forward" else "stop"
+        table = table_name("stop", tms[0].direction)
         check_finishable([(f"{tm.key} stop head", h.layers) for tm, h in zip(tms, start)], nc, "the stop heads'",
                          table, f"--keep networks --set {table}.hidden=3 --set {table}.width=32",
                          what="--finish-only stop-heads: ")
@@ -197,7 +197,7 @@ def train_stop_heads(lens, tms, nc: NetConfig, *, seeds, fresnel: bool = True, m
         raise NeuralLensError(f"train_stop_heads: one stack needs one crossing count, got {sorted(ks)}")
     k = ks.pop()
     keys = [tm.key for tm in tms]
-    check_widenable(nc, len(tms[0].input_center), 2 * k, "forward_stop" if tms[0].direction == "forward" else "stop")
+    check_widenable(nc, len(tms[0].input_center), 2 * k, table_name("stop", tms[0].direction))
     if start is None:
         res = train_stack(torch, dev, fits, nc, seeds=seeds, n_in=len(tms[0].input_center), n_out=2 * k, keys=keys,
                           progress=progress,
