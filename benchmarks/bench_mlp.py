@@ -1,7 +1,8 @@
 """Standalone evaluation speed of a learned lens map: classifier + regressor on 2^k rays, fused with
 literal weights (the default, in the backend's evaluation style and in the other one: neural/mlp.py
 ``MLP_STYLES``) vs Dr.Jit cooperative vectors (``drjit.nn``), beside the exact tracer on the same rays, in
-one run; each neural path's outputs against the CPU style's.  Also the kernel compile time of each (cold,
+one run; each neural path's outputs against the CPU style's, and the default's against the float64 reference
+with the exact tanh (what the float32 kernel and its tanh approximation add to the map's own error).  Also the kernel compile time of each (cold,
 in-process).  A lens with moving groups: its first position, focused at infinity (the map's folded configuration).
 
     python benchmarks/bench_mlp.py [--lens wide-22mm] [--model FILE] [--rays 22] [--repeats 5]
@@ -125,6 +126,19 @@ def main(argv=None):
         rows[name]["max_abs_diff_vs_cpu_style"] = float(np.abs(f - ref).max())
         rows[name]["diff_vs_cpu_style_per_output"] = per
         rows[name]["validity_flips"] = float(np.mean((f[:, 0] > 0) != ok))
+    # what the float32 kernel adds to the map's own error: the default style's outputs (its tanh approximation,
+    # float32 arithmetic) against the float64 reference with the exact tanh, on the first 2^18 rays
+    from mi_neurallens.constants import ARCSEC_PER_RAD
+    m = min(n, 1 << 18)
+    logit_ref, y_ref = tm.eval_reduced_np(np.stack([v.numpy()[:m].astype(np.float64) for v in X], 1))
+    f = np.stack([v.numpy()[:m] for v in runs[FUSED]()], 1).astype(np.float64)
+    passing = logit_ref > 0
+    dpos = 1e3 * np.hypot(f[passing, 1] - y_ref[passing, 0], f[passing, 2] - y_ref[passing, 1])
+    ddir = ARCSEC_PER_RAD * np.hypot(f[passing, 3] - y_ref[passing, 2], f[passing, 4] - y_ref[passing, 3])
+    vs64 = {"rays": m, "validity_flips": float(np.mean((f[:, 0] > 0) != passing))}
+    for key, d in (("position_um", dpos), ("direction_arcsec", ddir)):
+        vs64[key] = {"median": float(np.median(d)), "p99": float(np.percentile(d, 99)), "max": float(d.max())}
+    rows[FUSED]["vs_float64_exact_tanh"] = vs64
     widths = [[np.shape(W)[0] for W, _ in net][:-1] for net in (tm.classifier, tm.regressor)]
     print(f"{a.lens}, backward transmit map (classifier {widths[0]}, regressor {widths[1]}, tanh"
           f"{', stop head' if tm.stop_head is not None else ''}), 2^{a.rays} rays, "
@@ -139,6 +153,10 @@ def main(argv=None):
               f"{cv['validity_flips']:.2e}; per output max / p99 (passing rays): "
               + ", ".join(f"{k} {v['max']:.2e} / {v['p99']:.2e}"
                           for k, v in cv["diff_vs_cpu_style_per_output"].items()))
+    print(f"{FUSED} vs float64 with the exact tanh ({m} rays): exit position µm median / max "
+          f"{vs64['position_um']['median']:.2g} / {vs64['position_um']['max']:.2g}, direction ″ "
+          f"{vs64['direction_arcsec']['median']:.2g} / {vs64['direction_arcsec']['max']:.2g}, validity flips "
+          f"{vs64['validity_flips']:.1e}")
     res = {"lens": a.lens, "model": a.model or "bundled", "hidden_widths": widths, "rays": n,
            "variant": mi.variant(), "default_style": default_style,
            "threads": dr.thread_count(), "machine": platform.processor() or platform.machine(),

@@ -163,6 +163,31 @@ def mlp_table(r: Results) -> str:
     return lens_mlp_table(r, r.cpu_mlp, "", 1.0, "M")
 
 
+def tanh_table(r: Results) -> str:
+    """What the float32 kernel (its tanh approximation, float32 arithmetic) adds to each camera map's own error: the
+    default style's outputs against the float64 reference with the exact tanh (``mlp_<lens>.json``), beside the
+    map's held-out error against the tracer (its evaluation record)."""
+    rows, some = [], None
+    for lens, d in r.cpu_mlp.items():
+        v = d.get("rows", {}).get(FUSED_MLP, {}).get("vs_float64_exact_tanh")
+        if not v:
+            continue
+        some = some or v
+        own = ((r.evals.get(lens, {}).get("maps") or {}).get("backward.0") or {}).get("regressor", {})
+        p, a = v["position_um"], v["direction_arcsec"]
+        rows.append([f"`{lens}`", f"{num(p['median'], 2)} / {num(p['max'], 2)}", num(own.get("position_um_median")),
+                     f"{num(a['median'], 2)} / {num(a['max'], 2)}", num(own.get("direction_arcsec_median")),
+                     f"{v['validity_flips']:.1e}"])
+    if not rows:
+        return "*No run stored.*\n"
+    return (f"The fused kernel's outputs on the first {_pow2(some['rays'])} rays of each camera-rays run against the "
+            f"float64 evaluation with the exact tanh, on the rays the reference passes, beside each map's own error "
+            f"against the tracer (held-out, median).\n\n"
+            + table(["lens", "exit position µm: kernel − float64, median / max", "map − tracer, median",
+                     "direction ″: kernel − float64, median / max", "map − tracer, median", "validity flips"], rows)
+            + "\n" + _each_lens(r, "mlp_", r.cpu_mlp))
+
+
 def render_table(r: Results) -> str:
     """A whole frame through each sensor, per lens, on the CPU (``render_<lens>.json``)."""
     return lens_render_table(r, r.cpu_render, "")
@@ -606,7 +631,7 @@ def headline(r: Results) -> str:
 def pages(r: Results | None = None) -> dict:
     """{page: {block name: body}}: every block this script writes."""
     r = r or Results()
-    return {PERF_PAGE: {"verdicts": verdicts(r), "tracer": tracer_table(r), "camera-rays": mlp_table(r),
+    return {PERF_PAGE: {"verdicts": verdicts(r), "tracer": tracer_table(r), "camera-rays": mlp_table(r), "tanh": tanh_table(r),
                         "render": render_table(r), "equal-time": equal_time_table(r), "flare": flare_table(r), "starburst": starburst_table(r),
                         "coatings": coatings_table(r),
                         "maps": maps_table(r), "zoom": zoom_table(r), "zoom-gpu": zoom_table(r, "gpu/bench_zoom.json"),

@@ -9,7 +9,8 @@ import pytest
 
 from mi_neurallens import Lens, ModelError
 from mi_neurallens.neural import NeuralLensModel, NeuralMap, bundled_model_path, load_model
-from mi_neurallens.neural.mlp import STYLE_ENV, mlp_dr, mlp_np, mlp_style, tanh_eigen, tanh_exp2
+from mi_neurallens.neural.mlp import (STYLE_ENV, mlp_dr, mlp_np, mlp_style, tanh_eigen, tanh_exp2,
+                                      tanh_minimax)
 from mi_neurallens.trace.api import float_type
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -173,6 +174,21 @@ def test_tanh_eigen():
     assert np.max(np.abs(y - np.tanh(x))) < 1e-6
 
 
+def test_tanh_minimax():
+    """The CPU style's tanh in float32 against numpy's: within 1.3e-6 everywhere (its fit's 9.0e-7 plus float32
+    rounding), odd, within ±1 where tanh saturates, and closer than the cheaper Padé 7/6 (9.6e-5) it replaces."""
+    x = np.concatenate([np.linspace(-12, 12, 200001), [-1e4, -7.0, 0.0, 7.0, 1e4]]).astype(np.float32)
+    F = float_type("float32")
+    y = tanh_minimax(F(x)).numpy()
+    ref = np.tanh(x.astype(np.float64))
+    assert np.max(np.abs(y - ref)) < 1.3e-6
+    assert np.max(np.abs(y - ref)) > 5e-7                    # the fit's own error shows: not the exact tanh
+    assert np.array_equal(y, -tanh_minimax(F(-x)).numpy())
+    assert np.all(np.abs(y) <= 1.0) and y[-1] > 0.999999 and y[-5] < -0.999999
+    d = np.diff(tanh_minimax(F(np.linspace(0, 7, 7001).astype(np.float32))).numpy())
+    assert d.min() > -1e-6                                   # monotone up to float32 rounding
+
+
 def test_tanh_exp2():
     """The GPU style's tanh, 1 − 2/(1 + 2^(2x/ln 2)): here with Dr.Jit's software exp2 and a division (on CUDA the
     hardware's approximations, 2 and 1 ulp: measured there by benchmarks/bench_mlp.py), saturating without a
@@ -225,7 +241,9 @@ def test_mlp_drjit_equals_numpy(activation, style, monkeypatch):
 @pytest.mark.parametrize("direction", ["backward", "forward"])
 def test_transport_map_eval_dr_equals_numpy(direction):
     """Full lens-space evaluation (reduction, domain test, classifier, regressor, undo) in Dr.Jit
-    matches the float64 numpy reference to float32 precision."""
+    matches the float64 numpy reference (exact tanh) to float32 precision and the kernel tanh's error: the CPU's
+    minimax rational is within 1.2e-6 of tanh, which moves this random map's outputs 5e-6 of their scale and
+    1.9e-5 rad at most (Eigen's rational, 2.6e-7: 1.1e-6 and 3.9e-6)."""
     tm = _map(np.random.default_rng(9), direction, 0, width=16)
     o, d, lam = _rays(8192, tm.heading, seed=4)
     ref = tm.eval_np(o, d, lam)
@@ -241,9 +259,9 @@ def test_transport_map_eval_dr_equals_numpy(direction):
     P = np.stack([c.numpy() for c in pos], 1)
     D = np.stack([c.numpy() for c in dirn], 1)
     scale = np.abs(ref.position[:, :2]).max()
-    np.testing.assert_allclose(P[:, :2], ref.position[:, :2], atol=2e-6 * scale + 1e-6)
+    np.testing.assert_allclose(P[:, :2], ref.position[:, :2], atol=8e-6 * scale + 1e-6)
     np.testing.assert_allclose(P[:, 2], tm.z_out)
-    np.testing.assert_allclose(D, ref.direction, atol=1e-5)  # float32 through 6 layers; 1e-5 rad = 2″, model error ~15″
+    np.testing.assert_allclose(D, ref.direction, atol=3e-5)  # 3e-5 rad = 6″
     np.testing.assert_allclose(thr.numpy(), ref.throughput, atol=2e-6 * np.abs(ref.throughput).max())
 
 
@@ -382,7 +400,7 @@ def test_merge_keeps_the_stop_head_of_the_map_a_retrained_one_replaces(tmp_path)
 def test_shared_kernel_parameters_one_kernel_per_architecture():
     """mlp = "shared": every number of a map is a kernel input (weights in packed buffers on LLVM), so two
     maps of one architecture (other weights, planes, normalisation and domain) run the same kernel, and
-    their results are the fused ones to float32 rounding."""
+    their results are the fused ones to float32 rounding and the two tanh approximations' difference."""
     import dataclasses
     import drjit as dr
     from mi_neurallens.jit import from_numpy
@@ -424,7 +442,8 @@ def test_shared_kernel_parameters_one_kernel_per_architecture():
         v = outs["fused", k][:, 0].astype(bool)
         assert 0.05 < v.mean() < 0.95
         np.testing.assert_array_equal(outs["shared", k][:, 0], outs["fused", k][:, 0])
-        np.testing.assert_allclose(outs["shared", k][v], outs["fused", k][v], rtol=1e-5, atol=1e-5)
+        # float32 rounding, and tanh: the fused kernel's minimax rational (1.2e-6) against Dr.Jit's on the packed ones
+        np.testing.assert_allclose(outs["shared", k][v], outs["fused", k][v], rtol=1e-5, atol=4e-5)
 
 
 def test_held_out_evaluation_compiles_one_kernel_per_architecture_with_the_literals_numbers():

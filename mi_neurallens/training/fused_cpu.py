@@ -5,7 +5,7 @@ Why.  PyTorch's CPU products for these shapes (MKL's batched ``sgemm``) run its 
 about 185 GFLOP/s on two Zen 5 cores whose AVX-512 units reach 517; and between the products, every
 activation, its derivative and each layer's gradient is a separate pass over ``(K, B, width)`` arrays that
 leave the cache.  Here one thread takes 128 rows of one map through every layer and back, in registers and
-L1, with the render kernel's rational tanh in between.  The losses
+L1, with Eigen's rational tanh (:func:`~mi_neurallens.neural.mlp.tanh_eigen`) in between.  The losses
 of the regressors and margin classifiers are there too, value and gradient in one pass
 (:meth:`FusedKernel.loss_regressor`, :meth:`FusedKernel.loss_margin`; ``stacked.fused_step`` runs a step
 with them and no autograd).

@@ -7,8 +7,8 @@ products and elementwise passes, and a CPU spends its time in per-operation over
 inputs ``(K, B, in)``, every layer one ``baddbmm``, a batch one window of the shuffled pools — and the
 loss is the *sum* of the maps' losses, so each map's gradient is its own; :class:`StackedAdam` is
 elementwise, hence each map follows exactly the Adam trajectory it would follow alone (same learning-rate
-schedule, same batches).  The activation is Eigen's rational tanh (the one the render-time kernel
-evaluates, :func:`~mi_neurallens.neural.mlp.tanh_eigen`) with the exact derivative 1 − y² as its backward.  On a CPU
+schedule, same batches).  The activation is Eigen's rational tanh
+(:func:`~mi_neurallens.neural.mlp.tanh_eigen`, 2.6e-7 from tanh) with the exact derivative 1 − y² as its backward.  On a CPU
 with a C compiler a stack's whole forward and backward is one compiled kernel (:mod:`.fused_cpu`, 2.5–3× PyTorch's
 operations); otherwise every layer is one ``baddbmm`` and the activation is compiled by ``torch.compile`` into one
 fused pass, or is ``torch.tanh`` where nothing compiles (and on a GPU).
@@ -133,7 +133,7 @@ def lr_at(step: int, nc, seconds: float = 0.0) -> float:
 
 # ----------------------------------------------------------------------------- the activation
 def training_tanh(torch, device=None):
-    """tanh for Adam on ``device``: on a CPU Eigen's clamped 13/6 rational (the render kernel's), fused by
+    """tanh for Adam on ``device``: on a CPU Eigen's clamped 13/6 rational (:func:`~mi_neurallens.neural.mlp.tanh_eigen`), fused by
     ``torch.compile`` with the backward ``g·(1 − y²)``; ``torch.tanh`` on a GPU, and wherever compiling is
     unavailable or disabled (``MI_NEURALLENS_TORCH_COMPILE=0``).  Cached per process and device type; what
     was chosen, and the compilation's seconds, are in :data:`TANH_CHOICE` (the training log reports them).
