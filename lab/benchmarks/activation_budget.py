@@ -142,7 +142,7 @@ def main(argv=None):
     from mi_neurallens import Lens
     from mi_neurallens.neural.model import bundled_model_path, load_model
 
-    cands = {"eigen 13/6 (trained)": (mlp._tanh, None, mlp.TANH_CLAMP)}
+    cands = {"eigen 13/6 (trained)": (mlp.tanh_eigen, None, mlp.TANH_CLAMP)}
     for name, spec in PADE.items():
         cands[name] = make_pade(*spec)
     errs = {"eigen 13/6 (trained)": max_error(lambda x: mlp.tanh_eigen(x))}
@@ -170,7 +170,7 @@ def main(argv=None):
         dr.eval(X)
         for name, (act, _, xc) in cands.items():
             # the activation mlp_dr applies (restored below); a candidate replaces it in either style
-            mlp._tanh = act if act is trained else (lambda x, style=None, f=act: f(x))
+            mlp._tanh = lambda x, style=None, f=act: f(x)
             try:
                 def run():
                     logit, y = tm.eval_reduced_dr(X, mlp="fused")
