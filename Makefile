@@ -25,7 +25,7 @@ test-slow: setup
 # The maintained benchmarks, each writing its JSON into $(OUT)/bench/ (docs/performance.md says which figure
 # comes from which); `python docs/make_performance.py --from $(OUT)/bench` then takes the new figures. About 40 min
 # on 2 cores; run it on an idle machine.
-BENCH_LENSES ?= wide-22mm ood-59mm canon-ef-24mm-f1.4l canon-rf-24mm-f1.4l-vcm
+BENCH_LENSES ?= wide-22mm ood-59mm canon-ef-24mm-f1.4l canon-rf-24mm-f1.4l-vcm canon-ef-24-70mm-f2.8l
 bench: setup
 	$(PY) benchmarks/bench_tracer.py --out $(OUT)/bench/bench_tracer.json
 	for lens in $(BENCH_LENSES); do \
@@ -40,6 +40,7 @@ bench: setup
 	$(PY) benchmarks/bench_flare.py --lens ood-59mm --coatings none,quarter_wave,broadband --scene night --out $(OUT)/bench/coatings_night_ood-59mm.json
 	$(PY) benchmarks/equal_time.py --out $(OUT)/bench/equal_time.json
 	$(PY) benchmarks/bench_zoom.py --out $(OUT)/bench/bench_zoom.json
+	$(PY) benchmarks/bench_zoom.py --focal 24.9,35,68.14 --focus inf --res 640x424 --reference-spp 64 --repeats 4 --out $(OUT)/bench/bench_zoom_640.json
 	$(PY) benchmarks/bench_zoom.py --lens canon-rf-24mm-f1.4l-vcm --focal none --focus inf,2,1,0.5,0.3,0.24 --out $(OUT)/bench/bench_focus.json
 	$(PY) benchmarks/bench_baselines.py --out $(OUT)/bench/bench_baselines.json
 	$(PY) -m mi_neurallens accuracy wide-22mm --out $(OUT)/bench

@@ -42,7 +42,7 @@ MODELS = os.path.join(ROOT, "mi_neurallens", "data", "lenses", "models")
 #: the CPU benchmark files docs/performance/ takes from a run (``make bench`` writes them, and ``mlp_<lens>.json`` /
 #: ``render_<lens>.json`` per lens)
 CPU_FILES = ("bench_tracer.json", "bench_flare.json", "equal_time.json", "bench_baselines.json", "bench_zoom.json",
-             "bench_focus.json")
+             "bench_zoom_640.json", "bench_focus.json")
 #: how each file is made when its run did not record its own command (the Makefile's ``bench`` target)
 DEFAULT_COMMANDS = {f: f"python benchmarks/{f[:-5]}.py" for f in CPU_FILES}
 PERF_PAGE, README = "docs/performance.md", "README.md"
@@ -634,7 +634,7 @@ def pages(r: Results | None = None) -> dict:
     return {PERF_PAGE: {"verdicts": verdicts(r), "tracer": tracer_table(r), "camera-rays": mlp_table(r), "tanh": tanh_table(r),
                         "render": render_table(r), "equal-time": equal_time_table(r), "flare": flare_table(r), "starburst": starburst_table(r),
                         "coatings": coatings_table(r),
-                        "maps": maps_table(r), "zoom": zoom_table(r), "zoom-gpu": zoom_table(r, "gpu/bench_zoom.json"),
+                        "maps": maps_table(r), "zoom": zoom_table(r), "zoom-640": zoom_table(r, "bench_zoom_640.json"), "zoom-gpu": zoom_table(r, "gpu/bench_zoom.json"),
                         "focus": zoom_table(r, "bench_focus.json"), "baselines-speed": baselines_speed_table(r),
                         "baselines-accuracy": baselines_accuracy_table(r), "gpu-render": gpu_render_table(r),
                         "gpu-camera-rays": gpu_mlp_table(r)},
@@ -642,9 +642,18 @@ def pages(r: Results | None = None) -> dict:
 
 
 # ------------------------------------------------------------------------------------------------ taking a run
+def amd_generation(family: int, avx512: bool) -> str:
+    """The Zen generation of an AMD CPU from its cpuid family (``cpu family`` in /proc/cpuinfo), which a virtual
+    machine's bare "AMD EPYC" model name leaves out and the maps' speed against the tracer depends on (Zen 4 runs
+    AVX-512 on 256-bit units, Zen 5 on 512-bit ones): family 26 is Zen 5, 25 Zen 4 with AVX-512 and Zen 3
+    without, 23 Zen or Zen 2; "" for any other."""
+    return {26: "Zen 5", 25: "Zen 4" if avx512 else "Zen 3", 23: "Zen 2"}.get(family, "")
+
+
 def detect_machine() -> tuple:
-    """(long, short) words for this machine: CPU model, cores, AVX-512 or AVX2, OS."""
-    model, flags = platform.processor() or platform.machine(), ""
+    """(long, short) words for this machine: CPU model (with its Zen generation on AMD), cores, AVX-512 or AVX2,
+    OS."""
+    model, flags, family = platform.processor() or platform.machine(), "", None
     try:
         with open("/proc/cpuinfo", encoding="utf-8") as f:
             for line in f:
@@ -652,9 +661,14 @@ def detect_machine() -> tuple:
                     model = line.split(":", 1)[1].strip()
                 elif line.startswith("flags") and not flags:
                     flags = line
-    except OSError:
+                elif line.startswith("cpu family") and family is None:
+                    family = int(line.split(":", 1)[1])
+    except (OSError, ValueError):
         pass
     simd = "AVX-512" if " avx512f" in flags else "AVX2" if " avx2" in flags else ""
+    zen = amd_generation(family, simd == "AVX-512") if "AMD" in model and family is not None else ""
+    if zen and "Zen" not in model:
+        model = f"{model} {zen}"
     n = os.cpu_count() or 0
     long = f"{n}-core {model}" + (f" ({simd})" if simd else "") + f", {platform.system()}"
     return long, f"{n}-core CPU"
