@@ -23,7 +23,7 @@ test-slow: setup
 	$(PY) -m pytest -q -ra -m slow
 
 # The maintained benchmarks, each writing its JSON into $(OUT)/bench/ (docs/performance.md says which figure
-# comes from which); `python docs/make_performance.py --from $(OUT)/bench` then takes the new figures. About 40 min
+# comes from which); `python docs/make_performance.py --from $(OUT)/bench` then takes the new figures. About 21 min
 # on 2 cores; run it on an idle machine.
 BENCH_LENSES ?= wide-22mm ood-59mm canon-ef-24mm-f1.4l canon-rf-24mm-f1.4l-vcm canon-ef-24-70mm-f2.8l
 bench: setup
