@@ -145,7 +145,12 @@ def check_finishable(named_layers, nc, owner: str, table: str, way_out: str, wha
 
 def n_params(layers) -> int:
     """Weights and biases of ``layers`` ([(W (out, in), b (out,))])."""
-    return int(sum(np.size(W) + np.size(b) for W, b in layers))
+    return n_params_of([np.shape(layers[0][0])[1]] + [np.shape(W)[0] for W, _ in layers]) if layers else 0
+
+
+def n_params_of(dims) -> int:
+    """Weights and biases of a dense network whose layer sizes are ``dims`` (inputs, each hidden width, outputs)."""
+    return int(sum(a * b + b for a, b in zip(dims[:-1], dims[1:])))
 
 
 class FlatMLP:
@@ -703,7 +708,7 @@ def check_widenable(nc: NetConfig, n_in: int, n_out: int, table: str) -> None:
     if width <= 0 or float(getattr(nc, "widen_minutes", 0.0)) <= 0:
         return
     dims = [int(n_in)] + [max(width, int(nc.width))] * int(nc.hidden) + [int(n_out)]
-    P = sum(a * b + b for a, b in zip(dims[:-1], dims[1:]))
+    P = n_params_of(dims)
     if P > nc.lm_max_weights:
         raise NeuralLensError(f"{table}.widen_width = {width} makes a {nc.hidden}x{width} network of {P} weights, more "
                               f"than the Levenberg-Marquardt finish takes ({table}.lm_max_weights = "
