@@ -61,7 +61,7 @@ from ..fileio import jsonable
 from ..transport.base import TransportMap
 from ..transport.planning import Domain
 from .coopvec import packed
-from .mlp import ACTIVATIONS, KernelParams, mlp_cost, mlp_dr, number
+from .mlp import ACTIVATIONS, TANH_FLOPS, KernelParams, mlp_cost, mlp_dr, number
 
 #: the training record's loss curves (lists under a ``*history`` key; read by people, never by the renderer) keep
 #: 4 significant digits and at most HISTORY_POINTS validations (the first, the last and evenly spaced ones between;
@@ -201,7 +201,7 @@ class StopHead:
 
     def flops(self) -> int:
         fma, act = mlp_cost(self.layers)
-        return 2 * fma + 24 * act + 2 * 4 * 2 * self.crossings
+        return 2 * fma + TANH_FLOPS * act + 2 * 4 * 2 * self.crossings
 
     def meta(self) -> dict:
         return {"layers": _widths(self.layers), "activation": self.activation, "crossings": int(self.crossings),
@@ -307,14 +307,14 @@ class NeuralMap(TransportMap):
         return self._fold
 
     def flops(self) -> int:
-        """Per ray: the multiply-adds of both networks, 24 per tanh (the CPU's rational tanh), 40 for the
+        """Per ray: the multiply-adds of both networks, :data:`~.mlp.TANH_FLOPS` per tanh (the CPU's), 40 for the
         symmetry reduction, domain test and undo, 40 for the skip connection (a configured map: its
         :class:`ConditionFold`'s first layers, with literal networks)."""
         fold = self.condition_fold() if self.mlp not in PARAM_MODES else None
         f = 0
         for name, layers in (("classifier", self.classifier), ("regressor", self.regressor)):
             fma, act = mlp_cost([fold.first[name]] + list(layers[1:]) if fold is not None else layers)
-            f += 2 * fma + 24 * act
+            f += 2 * fma + TANH_FLOPS * act
         if self.stop_head is not None and self.iris is not None:
             sh = self.stop_head
             if fold is not None:
