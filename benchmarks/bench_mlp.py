@@ -109,8 +109,8 @@ def main(argv=None):
             dr.sync_thread()
             best = min(best, time.perf_counter() - t0)
         rows[name] = {"mrays_per_s": n / best / 1e6, "first_call_s": first, "best_s": best}
-    # agreement of the neural paths with the fused literals in the CPU style (rational tanh, float32 exact
-    # to ~1e-6), per output, on the rays the reference classifier passes (logit: all rays); outputs in the
+    # agreement of the neural paths with the fused literals in the CPU style (the minimax rational tanh, within
+    # 1.2e-6 of tanh), per output, on the rays the reference classifier passes (logit: all rays); outputs in the
     # map's units (positions mm, direction cosines, throughput): fp16 on CUDA is where they part
     from mi_neurallens.neural.model import OUTPUTS
     ref = np.stack([v.numpy() for v in styled("cpu")()], 1)
