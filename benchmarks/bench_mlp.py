@@ -1,8 +1,9 @@
 """Standalone evaluation speed of a learned lens map: classifier + regressor on 2^k rays, fused with
 literal weights (the default, in the backend's evaluation style and in the other one: neural/mlp.py
 ``MLP_STYLES``) vs Dr.Jit cooperative vectors (``drjit.nn``), beside the exact tracer on the same rays, in
-one run; each neural path's outputs against the CPU style's, and the default's against the float64 reference
-with the exact tanh (what the float32 kernel and its tanh approximation add to the map's own error).  Also the kernel compile time of each (cold,
+one run; each neural path's outputs against the CPU style's, and the default's against the float64
+reference with the exact tanh (what the float32 kernel and its tanh approximation add to the map's own
+error).  Also the kernel compile time of each (cold,
 in-process).  A lens with moving groups: its first position, focused at infinity (the map's folded configuration).
 
     python benchmarks/bench_mlp.py [--lens wide-22mm] [--model FILE] [--rays 22] [--repeats 5]
@@ -131,7 +132,9 @@ def main(argv=None):
     from mi_neurallens.constants import ARCSEC_PER_RAD
     m = min(n, 1 << 18)
     logit_ref, y_ref = tm.eval_reduced_np(np.stack([v.numpy()[:m].astype(np.float64) for v in X], 1))
-    f = np.stack([v.numpy()[:m] for v in runs[FUSED]()], 1).astype(np.float64)
+    out = runs[FUSED]()
+    dr.eval(out)                # one kernel for all outputs, then each read back
+    f = np.stack([v.numpy()[:m] for v in out], 1).astype(np.float64)
     passing = logit_ref > 0
     dpos = 1e3 * np.hypot(f[passing, 1] - y_ref[passing, 0], f[passing, 2] - y_ref[passing, 1])
     ddir = ARCSEC_PER_RAD * np.hypot(f[passing, 3] - y_ref[passing, 2], f[passing, 4] - y_ref[passing, 3])

@@ -44,7 +44,11 @@ MODELS = os.path.join(ROOT, "mi_neurallens", "data", "lenses", "models")
 CPU_FILES = ("bench_tracer.json", "bench_flare.json", "equal_time.json", "bench_baselines.json", "bench_zoom.json",
              "bench_zoom_640.json", "bench_focus.json")
 #: how each file is made when its run did not record its own command (the Makefile's ``bench`` target)
-DEFAULT_COMMANDS = {f: f"python benchmarks/{f[:-5]}.py" for f in CPU_FILES}
+DEFAULT_COMMANDS = {**{f: f"python benchmarks/{f[:-5]}.py" for f in CPU_FILES},
+                    "bench_zoom_640.json": "python benchmarks/bench_zoom.py --focal 24.9,35,68.14 --focus inf "
+                                           "--res 640x424 --reference-spp 64 --repeats 4",
+                    "bench_focus.json": "python benchmarks/bench_zoom.py --lens canon-rf-24mm-f1.4l-vcm --focal none "
+                                        "--focus inf,2,1,0.5,0.3,0.24"}
 PERF_PAGE, README = "docs/performance.md", "README.md"
 #: learned vs traced rows of bench_mlp / bench_render
 EXACT_MLP, FUSED_MLP, COOP_MLP = "exact tracer", "neural, fused literals (default)", "neural, cooperative vectors"
@@ -167,25 +171,26 @@ def tanh_table(r: Results) -> str:
     """What the float32 kernel (its tanh approximation, float32 arithmetic) adds to each camera map's own error: the
     default style's outputs against the float64 reference with the exact tanh (``mlp_<lens>.json``), beside the
     map's held-out error against the tracer (its evaluation record)."""
-    rows, some = [], None
+    rows, some, used = [], None, {}
     for lens, d in r.cpu_mlp.items():
         v = d.get("rows", {}).get(FUSED_MLP, {}).get("vs_float64_exact_tanh")
-        if not v:
+        if not v:               # a run before bench_mlp.py measured it
             continue
-        some = some or v
+        some, used[lens] = some or v, d
         own = ((r.evals.get(lens, {}).get("maps") or {}).get("backward.0") or {}).get("regressor", {})
         p, a = v["position_um"], v["direction_arcsec"]
         rows.append([f"`{lens}`", f"{num(p['median'], 2)} / {num(p['max'], 2)}", num(own.get("position_um_median")),
                      f"{num(a['median'], 2)} / {num(a['max'], 2)}", num(own.get("direction_arcsec_median")),
-                     f"{v['validity_flips']:.1e}"])
+                     pct(v["validity_flips"])])
     if not rows:
-        return "*No run stored.*\n"
+        return "*No stored run of `benchmarks/bench_mlp.py` records it.*\n"
     return (f"The fused kernel's outputs on the first {_pow2(some['rays'])} rays of each camera-rays run against the "
             f"float64 evaluation with the exact tanh, on the rays the reference passes, beside each map's own error "
             f"against the tracer (held-out, median).\n\n"
             + table(["lens", "exit position µm: kernel − float64, median / max", "map − tracer, median",
-                     "direction ″: kernel − float64, median / max", "map − tracer, median", "validity flips"], rows)
-            + "\n" + _each_lens(r, "mlp_", r.cpu_mlp))
+                     "direction ″: kernel − float64, median / max", "map − tracer, median", "validity flips"],
+                    rows)
+            + "\n" + _each_lens(r, "mlp_", used))
 
 
 def render_table(r: Results) -> str:
@@ -631,10 +636,12 @@ def headline(r: Results) -> str:
 def pages(r: Results | None = None) -> dict:
     """{page: {block name: body}}: every block this script writes."""
     r = r or Results()
-    return {PERF_PAGE: {"verdicts": verdicts(r), "tracer": tracer_table(r), "camera-rays": mlp_table(r), "tanh": tanh_table(r),
-                        "render": render_table(r), "equal-time": equal_time_table(r), "flare": flare_table(r), "starburst": starburst_table(r),
-                        "coatings": coatings_table(r),
-                        "maps": maps_table(r), "zoom": zoom_table(r), "zoom-640": zoom_table(r, "bench_zoom_640.json"), "zoom-gpu": zoom_table(r, "gpu/bench_zoom.json"),
+    return {PERF_PAGE: {"verdicts": verdicts(r), "tracer": tracer_table(r), "camera-rays": mlp_table(r),
+                        "tanh": tanh_table(r),
+                        "render": render_table(r), "equal-time": equal_time_table(r), "flare": flare_table(r),
+                        "starburst": starburst_table(r), "coatings": coatings_table(r),
+                        "maps": maps_table(r), "zoom": zoom_table(r), "zoom-640": zoom_table(r, "bench_zoom_640.json"),
+                        "zoom-gpu": zoom_table(r, "gpu/bench_zoom.json"),
                         "focus": zoom_table(r, "bench_focus.json"), "baselines-speed": baselines_speed_table(r),
                         "baselines-accuracy": baselines_accuracy_table(r), "gpu-render": gpu_render_table(r),
                         "gpu-camera-rays": gpu_mlp_table(r)},
@@ -642,31 +649,39 @@ def pages(r: Results | None = None) -> dict:
 
 
 # ------------------------------------------------------------------------------------------------ taking a run
-def amd_generation(family: int, avx512: bool) -> str:
-    """The Zen generation of an AMD CPU from its cpuid family (``cpu family`` in /proc/cpuinfo), which a virtual
-    machine's bare "AMD EPYC" model name leaves out and the maps' speed against the tracer depends on (Zen 4 runs
-    AVX-512 on 256-bit units, Zen 5 on 512-bit ones): family 26 is Zen 5, 25 Zen 4 with AVX-512 and Zen 3
-    without, 23 Zen or Zen 2; "" for any other."""
-    return {26: "Zen 5", 25: "Zen 4" if avx512 else "Zen 3", 23: "Zen 2"}.get(family, "")
+def amd_generation(family: int, model: int) -> str:
+    """The Zen generation of an AMD CPU from its cpuid family and model (``cpu family``, ``model`` in
+    /proc/cpuinfo), which a virtual machine's bare "AMD EPYC" model name leaves out and the maps' speed against the
+    tracer depends on (Zen 4 runs AVX-512 on 256-bit units, Zen 5 on 512-bit ones): family 26 is Zen 5; family 25
+    Zen 4 at models 0x10-0x1f, 0x60-0x7f and 0xa0-0xaf, else Zen 3; family 23 Zen 2 from model 0x30, else Zen or
+    Zen+; "" for any other family."""
+    if family == 26:
+        return "Zen 5"
+    if family == 25:
+        return "Zen 4" if 0x10 <= model <= 0x1f or 0x60 <= model <= 0x7f or 0xa0 <= model <= 0xaf else "Zen 3"
+    if family == 23:
+        return "Zen 2" if model >= 0x30 else "Zen/Zen+"
+    return ""
 
 
 def detect_machine() -> tuple:
     """(long, short) words for this machine: CPU model (with its Zen generation on AMD), cores, AVX-512 or AVX2,
     OS."""
-    model, flags, family = platform.processor() or platform.machine(), "", None
+    model, flags, ids = platform.processor() or platform.machine(), "", {}
     try:
         with open("/proc/cpuinfo", encoding="utf-8") as f:
             for line in f:
-                if line.startswith("model name") and model in ("", platform.machine(), platform.processor()):
-                    model = line.split(":", 1)[1].strip()
-                elif line.startswith("flags") and not flags:
-                    flags = line
-                elif line.startswith("cpu family") and family is None:
-                    family = int(line.split(":", 1)[1])
-    except (OSError, ValueError):
+                key, _, value = (part.strip() for part in line.partition(":"))
+                if key == "model name" and model in ("", platform.machine(), platform.processor()):
+                    model = value
+                elif key == "flags" and not flags:
+                    flags = " " + value
+                elif key in ("cpu family", "model") and key not in ids and value.isdigit():
+                    ids[key] = int(value)
+    except OSError:
         pass
     simd = "AVX-512" if " avx512f" in flags else "AVX2" if " avx2" in flags else ""
-    zen = amd_generation(family, simd == "AVX-512") if "AMD" in model and family is not None else ""
+    zen = amd_generation(ids["cpu family"], ids["model"]) if "AMD" in model and len(ids) == 2 else ""
     if zen and "Zen" not in model:
         model = f"{model} {zen}"
     n = os.cpu_count() or 0

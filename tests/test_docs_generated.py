@@ -85,6 +85,29 @@ def test_missing_runs_leave_tables_out_not_made_up(tmp_path):
     assert re.search(r"\d", pages["README.md"]["headline"].split("\n", 2)[2]) is None     # a table with no rows
 
 
+def test_tanh_table_names_the_runs_that_measured_it():
+    """The render-time tanh's table takes its rows from the camera-rays runs that recorded the deviation, and its
+    source line from one of those, not from a run before the measure."""
+    r = make_performance.Results()
+    assert r.cpu_mlp, "no stored camera-rays run"
+    changed = copy.copy(r)
+    changed.cpu_mlp = copy.deepcopy(r.cpu_mlp)
+    first, *rest = changed.cpu_mlp
+    changed.cpu_mlp[first]["rows"][make_performance.FUSED_MLP].pop("vs_float64_exact_tanh", None)
+    body = make_performance.tanh_table(changed)
+    assert f"`{first}`" not in body and all(f"`{lens}`" in body for lens in rest)
+    for d in changed.cpu_mlp.values():
+        d["rows"][make_performance.FUSED_MLP].pop("vs_float64_exact_tanh", None)
+    assert "No stored run" in make_performance.tanh_table(changed)
+
+
+def test_amd_generation_from_cpuid_family_and_model():
+    gen = make_performance.amd_generation
+    assert (gen(26, 2), gen(25, 0x11), gen(25, 0x61), gen(25, 0x01), gen(25, 0x21)) == (
+        "Zen 5", "Zen 4", "Zen 4", "Zen 3", "Zen 3")
+    assert (gen(23, 0x31), gen(23, 0x01), gen(6, 85)) == ("Zen 2", "Zen/Zen+", "")
+
+
 def _read_properties(source: str) -> set:
     with open(os.path.join(ROOT, source), encoding="utf-8") as f:
         return set(re.findall(r"rd\.(?:string|float|int|bool)\(\"(\w+)\"", f.read()))

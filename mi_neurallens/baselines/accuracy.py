@@ -10,8 +10,8 @@
 * valid-mask agreement: IoU of the method's valid set with the tracer's on rays uniform over the whole
   domain (the natural mix), plus false-valid / false-blocked fractions;
 * cost: rays/s of ``eval_dr`` (LLVM, float32, same rays for every method, best of 3, compile excluded) and
-  a FLOP count per ray (polynomials: monomial products + 2 per term; MLPs: 2·in·out per layer + ≈ 24 per
-  tanh; the tracer: not counted).
+  a FLOP count per ray (polynomials: monomial products + 2 per term; MLPs: 2·in·out per layer + 17 per
+  tanh, ``TANH_FLOPS``; the tracer: not counted).
 
 :func:`flare_images` — a point light at infinity, spot diagrams on the sensor plane per method (box filter:
 each ray adds its weight to the pixel it lands in), one channel per wavelength, and the flare MAPE against

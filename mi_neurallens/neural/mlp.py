@@ -8,11 +8,13 @@ The Dr.Jit evaluation (:func:`mlp_dr`) unrolls every multiply-add with the weigh
 weight set) — or, given a :class:`KernelParams` pool, as opaque scalars (kernel parameters), so that
 every network of one architecture compiles to the same kernel.  How it spends the operations is the
 backend's **style** (:data:`MLP_STYLES`, :func:`mlp_style`): on the CPU four interleaved partial sums per
-neuron and a minimax 7/6 rational tanh (:func:`tanh_minimax`), clamped to ±7, maximum error 1.2e-6 in float32; on
-CUDA one multiply-add chain per neuron and tanh from the GPU's exp2 and reciprocal (:func:`tanh_exp2`): a
-third fewer machine instructions there (counted in the compiled kernels' SASS).  Training evaluates Eigen's
-13/6 rational (:func:`tanh_eigen`, maximum error 2.6e-7) or ``torch.tanh``; the render-time approximation moves a
-map's outputs by a small fraction of its own error (docs/performance.md).  Float64 inputs get the exact
+neuron and a minimax 7/6 rational tanh (:func:`tanh_minimax`), clamped to ±7, maximum error 1.2e-6 in
+float32; on CUDA one multiply-add chain per neuron and tanh from the GPU's exp2 and reciprocal
+(:func:`tanh_exp2`): a third fewer machine instructions there (counted in the compiled kernels' SASS).
+Training evaluates Eigen's 13/6 rational (:func:`tanh_eigen`, maximum error 2.6e-7) or ``torch.tanh``.  On the
+CPU the render-time tanh and float32 move a bundled camera map's outputs by up to about a fifth of its own
+error, median (the EF 24-70's directions; ``benchmarks/bench_mlp.py``, docs/performance.md "The render-time
+tanh").  Float64 inputs get the exact
 tanh: that is the maps' numpy reference path.  It is plain Dr.Jit arithmetic on the float type of its
 inputs, so it runs in any Mitsuba variant (``mi.Float``).
 """
@@ -69,9 +71,9 @@ TANH_FLOPS = 17
 
 def tanh_minimax(x):
     """The CPU style's tanh on Dr.Jit floats: clamp to ±:data:`TANH_MINIMAX_CLAMP`, then x·N(x²)/D(x²)
-    (:data:`TANH_MINIMAX_N`, :data:`TANH_MINIMAX_D`).  A third fewer multiply-adds than :func:`tanh_eigen`, whose
-    error it quadruples (1.2e-6 against 2.6e-7 in float32, absolute); on a 2-core Zen 4 EPYC (AVX-512) a bundled
-    camera map runs 12–15 % faster with it."""
+    (:data:`TANH_MINIMAX_N`, :data:`TANH_MINIMAX_D`): a third fewer multiply-adds than :func:`tanh_eigen`, at
+    4.6 times its error (1.2e-6 against 2.6e-7 in float32, absolute), which makes the camera maps faster on the
+    CPU, where the activation is about a third of their cost."""
     import drjit as dr
     n, d = TANH_MINIMAX_N, TANH_MINIMAX_D
     x = dr.clip(x, -TANH_MINIMAX_CLAMP, TANH_MINIMAX_CLAMP)
@@ -92,9 +94,9 @@ def tanh_exp2(x):
     ``ex2.approx.ftz`` and ``rcp.approx.ftz`` (2 and 1 ulp), which run on the special-function units beside
     the FMA pipes: 3 FMA-pipe instructions a tanh against 13 (and a division) for :func:`tanh_eigen`.  No
     clamp is needed: 2^(big) is inf and 1/inf is 0, 2^(−big) flushes to 0.  The error is absolute, about
-    1e-7 near 0 (where 1 − 2·½ cancels), which the next layer's sum sees the same as the rational's 2.6e-7.
-    On the CPU ``exp2`` is a polynomial and ``rcp`` a division, which makes it slower than the rational
-    there (:func:`mlp_style`)."""
+    1e-7 near 0 (where 1 − 2·½ cancels), which the next layer's sum sees the same as :func:`tanh_eigen`'s
+    2.6e-7.  On the CPU ``exp2`` is a polynomial and ``rcp`` a division, which makes it slower than
+    :func:`tanh_minimax` there (:func:`mlp_style`)."""
     import drjit as dr
     t = dr.exp2(x * _TWO_OVER_LN2)
     return dr.fma(dr.rcp(t + 1.0), -2.0, 1.0)

@@ -59,10 +59,10 @@ Neural lens camera (:monosp:`neural_lens`)
  * - mlp
    - |string|
    - How the networks are evaluated in the kernel.  ``fused``: every weight is a literal in the generated
-     kernel and tanh is accurate to float32 (a rational approximation on the CPU, the GPU's exp2 and
+     kernel and tanh is within about 1e-6 of tanh (a minimax rational on the CPU, the GPU's exp2 and
      reciprocal on CUDA); the fastest evaluation once compiled, but every new weight set compiles a kernel
      of its own.  ``shared``: every number of the map is a kernel input (on the CPU the networks through
-     packed cooperative-vector buffers, fp32, equal to ``fused`` to ~1e-6; on CUDA fp32 kernel parameters),
+     packed cooperative-vector buffers, fp32 with Dr.Jit's tanh, equal to ``fused`` to a few 1e-5; on CUDA fp32 kernel parameters),
      so maps of one architecture share one compiled kernel: for many maps in one render, as ``lens_flare``'s
      ghosts.  ``coopvec``: Dr.Jit cooperative vectors (``drjit.nn``) on every backend, no recompilation when
      weights change, tensor cores on CUDA but fp16 there (coarser exit rays).  Keep ``fused`` for camera

@@ -8,7 +8,7 @@
  * transposes T[l] = W_l^T (K, c_l, a_l), for the backward's input gradients.  Rows: x (K, B, NIN) row-major,
  * acts (K, NH, B, NW) the hidden layers' outputs (after tanh), out (K, B, NOUT).
  *
- * The activation is the render kernel's clamped 13/6 rational tanh (mi_neurallens.neural.mlp.tanh_eigen),
+ * The activation is Eigen's clamped 13/6 rational tanh (mi_neurallens.neural.mlp.tanh_eigen),
  * its derivative 1 - y^2, as in training/stacked.py. */
 #include <math.h>
 #include <stdlib.h>

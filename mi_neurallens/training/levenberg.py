@@ -145,11 +145,12 @@ def check_finishable(named_layers, nc, owner: str, table: str, way_out: str, wha
 
 def n_params(layers) -> int:
     """Weights and biases of ``layers`` ([(W (out, in), b (out,))])."""
-    return n_params_of([np.shape(layers[0][0])[1]] + [np.shape(W)[0] for W, _ in layers]) if layers else 0
+    return int(sum(np.size(W) + np.size(b) for W, b in layers))
 
 
 def n_params_of(dims) -> int:
-    """Weights and biases of a dense network whose layer sizes are ``dims`` (inputs, each hidden width, outputs)."""
+    """Weights and biases of a dense network whose layer sizes are ``dims`` (inputs, each hidden width, outputs):
+    :func:`n_params` of its layers, before there are any."""
     return int(sum(a * b + b for a, b in zip(dims[:-1], dims[1:])))
 
 

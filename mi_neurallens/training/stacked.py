@@ -191,7 +191,7 @@ def training_tanh(torch, device=None):
             out = RationalTanh.apply(probe)
             out.sum().backward()                  # compile the backward too, here, where it is timed
             if float((out.detach() - torch.tanh(probe.detach())).abs().max()) < 1e-6:
-                fn, how = RationalTanh.apply, "the render kernel's rational tanh, fused by torch.compile"
+                fn, how = RationalTanh.apply, "Eigen's rational tanh, fused by torch.compile"
         # no C++ compiler, an unsupported platform: the exact torch.tanh.  Dynamo's and Inductor's failures are
         # RuntimeErrors (InvalidCxxCompiler, CppCompileError, BackendCompilerFailed, ...); ImportError where
         # torch._dynamo is absent; OSError and CalledProcessError from running the compiler
@@ -233,7 +233,7 @@ class StackedMLP:
         if activation == "tanh" and torch.device(dev).type == "cpu":
             self.fused = fused_cpu.kernel(torch, self.dims)
             shape = "-".join(map(str, self.dims))
-            STEP_CHOICE[shape] = ("one fused C kernel (training/fused_mlp.c, the render kernel's rational tanh)"
+            STEP_CHOICE[shape] = ("one fused C kernel (training/fused_mlp.c, Eigen's rational tanh)"
                                   if self.fused is not None else
                                   f"PyTorch's operations ({fused_cpu.WHY_NOT.get(tuple(self.dims), '')})")
         # the activation of PyTorch's operations (compiled on first use: not needed where the kernel runs)
