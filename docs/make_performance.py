@@ -167,6 +167,11 @@ def mlp_table(r: Results) -> str:
     return lens_mlp_table(r, r.cpu_mlp, "", 1.0, "M")
 
 
+def camera_record(ev: dict) -> dict:
+    """A model's evaluation record of its camera map (the backward transmit map), {} where it has none."""
+    return (ev.get("maps") or {}).get("backward.0") or {}
+
+
 def tanh_table(r: Results) -> str:
     """What the float32 kernel (its tanh approximation, float32 arithmetic) adds to each camera map's own error: the
     default style's outputs against the float64 reference with the exact tanh (``mlp_<lens>.json``), beside the
@@ -177,7 +182,7 @@ def tanh_table(r: Results) -> str:
         if not v:               # a run before bench_mlp.py measured it
             continue
         some, used[lens] = some or v, d
-        own = ((r.evals.get(lens, {}).get("maps") or {}).get("backward.0") or {}).get("regressor", {})
+        own = camera_record(r.evals.get(lens, {})).get("regressor", {})
         p, a = v["position_um"], v["direction_arcsec"]
         rows.append([f"`{lens}`", f"{num(p['median'], 2)} / {num(p['max'], 2)}", num(own.get("position_um_median")),
                      f"{num(a['median'], 2)} / {num(a['max'], 2)}", num(own.get("direction_arcsec_median")),
@@ -360,7 +365,7 @@ def maps_table(r: Results) -> str:
     gate, max_cost = _gates()
     rows = []
     for lens, ev in r.evals.items():
-        cam = (ev.get("maps") or {}).get("backward.0", {})
+        cam = camera_record(ev)
         g, c = cam.get("regressor", {}), cam.get("classifier", {})
         k = ghost_counts(ev)
         rows.append([f"`{lens}`", f"{num(g.get('position_um_median'))} / {num(g.get('position_um_p99'))}",
@@ -624,7 +629,7 @@ def headline(r: Results) -> str:
                      r.short("bench_tracer.json"), "the-exact-tracer"])
     for c in comparisons(r):
         rows.append([c["what"], rspan(c["value"]), c["machine"], c["anchor"]])
-    cams = [(ev.get("maps") or {}).get("backward.0", {}).get("regressor", {}).get("position_um_median")
+    cams = [camera_record(ev).get("regressor", {}).get("position_um_median")
             for ev in r.evals.values()]
     if any(v is not None for v in cams):
         rows.append(["the bundled camera maps' exit position error, held-out median", span(cams, unit=" µm"),
