@@ -60,7 +60,7 @@ def gauss_newton_problem(dims, lead, *, rows, seed, net_seed):
 def test_normal_equations_are_the_jacobians(dims, lead):
     """JᵀJ and Jᵀr formed from the hidden layers' columns and the output layer's per-output blocks (what the
     finish solves each iteration) equal those of the whole scaled Jacobian J[n, o, :] = s[n, o] · ∂z_o/∂θ —
-    unstacked and stacked, with one output, and with more hidden columns than one Gram block
+    unstacked and stacked, with one output, and with more hidden columns than one Gram panel
     (levenberg.GRAM_BLOCK) — and the activations end in the network's outputs."""
     net, theta, X, s, r = gauss_newton_problem(dims, lead, rows=37, seed=3, net_seed=4)
     z, J = net.jacobian(theta, X)
