@@ -551,7 +551,9 @@ def _damped_step(torch, net, th, X, A, g, lams: list, loss0: list, loss_of):
         lam_t = torch.as_tensor([lams[a] for a in pending], dtype=A.dtype, device=A.device)
         # JᵀJ + λ·diag is symmetric positive definite: Cholesky (torch 2.13's batched LU solve also fails on a
         # CPU with more than one thread: MKL's DLASWP rejects its pivots)
-        L, info = torch.linalg.cholesky_ex(A[pi] + lam_t[:, None, None] * torch.diag_embed(d[pi]))
+        M = A[pi]                                   # a copy (index by a tensor), damped on its diagonal in place:
+        M.diagonal(dim1=1, dim2=2).add_(lam_t[:, None] * d[pi])     # a dense λ·diag matrix cost 4x this
+        L, info = torch.linalg.cholesky_ex(M)
         delta = torch.cholesky_solve(-g[pi][..., None], L)[..., 0]
         ok = ((info == 0) & torch.isfinite(delta).all(1)).tolist()
         cand = th[pi] + delta
