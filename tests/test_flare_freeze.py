@@ -142,3 +142,23 @@ def test_lens_flare_integrator_replays_its_kernels_across_renders():
     ref = FlareRenderer(scene, 0, FlareOptions(mode="auto", ghosts=[2560, 4608], samples=1 << 14,
                                                freeze=False)).render(seed=1).total
     assert _same(ref, images[2]) and not _same(images[1], images[2])
+
+
+@pytest.mark.parametrize("lens, ghost, a, b", [
+    ("wide-22mm", 2560, dict(focus_distance=2.0), dict(focus_distance=0.6, fstop=4.0)),
+    ("canon-ef-24-70mm-f2.8l", 48, dict(focal_length=30.0), dict(focal_length=52.0))])
+def test_another_configuration_compiles_no_new_flare_kernel(lens, ghost, a, b):
+    """The numbers a zoom, focus or f-number change moves (the tracer's vertex positions, the sensor and input
+    planes, the stop's radius) are kernel inputs of the flare, not literals: a renderer of the lens in another
+    configuration runs the kernels of the first (Dr.Jit's cache by source), and draws another flare."""
+    images, hashes = [], []
+    for sensor in (a, b):
+        scene = make_scene(point((0.3, 0.2, 4.0), 100.0), lens=lens, w=48, h=32, **sensor)
+        r = FlareRenderer(scene, 0, FlareOptions(mode="exact", ghosts=[ghost], samples=1 << 14, freeze=False))
+        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+            dr.kernel_history()                                   # cleared
+            images.append(r.render(seed=1).total)
+            hashes.append({h["hash"] for h in dr.kernel_history() if h["type"] == dr.KernelType.JIT})
+    assert hashes[0] and hashes[1] <= hashes[0], len(hashes[1] - hashes[0])
+    assert images[0].max() > 0 and images[1].max() > 0
+    assert float(np.abs(images[0] - images[1]).max()) > 0.05 * float(images[0].max())

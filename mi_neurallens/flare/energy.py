@@ -110,9 +110,13 @@ def _film_energy(tr, o, d, lam, wt, pid, w, h, z_out=None, groups=None):
 
 @lru_cache(maxsize=16)
 def _ranking_cached(lens, w, h, fresnel, n_rays, n_angles, seed, ghost_ids):
-    from ..trace.api import float_type, tracer_for
+    from ..trace.api import float_type
+    from ..trace.parameters import LiveGeometry
+    from ..trace.tracer import LensTracer
     F = float_type("float32")
-    tr = tracer_for(lens, fresnel)
+    # the configuration's numbers as kernel inputs: the 435 ghosts of a 30-surface zoom rank at another focal
+    # length, focus or f-number with the kernels compiled for the first (≈ 100 s of compiling on 2 cores)
+    tr = LensTracer(lens, fresnel, geometry=LiveGeometry.configuration(lens, F))
     ox, oy, oz, dx, dy, dz, lam, wt = _ranking_rays(lens, w, h, n_rays, n_angles, np.random.default_rng(seed))
     o, d = tuple(from_numpy(F, a) for a in (ox, oy, oz)), tuple(from_numpy(F, a) for a in (dx, dy, dz))
     lam_dr = from_numpy(F, lam)

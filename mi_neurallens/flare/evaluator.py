@@ -37,10 +37,11 @@ class GhostEvaluator:
     (default: ``band``; a learned map with an iris tested at render time): also those whose predicted stop-plane
     crossing lies within :func:`iris_band_mm` of the iris's edge.  The map leaves ``near`` out (``valid`` is
     false there) for the tracer to take (:meth:`~mi_neurallens.flare.render.FlareRenderer.splat`); without a
-    band ``near`` is None."""
+    band ``near`` is None.  ``z_var``: the sensor plane as the kernel reads it, a width-1 Dr.Jit array (a kernel
+    input: another zoom or focus compiles no new kernel); None: ``z_sensor`` as a literal."""
 
-    def __init__(self, tmap, z_sensor, fresnel=True, band=0.0, iris_band=None):
-        self.map, self.z, self.fresnel = tmap, float(z_sensor), fresnel
+    def __init__(self, tmap, z_sensor, fresnel=True, band=0.0, iris_band=None, z_var=None):
+        self.map, self.z, self.fresnel, self.z_var = tmap, float(z_sensor), fresnel, z_var
         #: ``exact`` for the tracer, ``neural`` for every other map (the learned ones and the baselines)
         self.kind = "exact" if tmap.method == "exact" else "neural"
         self.band = float(band) if self.kind == "neural" and getattr(tmap, "use_classifier", False) else 0.0
@@ -77,16 +78,19 @@ class GhostEvaluator:
         baseline) has a signature of its own and no inputs."""
         tm = self.map
         sig = tm.kernel_signature() if hasattr(tm, "kernel_signature") else None
+        z, zs = (self.z, []) if self.z_var is None else ("input", [self.z_var])
         if sig is None:
-            return ("map", tm.method, tm.key, self.z, self.fresnel, self.band, self.iris_mm), []
+            # the tracer's live geometry and planes (a renderer's configuration numbers) are its inputs
+            inputs = tm.kernel_inputs(float_t) if tm.method == "exact" else []
+            return ("map", tm.method, tm.key, z, self.fresnel, self.band, self.iris_mm), inputs + zs
         extra = [self._iris_width(float_t)] if self.iris_mm > 0.0 else []
-        return (sig, self.z, self.fresnel, self.band, self.iris_mm > 0.0), tm.kernel_inputs(float_t) + extra
+        return (sig, z, self.fresnel, self.band, self.iris_mm > 0.0), tm.kernel_inputs(float_t) + extra + zs
 
     def __call__(self, o, d, lam, active):
         import drjit as dr
         res = self.map.eval_dr(o, d, lam, active)
         (px, py, pz), (dx, dy, dz) = res.position, res.direction
-        t = (self.z - pz) / dz
+        t = ((self.z if self.z_var is None else self.z_var) - pz) / dz
         x, y = dr.fma(t, dx, px), dr.fma(t, dy, py)
         T = res.throughput if self.fresnel else res.throughput * 0.0 + 1.0
         valid = res.valid & (dz > 0.0)

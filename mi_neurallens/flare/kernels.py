@@ -7,9 +7,11 @@ the sensor plane, and its film value ``E⊥ · w_λ · T · |cos θ_q| · K / A_
 The pilot draws q from PCG32 streams in given cells; the main pass from a rank-1 lattice (an R_6 additive
 recurrence in 32-bit fixed point) in the kept cells or the whole disk.
 
-Dr.Jit traces these functions into one kernel each per evaluator: the renderer's constants (lens set-up, film,
-input plane) are literals, everything that changes between calls (the light, the scene, the camera's pose, the
-film factor K / A_pix, sample counts) is an input.  :meth:`FlareKernels.run` replays a kernel recorded with
+Dr.Jit traces these functions into one kernel each per evaluator: the renderer's constants (film, the sensor's
+size) are literals, everything that changes between calls (the light, the scene, the camera's pose, the
+film factor K / A_pix, sample counts) is an input, and so are the numbers a zoom or focus changes (the input and
+sensor planes here, the tracer's vertex positions and stop radius), so that another configuration of the lens
+reuses the kernels compiled for the first (Dr.Jit's kernel cache).  :meth:`FlareKernels.run` replays a kernel recorded with
 ``dr.freeze`` instead of tracing it again (docs/flares.md, "Frozen kernels").
 """
 from __future__ import annotations
@@ -56,10 +58,10 @@ def rgb(hit, val, lam):
 class FlareKernels:
     """The pilot and splat kernels of one renderer, and their frozen recordings.
 
-    Fixed for the renderer's life and read as literals: ``setup`` (the sensor's lens set-up: lens space ↔ camera,
-    the sensor's size in mm), ``sensor`` (its wavelength sampling), ``lambda_mode`` (one λ per sample or none),
-    ``z_in`` (the input plane, lens space, mm), the film's ``size`` and its crop window ``crop_offset``,
-    ``crop_size`` (pixels)."""
+    Fixed for the renderer's life and read as literals: ``setup`` (the sensor's lens set-up: its scene unit and
+    size in mm), ``sensor`` (its wavelength sampling), ``lambda_mode`` (one λ per sample or none), the film's
+    ``size`` and its crop window ``crop_offset``, ``crop_size`` (pixels).  ``z_in`` (the input plane, lens space,
+    mm) and the set-up's sensor plane are kernel inputs, handed to each call in ``xf`` (:meth:`planes`)."""
 
     def __init__(self, setup, sensor, lambda_mode, z_in: float, size: tuple, crop_offset: tuple, crop_size: tuple):
         self.setup, self.sensor, self.lambda_mode, self.z_in = setup, sensor, lambda_mode, z_in
@@ -73,15 +75,26 @@ class FlareKernels:
         #: FlareRenderer.offframe_image)
         self.crop_test = True
 
+    def planes(self):
+        """(z_in, the sensor plane) as width-1 ``mi.Float`` arrays (lens space, mm): kernel inputs, the last
+        entry of the ``xf`` the kernels take."""
+        import mitsuba as mi
+        import drjit as dr
+        if getattr(self, "_planes", None) is None:
+            self._planes = (dr.opaque(mi.Float, float(self.z_in)), dr.opaque(mi.Float, float(self.setup.image_z)))
+        return self._planes
+
     # -------------------------------------------------------------- one forward sample
-    def interaction(self, qx, qy, wav, to_world):
+    def interaction(self, qx, qy, wav, to_world, planes=None):
         """The scene-space interaction at the lens-space points (``qx``, ``qy``, z_in) (mm), for sampling a light
-        from there; ``wav``: its wavelengths (None: none); ``to_world``: the sensor's camera → world transform."""
+        from there; ``wav``: its wavelengths (None: none); ``to_world``: the sensor's camera → world transform;
+        ``planes``: :meth:`planes` (the default)."""
         import mitsuba as mi
         import drjit as dr
         from ..sensors.common import lens_to_camera
-        zq = dr.zeros(mi.Float, dr.width(qx)) + self.z_in
-        (cx, cy, cz), _ = lens_to_camera(self.setup, (qx, qy, zq), (qx, qy, zq))
+        z_in, image_z = self.planes() if planes is None else planes
+        zq = dr.zeros(mi.Float, dr.width(qx)) + z_in
+        (cx, cy, cz), _ = lens_to_camera(self.setup, (qx, qy, zq), (qx, qy, zq), image_z=image_z)
         it = dr.zeros(mi.Interaction3f, dr.width(qx))
         it.p = to_world @ mi.Point3f(cx, cy, cz)
         it.t = mi.Float(0.0)
@@ -96,14 +109,14 @@ class FlareKernels:
         tables, which a frozen kernel cannot), ``near`` the samples a learned evaluator leaves to the tracer
         (:class:`~mi_neurallens.flare.evaluator.GhostEvaluator`; None without).  ``px``, ``py``: film position
         (pixels of the full film).  ``scene``: for the light's visibility test (None: none); ``xf``: the sensor's
-        (to_world, to_camera) transforms and the film factor K / A_pix (opaque)."""
+        (to_world, to_camera) transforms, the film factor K / A_pix (opaque) and :meth:`planes`."""
         import mitsuba as mi
         import drjit as dr
         from ..sensors.wavelengths import sample_wavelength
-        to_world, to_cam, k_pix = xf
+        to_world, to_cam, k_pix, planes = xf
         lam, wav, wspec, _ = sample_wavelength(mi, dr, self.sensor, self.lambda_mode, mi.Float(0.0), u_lam,
                                                None, None, active, deferred=True)
-        it = self.interaction(qx, qy, wav, to_world)
+        it = self.interaction(qx, qy, wav, to_world, planes)
         ds, E = emitter.sample_direction(it, u_em, active)
         dcam = to_cam @ (-ds.d)
         dx, dy, dz = dcam.x, dcam.y, -dcam.z          # camera → lens direction
@@ -112,7 +125,7 @@ class FlareKernels:
             ray = mi.Ray3f(it.p, ds.d, dr.select(dr.isfinite(ds.dist), ds.dist * (1.0 - 1e-4), dr.inf),
                            mi.Float(0.0), wav if wav is not None else [])
             ok &= ~scene.ray_test(ray, ok)
-        zq = dr.zeros(mi.Float, dr.width(qx)) + self.z_in
+        zq = dr.zeros(mi.Float, dr.width(qx)) + planes[0]
         valid, x, y, T, near = ev((qx, qy, zq), (dx, dy, dz), lam, ok)
         W, H = self.size
         px = (x * (1.0 / self.setup.sensor_width_mm) + 0.5) * W

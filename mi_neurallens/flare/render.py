@@ -209,8 +209,12 @@ class FlareRenderer:
         lam_dep = (any(not m.is_constant for m in [self.lens.object_medium] + [s.medium for s in self.lens.surfaces])
                    or (self.fresnel and any(s.coating is not None for s in self.lens.surfaces)))
         self.lambda_mode = LAMBDA_SAMPLE1 if lam_dep else LAMBDA_NONE
+        from ..trace.parameters import LiveGeometry
         from ..trace.tracer import LensTracer
-        self.tracer = LensTracer(self.lens, fresnel=self.fresnel)
+        #: the tracer with the configuration's numbers (vertex positions, sensor plane, stop radius) as kernel
+        #: inputs: a zoom, focus or f-number change compiles no new kernel
+        self.tracer = LensTracer(self.lens, fresnel=self.fresnel,
+                                 geometry=LiveGeometry.configuration(self.lens, mi.Float))
         self.model = sensor_model(sensor, self.opts)
         film = sensor.film()
         self.size = (int(film.size()[0]), int(film.size()[1]))
@@ -287,7 +291,9 @@ class FlareRenderer:
     def exact_map(self, pid):
         """The tracer on path ``pid``, from the flare's input plane to the sensor plane."""
         from ..transport.exact import ExactMap
-        return ExactMap(self.lens, pid, "forward", self.z_in, self.z_img, tracer=self.tracer)
+        z_in, z_img = self.kernels.planes()
+        return ExactMap(self.lens, pid, "forward", self.z_in, self.z_img, tracer=self.tracer,
+                        numbers={"z_in": z_in, "z_out": self.tracer.image_z})
 
     def evaluator(self, pid):
         """The :class:`GhostEvaluator` of path ``pid`` according to ``mode``: the exact map, the learned
@@ -319,14 +325,16 @@ class FlareRenderer:
             tmap = None if band is None else self._learned(m.map(pid, "forward"), strict=False)
             if tmap is None:                          # the tracer (which ignores the band)
                 tmap = self.exact_map(pid)
-        return GhostEvaluator(tmap, self.z_img, self.fresnel, band or 0.0, self.iris_band(band or 0.0))
+        return GhostEvaluator(tmap, self.z_img, self.fresnel, band or 0.0, self.iris_band(band or 0.0),
+                              z_var=self.tracer.image_z)
 
     def exact_evaluator(self, pid):
         """The tracer's :class:`GhostEvaluator` of path ``pid``, one per path and renderer (the pilot with
         ``pilot_with = "exact"``, ``boundary_band``'s second pass)."""
         ev = self._exact_evs.get(pid)
         if ev is None:
-            ev = self._exact_evs[pid] = GhostEvaluator(self.exact_map(pid), self.z_img, self.fresnel)
+            ev = self._exact_evs[pid] = GhostEvaluator(self.exact_map(pid), self.z_img, self.fresnel,
+                                                       z_var=self.tracer.image_z)
         return ev
 
     def _learned(self, tm, strict: bool):
@@ -412,8 +420,13 @@ class FlareRenderer:
         one recording per learned-map architecture, replayed), with the scene for the light's visibility test
         (``opts.visibility``), the camera's pose and the film factor K / A_pix."""
         scene = self.scene if self.opts.visibility else None
-        xf = (self._to_world, self._to_cam, self._k_pix)
-        return self.kernels.run(kind, ev, light.emitter, scene, xf, d, freeze=self.opts.freeze)
+        return self.kernels.run(kind, ev, light.emitter, scene, self.xf(), d, freeze=self.opts.freeze)
+
+    def xf(self):
+        """What the kernels read of the sensor besides the lens, all kernel inputs: (camera → world, world →
+        camera, the film factor K / A_pix, the input and sensor planes (:meth:`FlareKernels.planes
+        <mi_neurallens.flare.kernels.FlareKernels.planes>`))."""
+        return (self._to_world, self._to_cam, self._k_pix, self.kernels.planes())
 
     def pilot(self, light, ev, seed=0):
         """Occupied cells (dilated) of the input region for ``light`` and evaluator ``ev``: a :class:`Pilot`."""

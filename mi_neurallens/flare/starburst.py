@@ -79,7 +79,7 @@ def offframe_starburst(fr, light, seed: int = 0, n: int = 1 << 18):
     u = rng.random((5, n))
     r, t = R * np.sqrt(u[0]), 2.0 * math.pi * u[1]
     F = lambda a: from_numpy(mi.Float, a)                      # noqa: E731
-    xf = (fr._to_world, fr._to_cam, fr._k_pix)
+    xf = fr.xf()
     scene = fr.scene if fr.opts.visibility else None
     fr.kernels.crop_test = False                               # keep the samples that miss the film
     try:

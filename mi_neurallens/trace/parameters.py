@@ -153,6 +153,16 @@ class LiveGeometry:
     extra: dict = dataclasses.field(default_factory=dict)
 
     @classmethod
+    def configuration(cls, lens, float_type) -> "LiveGeometry":
+        """The numbers of ``lens`` that a zoom, a focus or an f-number changes — its vertex positions, the sensor
+        plane and the stop's radius — as opaque ``float_type`` arrays (no gradients), the surfaces' shapes as
+        literals: every configuration of one lens traces with the kernels compiled for the first (Dr.Jit's cache
+        by source)."""
+        import drjit as dr
+        from .iris import Iris
+        return cls(lens, {}, float_type, stop_radius=dr.opaque(float_type, float(Iris.of_lens(lens).radius_mm)))
+
+    @classmethod
     def opaque(cls, lens, float_type) -> "LiveGeometry":
         """Every curvature, conic and aspheric coefficient of ``lens`` as an opaque ``float_type`` array (no
         gradients): the kernel stays the same whatever values they take."""

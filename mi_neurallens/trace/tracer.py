@@ -126,6 +126,20 @@ class LensTracer:
             self.iris = dataclasses.replace(self.iris, radius_mm=geometry.stop_radius)
         self._paths: dict = {}
 
+    def kernel_inputs(self) -> list:
+        """The Dr.Jit arrays of width 1 its kernels read (a live geometry's vertex positions, curvatures, conics,
+        aspheric coefficients, sensor plane and stop radius; none where every number is a literal): what a frozen
+        function (``dr.freeze``) recording a trace must be handed as inputs."""
+        out = []
+        for g in self.geom:
+            for v in (g.z, g.c, g.k) + tuple(g.asph):
+                if dr.is_array_v(v):
+                    out.append(v)
+        for v in (self.image_z, self.iris.radius_mm):
+            if dr.is_array_v(v):
+                out.append(v)
+        return out
+
     def path(self, path="transmit", direction: str = FORWARD) -> PathSpec:
         if isinstance(path, PathSpec):
             return resolve_path(self.lens, path, direction)

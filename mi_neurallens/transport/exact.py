@@ -46,6 +46,12 @@ class ExactMap(TransportMap):
     def number(self, key, value, like):
         return self.numbers[key] if key in self.numbers else float(value)
 
+    def kernel_inputs(self, float_t=None) -> list:
+        """The Dr.Jit arrays its kernels read besides the rays (the tracer's live geometry, the planes in
+        :attr:`numbers`): a frozen function's inputs.  ``float_t``: unused (the interface of the learned maps')."""
+        import drjit as dr
+        return self.tracer.kernel_inputs() + [v for v in self.numbers.values() if dr.is_array_v(v)]
+
     @property
     def fresnel(self) -> bool:
         return self.tracer.fresnel
