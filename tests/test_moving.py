@@ -212,6 +212,49 @@ def test_sensors_take_the_focal_length(zoom):
     assert np.isfinite(img).all() and 0.05 < img.mean() < 2.0
 
 
+@pytest.mark.parametrize("sensor", ["realistic_lens", "neural_lens"])
+def test_zoom_and_focus_as_parameters_compile_nothing(zoom, sensor):
+    """A zoom lens's ``focal_length`` is a parameter like ``focus_distance``: after ``params.update()`` the render is
+    the one of the scene loaded at the new focal length and focus, and after the first update (which makes the
+    numbers kernel inputs) zooming and refocusing compile no kernel: the configuration's numbers (vertex positions,
+    planes, stop, the map's folded layers and planes) are kernel inputs.  A lens that does not zoom has no
+    ``focal_length`` parameter."""
+    import mitsuba as mi
+    import drjit as dr
+    from mi_neurallens.metrics import mape
+    from mi_neurallens.render_utils import default_variant
+    mi.set_variant(default_variant())
+    import mi_neurallens as nl
+    nl.register()
+
+    def scene(**kw):
+        return mi.load_dict({"type": "scene", "sensor": {"type": sensor, "lens": ZOOM, "film": {
+            "type": "hdrfilm", "width": 40, "height": 26}, "sampler": {"type": "independent", "sample_count": 4},
+            **({"model": ZOOM} if sensor == "neural_lens" else {}), **kw},
+            "light": {"type": "constant"}, "integrator": {"type": "path"},
+            "ball": {"type": "sphere", "center": [0.0, 0.0, 1.5], "radius": 0.3,
+                     "bsdf": {"type": "diffuse", "reflectance": {"type": "checkerboard"}}}})
+
+    sc = scene(focal_length=30.0, focus_distance=2.0)
+    p = mi.traverse(sc)
+    assert "sensor.focal_length" in p.keys() and p["sensor.focal_length"][0] == pytest.approx(30.0)
+    hashes = []
+    for f, d in ((40.0, 2.0), (55.0, 2.0), (55.0, 1.1)):
+        p["sensor.focal_length"], p["sensor.focus_distance"] = f, d
+        p.update()
+        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+            dr.kernel_history()
+            img = np.array(mi.render(sc, seed=5))
+            hashes.append({h["hash"] for h in dr.kernel_history() if h["type"] == dr.KernelType.JIT})
+        assert sc.sensors()[0].setup.focal_length_mm == pytest.approx(f)
+        ref = np.array(mi.render(scene(focal_length=f, focus_distance=d), seed=5))
+        assert img.mean() > 0.01 and mape(img, ref) < 1e-4, (f, d, mape(img, ref))
+    assert hashes[1] <= hashes[0] and hashes[2] <= hashes[0]
+    prime = mi.traverse(mi.load_dict({"type": "scene", "sensor": {"type": "realistic_lens",
+                                                                   "lens": "canon-rf-24mm-f1.4l-vcm"}}))
+    assert "sensor.focus_distance" in prime.keys() and "sensor.focal_length" not in prime.keys()
+
+
 def test_moving_groups_are_in_the_fingerprint_and_the_file(zoom, tmp_path):
     """A model trained for one set of moving groups cannot be used with another: the fingerprint covers them (and
     a lens without keeps its fingerprint); the project JSON writes and reads them, schema-valid."""

@@ -294,6 +294,15 @@ class NeuralMap(TransportMap):
         return self.params_pool if self.mlp in PARAM_MODES else None
 
     def number(self, key, value, like):
+        """A number as it enters the kernel (:meth:`TransportMap.number
+        <mi_neurallens.transport.base.TransportMap.number>`): with ``mlp`` shared or coopvec a kernel parameter;
+        with literal networks a literal, except a configured map's planes (``z_in``, ``z_out``: they move with the
+        zoom and focus), which are parameters of its :class:`ConditionFold`'s pool like its folded layers, so that
+        another configuration compiles nothing."""
+        if self.params is None and key in ("z_in", "z_out"):
+            fold = self.condition_fold()
+            if fold is not None:
+                return fold.pool(("fold", "plane", key), value, like)
         return number(self.params, key, value, like)
 
     @property

@@ -115,11 +115,11 @@ class LensSensorBase(mi.Sensor):
         self.lambda_mode = lambda_mode
         size = self.film().size()
 
-        def configure(lens, focus_mm, sensor_distance_mm):
+        def configure(lens, focus_mm, sensor_distance_mm, focal_length_mm=focal):
             return configure_lens(
                 lens, fstop=fstop, blades=blades, blade_rotation_deg=rotation, sensor_distance_mm=sensor_distance_mm,
                 focus_distance_mm=focus_mm, sensor_width_mm=width, film_size=(int(size[0]), int(size[1])),
-                scene_unit_mm=unit, fresnel=fresnel, plugin=plugin, focal_length_mm=focal)
+                scene_unit_mm=unit, fresnel=fresnel, plugin=plugin, focal_length_mm=focal_length_mm)
         self.setup = configure(base, None if focus is None else focus * unit, sdist)
         self.pupil = PupilBounds(self.setup, mode)
         self.lens_parameters = SensorParameters(mi, base, self.setup, configure, lens_params=self.LENS_PARAMETERS,

@@ -1,7 +1,8 @@
 """A lens sensor's parameters in ``mi.traverse``, and what a change to them re-derives (``params.update()``).
 
 :class:`SensorParameters` holds the Dr.Jit arrays (width 1) the sensor puts into Mitsuba's traversal —
-``focus_distance`` (scene units from the sensor plane), ``sensor_distance`` (mm behind the last vertex) and,
+``focus_distance`` (scene units from the sensor plane), ``sensor_distance`` (mm behind the last vertex),
+``focal_length`` (mm, a zoom lens's: its groups move to it, :mod:`mi_neurallens.optics.moving`) and,
 for ``realistic_lens``, the prescription (:mod:`mi_neurallens.trace.parameters`: ``surface_{i}_curvature``,
 ``_thickness``, ``_conic``, ``_asphere``) — and turns a change into a new configured lens.
 
@@ -34,7 +35,7 @@ from ..errors import LensError, NeuralLensError
 from ..optics.prescription import surfaces_cross
 from ..trace import parameters as lp
 
-FOCUS, SENSOR = "focus_distance", "sensor_distance"
+FOCUS, SENSOR, FOCAL = "focus_distance", "sensor_distance", "focal_length"
 #: a lens being differentiated: the width, in aperture margin (1 − r²/R², :attr:`TraceResult.margin`), of the band
 #: inside the rims whose rays carry the rims' boundary term (``realistic_lens``: the tracer's margin; ``neural_lens``: the classifier's logit over its margin scale).  0.003 (0.15 % of a
 #: rim's radius): on dgauss-50mm's front curvature the band estimate was −1.77 ± 0.35 against central differences'
@@ -101,8 +102,8 @@ def attach(value: float, grads: dict, live: dict, float_type):
 class SensorParameters:
     """The parameters of one lens sensor (see the module docstring).
 
-    ``base``: the lens as loaded; ``configure``: ``f(lens, focus_mm or None, sensor_distance_mm or None) →
-    LensSetup`` (the sensor's :func:`~mi_neurallens.sensors.common.configure_lens` with its other properties
+    ``base``: the lens as loaded; ``configure``: ``f(lens, focus_mm or None, sensor_distance_mm or None,
+    focal_length_mm) → LensSetup`` (the sensor's :func:`~mi_neurallens.sensors.common.configure_lens` with its other properties
     bound); ``setup``: the configured lens of the loaded scene; ``lens_params``: whether the prescription is
     exposed (``realistic_lens``) or only the focus (``neural_lens``); ``focus_driven``: whether the scene gave
     ``focus_distance`` (the sensor distance follows it) rather than ``sensor_distance``."""
@@ -114,6 +115,10 @@ class SensorParameters:
         F = mi.Float
         self.values = {FOCUS: F(setup.focus_distance_mm / self.unit), SENSOR: F(setup.sensor_distance_mm)}
         self.keys = [FOCUS, SENSOR]
+        moving = getattr(base, "moving", None)
+        if moving is not None and moving.is_zoom:        # a zoom lens: zooming is a parameter change too
+            self.values[FOCAL] = F(setup.focal_length_mm)
+            self.keys.append(FOCAL)
         if lens_params:
             for key in lp.parameter_names(base):
                 v = lp.value_of(base, key)
@@ -146,9 +151,10 @@ class SensorParameters:
             raise NeuralLensError(
                 f"{self.plugin}: the updated parameters do not describe a lens: {e}.  "
                 "mi_neurallens.project_valid(params, 'sensor') moves them back into the valid region") from e
+        focal = numbers.get(FOCAL)
         if focus_driven:
-            return self.configure(lens, numbers[FOCUS] * self.unit, None)
-        return self.configure(lens, None, numbers[SENSOR])
+            return self.configure(lens, numbers[FOCUS] * self.unit, None, focal)
+        return self.configure(lens, None, numbers[SENSOR], focal)
 
     def changed(self, keys) -> bool:
         """Note which of ``keys`` (the names ``parameters_changed`` got) are ours; True when any is."""
@@ -176,7 +182,7 @@ class SensorParameters:
         F = self.mi.Float
         numbers = {k: self._numbers(k) for k in self.keys}
         setup = self._setup_of(numbers, self.focus_driven)
-        live = {k: self.values[k] for k in self.live if k not in (FOCUS, SENSOR)}
+        live = {k: self.values[k] for k in self.live if k not in (FOCUS, SENSOR, FOCAL)}
         diff = [k for k in self.live if dr.grad_enabled(self.values[k])]
         if diff and getattr(self.base, "moving", None) is not None:
             raise NeuralLensError(

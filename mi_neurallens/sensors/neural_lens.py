@@ -88,8 +88,8 @@ Neural lens camera (:monosp:`neural_lens`)
      ``fresnel=false`` replaces the learned throughput by 1.  A lens with moving groups (zoom, internal
      focusing) takes ``focal_length`` and ``focus_distance`` as ``realistic_lens`` does, and its model's one camera
      map takes the zoom and focus parameters as inputs beside the ray: any focal length and focus distance the map
-     learned renders without recompiling (a clear error outside them; docs/neural_lens.md, "Zoom and internal
-     focusing").
+     learned renders (a clear error outside them), and changed with ``params.update()`` compiles no kernel after
+     the first update (docs/neural_lens.md, "Zoom and internal focusing").
 
 The evaluation order per camera ray: film point and pupil sample (as ``realistic_lens``), then the
 ray is moved to the model's input plane, reduced by the lens's rotational and mirror symmetry to

@@ -45,7 +45,8 @@ Realistic lens camera (:monosp:`realistic_lens`)
    - A zoom lens's focal length in mm (its EFL at infinity focus, 587.6 nm): the zoom groups move to it, the
      focusing groups keep ``focus_distance`` on the sensor, and the f-number, pupils and field of view follow.
      Within the range the prescription lists (a clear error outside it); refused for a lens that does not zoom.
-     (Default: the prescription's first listed position)
+     A parameter in ``mi.traverse`` like ``focus_distance``: after a first ``params.update()``, zooming and
+     refocusing compile no kernel.  (Default: the prescription's first listed position)
 
  * - fstop
    - |float|
