@@ -82,6 +82,7 @@ def test_frozen_exact_flare_equals_the_traced_one():
         a, b = traced.render(seed=seed, samples=n).total, frozen.render(seed=seed, samples=n).total
         assert _same(a, b)
         counts.append(frozen.kernels.frozen["splat"].n_recordings if "splat" in frozen.kernels.frozen else 0)
+    assert not frozen.kernels.unfrozen          # the tracer's configuration numbers handed in: frozen, not traced
     # one recording per ghost, then replays; within a whole test run Dr.Jit records each once more at a render
     # that depends on what ran before on the worker (seen after the 2nd, the 3rd and the 7th): at most two
     # recordings per ghost in 7 renders, so at least 10 of the 14 kernel launches were replays

@@ -235,7 +235,12 @@ def test_zoom_and_focus_as_parameters_compile_nothing(zoom, sensor):
             "ball": {"type": "sphere", "center": [0.0, 0.0, 1.5], "radius": 0.3,
                      "bsdf": {"type": "diffuse", "reflectance": {"type": "checkerboard"}}}})
 
-    sc = scene(focal_length=30.0, focus_distance=2.0)
+    loaded = scene(focus_distance=2.0)           # at the first listed position (a float64 focal length)
+    p = mi.traverse(loaded)
+    p["sensor.focus_distance"] = 1.5                # a focus pull there keeps that focal length
+    p.update()
+    assert loaded.sensors()[0].setup.zoom == 0.0
+    sc = scene(focal_length=30.0, focus_distance=2.0, fstop=4.0)       # the stop's radius moves with the zoom
     p = mi.traverse(sc)
     assert "sensor.focal_length" in p.keys() and p["sensor.focal_length"][0] == pytest.approx(30.0)
     hashes = []
@@ -247,7 +252,7 @@ def test_zoom_and_focus_as_parameters_compile_nothing(zoom, sensor):
             img = np.array(mi.render(sc, seed=5))
             hashes.append({h["hash"] for h in dr.kernel_history() if h["type"] == dr.KernelType.JIT})
         assert sc.sensors()[0].setup.focal_length_mm == pytest.approx(f)
-        ref = np.array(mi.render(scene(focal_length=f, focus_distance=d), seed=5))
+        ref = np.array(mi.render(scene(focal_length=f, focus_distance=d, fstop=4.0), seed=5))
         assert img.mean() > 0.01 and mape(img, ref) < 1e-4, (f, d, mape(img, ref))
     assert hashes[1] <= hashes[0] and hashes[2] <= hashes[0]
     prime = mi.traverse(mi.load_dict({"type": "scene", "sensor": {"type": "realistic_lens",

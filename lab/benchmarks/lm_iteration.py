@@ -10,7 +10,7 @@ a 2×16 classifier (1 output: 369 weights) and the camera map's 2×32 stop head 
 * ``jacobian``: the whole scaled Jacobian (``FlatMLP.jacobian``, scaled by ∂r/∂z, then ``JᵀJ`` as one product), what
   the finish did before;
 * ``blocks``: ``FlatMLP.normal_equations`` — the hidden layers' columns and the residuals in one buffer, its Gram
-  matrix by symmetric blocks, the output layer per output.
+  matrix by panels (its upper triangle), the output layer per output.
 
 and checks that both give the same matrix (relative difference, float32).  Run it on an idle machine.
 """

@@ -75,13 +75,15 @@ class GhostEvaluator:
         """``(signature, inputs)`` for the renderer's frozen kernels: a learned map whose numbers are kernel
         inputs (``mlp`` shared or coopvec) shares its signature with every map of its architecture and hands
         its numbers and packed networks (``inputs``, Dr.Jit variables); any other map (the tracer, literals, a
-        baseline) has a signature of its own and no inputs."""
+        baseline) has a signature of its own, and hands what it reads besides literals (the tracer's configuration
+        numbers, a configured learned map's folded layers and planes: ``kernel_inputs``).  With :attr:`z_var`
+        the sensor plane is an input too."""
         tm = self.map
         sig = tm.kernel_signature() if hasattr(tm, "kernel_signature") else None
         z, zs = (self.z, []) if self.z_var is None else ("input", [self.z_var])
         if sig is None:
-            # the tracer's live geometry and planes (a renderer's configuration numbers) are its inputs
-            inputs = tm.kernel_inputs(float_t) if tm.method == "exact" else []
+            # the tracer's live geometry and planes, a configured learned map's folded numbers and planes: inputs
+            inputs = tm.kernel_inputs(float_t) if hasattr(tm, "kernel_inputs") else []
             return ("map", tm.method, tm.key, z, self.fresnel, self.band, self.iris_mm), inputs + zs
         extra = [self._iris_width(float_t)] if self.iris_mm > 0.0 else []
         return (sig, z, self.fresnel, self.band, self.iris_mm > 0.0), tm.kernel_inputs(float_t) + extra + zs

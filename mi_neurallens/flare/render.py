@@ -291,9 +291,8 @@ class FlareRenderer:
     def exact_map(self, pid):
         """The tracer on path ``pid``, from the flare's input plane to the sensor plane."""
         from ..transport.exact import ExactMap
-        z_in, z_img = self.kernels.planes()
         return ExactMap(self.lens, pid, "forward", self.z_in, self.z_img, tracer=self.tracer,
-                        numbers={"z_in": z_in, "z_out": self.tracer.image_z})
+                        numbers={"z_in": self.kernels.planes()[0], "z_out": self.tracer.image_z})
 
     def evaluator(self, pid):
         """The :class:`GhostEvaluator` of path ``pid`` according to ``mode``: the exact map, the learned

@@ -105,7 +105,7 @@ class SensorParameters:
     ``base``: the lens as loaded; ``configure``: ``f(lens, focus_mm or None, sensor_distance_mm or None,
     focal_length_mm) → LensSetup`` (the sensor's :func:`~mi_neurallens.sensors.common.configure_lens` with its other properties
     bound); ``setup``: the configured lens of the loaded scene; ``lens_params``: whether the prescription is
-    exposed (``realistic_lens``) or only the focus (``neural_lens``); ``focus_driven``: whether the scene gave
+    exposed (``realistic_lens``) or only the focus and a zoom lens's focal length (``neural_lens``); ``focus_driven``: whether the scene gave
     ``focus_distance`` (the sensor distance follows it) rather than ``sensor_distance``."""
 
     def __init__(self, mi, base, setup, configure, *, lens_params: bool, focus_driven: bool, plugin: str):
@@ -151,10 +151,11 @@ class SensorParameters:
             raise NeuralLensError(
                 f"{self.plugin}: the updated parameters do not describe a lens: {e}.  "
                 "mi_neurallens.project_valid(params, 'sensor') moves them back into the valid region") from e
-        focal = numbers.get(FOCAL)
+        # the focal length as loaded (float64, where float32 could round it out of the lens's range) until it changes
+        kw = {"focal_length_mm": numbers[FOCAL]} if FOCAL in self.live else {}
         if focus_driven:
-            return self.configure(lens, numbers[FOCUS] * self.unit, None, focal)
-        return self.configure(lens, None, numbers[SENSOR], focal)
+            return self.configure(lens, numbers[FOCUS] * self.unit, None, **kw)
+        return self.configure(lens, None, numbers[SENSOR], **kw)
 
     def changed(self, keys) -> bool:
         """Note which of ``keys`` (the names ``parameters_changed`` got) are ours; True when any is."""

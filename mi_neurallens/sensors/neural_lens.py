@@ -285,7 +285,11 @@ class NeuralLens(LensSensorBase):
             if net is not None and net.live:
                 from ..neural.coopvec import LiveNetwork
                 live = LiveNetwork(net.layers(), tm.out_scale, tm.out_shift, tm.regressor_activation, mi.Float)
-            return dataclasses.replace(tm, use_classifier=self.use_classifier, mlp=self.mlp, iris=self._iris(tm),
+            iris = self._iris(tm)
+            if iris is not None and tm.domain.conditions is not None:
+                # the stop's radius at this f-number moves with the zoom and focus: a kernel input, not a literal
+                iris = dataclasses.replace(iris, radius_mm=dr.opaque(mi.Float, float(iris.radius_mm)))
+            return dataclasses.replace(tm, use_classifier=self.use_classifier, mlp=self.mlp, iris=iris,
                                        live_regressor=live)
         # a baseline between the same planes (docs/baselines.md); the map starts on its input
         # plane: the pupil sample only gives the direction
