@@ -11,8 +11,8 @@ Dr.Jit traces these functions into one kernel each per evaluator: the renderer's
 size) are literals, everything that changes between calls (the light, the scene, the camera's pose, the
 film factor K / A_pix, sample counts) is an input, and so are the numbers a zoom or focus changes (the input and
 sensor planes here, the tracer's vertex positions and stop radius), so that another configuration of the lens
-reuses the kernels compiled for the first (Dr.Jit's kernel cache).  :meth:`FlareKernels.run` replays a kernel recorded with
-``dr.freeze`` instead of tracing it again (docs/flares.md, "Frozen kernels").
+reuses the kernels compiled for the first (Dr.Jit's kernel cache).  :meth:`FlareKernels.run` replays a kernel
+recorded with ``dr.freeze`` instead of tracing it again (docs/flares.md, "Frozen kernels").
 """
 from __future__ import annotations
 

@@ -20,9 +20,9 @@ A subclass provides the transport (sensor → object space) by overriding:
 * ``_describe()`` → extra text for ``to_string``.
 
 ``mi.traverse`` exposes ``to_world``, the focus distance, the sensor distance, a zoom lens's focal length and,
-for a sensor with ``LENS_PARAMETERS`` (``realistic_lens``), the prescription (:mod:`.live`); ``params.update()`` re-derives the
-configured lens.  A subclass may add parameters of its own (``_traverse_more``, ``_changed_more``: the learned
-map's regressor weights of ``neural_lens``).
+for a sensor with ``LENS_PARAMETERS`` (``realistic_lens``), the prescription (:mod:`.live`); ``params.update()``
+re-derives the configured lens.  A subclass may add parameters of its own (``_traverse_more``, ``_changed_more``:
+the learned map's regressor weights of ``neural_lens``).
 """
 from __future__ import annotations
 
@@ -335,9 +335,9 @@ class LensSensorBase(mi.Sensor):
         return False
 
     def parameters_changed(self, keys=[]):
-        """After ``params.update()``: a changed focus, sensor distance, focal length or prescription parameter re-derives the
-        configured lens, its pupil bounds and normalisation, and makes the changed parameters kernel inputs
-        (:mod:`.live`); an invalid parameter set is a :class:`~mi_neurallens.errors.NeuralLensError`."""
+        """After ``params.update()``: a changed focus, sensor distance, focal length or prescription parameter
+        re-derives the configured lens, its pupil bounds and normalisation, and makes the changed parameters kernel
+        inputs (:mod:`.live`); an invalid parameter set is a :class:`~mi_neurallens.errors.NeuralLensError`."""
         from ..trace.parameters import LiveGeometry
         sp = self.lens_parameters
         own = self._changed_more(keys)

@@ -103,10 +103,11 @@ class SensorParameters:
     """The parameters of one lens sensor (see the module docstring).
 
     ``base``: the lens as loaded; ``configure``: ``f(lens, focus_mm or None, sensor_distance_mm or None,
-    focal_length_mm) → LensSetup`` (the sensor's :func:`~mi_neurallens.sensors.common.configure_lens` with its other properties
-    bound); ``setup``: the configured lens of the loaded scene; ``lens_params``: whether the prescription is
-    exposed (``realistic_lens``) or only the focus and a zoom lens's focal length (``neural_lens``); ``focus_driven``: whether the scene gave
-    ``focus_distance`` (the sensor distance follows it) rather than ``sensor_distance``."""
+    focal_length_mm=the loaded one) → LensSetup`` (the sensor's :func:`~mi_neurallens.sensors.common.configure_lens`
+    with its other properties bound); ``setup``: the configured lens of the loaded scene; ``lens_params``: whether
+    the prescription is exposed (``realistic_lens``) or only the focus and a zoom lens's focal length
+    (``neural_lens``); ``focus_driven``: whether the scene gave ``focus_distance`` (the sensor distance follows it)
+    rather than ``sensor_distance``."""
 
     def __init__(self, mi, base, setup, configure, *, lens_params: bool, focus_driven: bool, plugin: str):
         self.mi, self.base, self.configure, self.plugin = mi, base, configure, plugin
